@@ -176,7 +176,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
     z = target - eye
     z /= np.linalg.norm(z)
-    x = np.cross(z, -up)
+    x = np.cross(z, up)  # OpenCV: y (image down) = -up, and x = y cross z = z cross up
     if np.linalg.norm(x) < 1e-9:  # looking along up: pick any perpendicular
         x = np.cross(z, np.array([1.0, 0.0, 0.0]))
     x /= np.linalg.norm(x)

@@ -1,0 +1,102 @@
+"""Self-describing, validated, atomically written checkpoints (``ckpt.pt``).
+
+A checkpoint is a dict of tensors and plain Python types only, read with
+``torch.load(weights_only=True)`` (no pickled code runs)::
+
+    {"format": "atgs-checkpoint", "version": 1,
+     "model_config": {...}, "train_config": {...},      # dataclasses as dicts
+     "cameras": [Camera.to_dict()], "test_cameras": [names],
+     "num_frames": F, "fps": fps, "time_range": [0.0, (F - 1) / fps], "keyframes": [frames],
+     "step": int, "model": {...tensors...}, "trainer": {...optimizer state, RNG...} | None}
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import tempfile
+
+import torch
+
+from atgs.cameras import Camera
+
+FORMAT = "atgs-checkpoint"
+VERSION = 1
+REQUIRED = ("model_config", "cameras", "num_frames", "fps", "model", "step")
+
+
+class CheckpointError(ValueError):
+    """A file that is not a readable ATGS checkpoint of a supported version."""
+
+
+def save_checkpoint(path: str | Path, payload: dict) -> None:
+    """Write ``payload`` to ``path`` atomically: temp file in the same directory, fsync, rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = {"format": FORMAT, "version": VERSION, **payload}
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".tmp-", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            torch.save(data, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    try:  # make the rename durable
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
+
+
+def read_checkpoint(path: str | Path) -> dict:
+    """Load and validate a checkpoint dict; raises :class:`CheckpointError` with the fix."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found; pass the ckpt.pt written by atgs-train")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # truncated zip, foreign pickle with code, random bytes ...
+        raise CheckpointError(f"{path}: not a readable ATGS checkpoint (corrupt, truncated or foreign file: "
+                              f"{type(e).__name__}); re-train or pick another file") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not an ATGS checkpoint (format is "
+                              f"{data.get('format') if isinstance(data, dict) else type(data).__name__!r}, "
+                              f"expected {FORMAT!r})")
+    version = data.get("version")
+    if not isinstance(version, int) or version < 1:
+        raise CheckpointError(f"{path}: invalid checkpoint version {version!r}")
+    if version > VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {version} is newer than this atgs supports "
+                              f"({VERSION}); upgrade atgs")
+    missing = [k for k in REQUIRED if k not in data]
+    if missing:
+        raise CheckpointError(f"{path}: checkpoint is missing {missing}; the file is damaged or foreign")
+    return data
+
+
+def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>"):
+    from atgs.model.atgs_model import ATGSModel
+    from atgs.model.config import ModelConfig, from_dict
+
+    try:
+        cfg = from_dict(ModelConfig, data["model_config"])
+        cameras = [Camera.from_dict(c) for c in data["cameras"]]
+        model = ATGSModel.from_state(cfg, data["model"], int(data["num_frames"]), float(data["fps"]), cameras)
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"{path}: checkpoint contents are inconsistent ({type(e).__name__}: {e})") from None
+    model.test_camera_names = list(data.get("test_cameras", []))
+    return model
+
+
+def load_model(path: str | Path, device: str = "cpu"):
+    """``atgs.load``: the trained :class:`~atgs.model.atgs_model.ATGSModel` of a checkpoint."""
+    if device != "cpu":
+        raise CheckpointError(f"load_model(device={device!r}): only 'cpu' models are supported")
+    return model_from_checkpoint(read_checkpoint(path), path)

@@ -1,0 +1,92 @@
+"""``atgs-eval CKPT [--data DIR] [--out DIR] ...``: score a checkpoint on held-out cameras.
+
+Writes per_view.csv, summary.json and render|GT|error images (see :mod:`atgs.eval.evaluate`)
+and prints the mean metrics. Bad input gives one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any
+
+import tyro
+
+from atgs.eval.evaluate import METRICS, EvalConfig, EvalError, EvalResult, evaluate
+
+
+@dataclass
+class EvalArgs:
+    """Evaluate an ATGS checkpoint on the test cameras of a prepared scene."""
+
+    ckpt: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
+    """Checkpoint file written by atgs-train (ckpt.pt)."""
+    data: Path | None = None
+    """Prepared scene directory (default: the data path stored in the checkpoint)."""
+    out: Path | None = None
+    """Output directory (default: an 'eval' directory beside the checkpoint); replaced only on success."""
+    eval: Annotated[EvalConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=EvalConfig)
+
+
+def checkpoint_data_dir(ckpt: dict[str, Any]) -> Path | None:
+    """The prepared-scene path the model was trained on, if the checkpoint recorded one."""
+    train_cfg = ckpt.get("train_config") or {}
+    for v in (ckpt.get("data_dir"), ckpt.get("data"), train_cfg.get("data_dir"), train_cfg.get("data")):
+        if isinstance(v, (str, Path)) and str(v):
+            return Path(v)
+    return None
+
+
+def run(args: EvalArgs) -> EvalResult:
+    """Load checkpoint and scene, evaluate, write outputs (raises EvalError, DataError or
+    CheckpointError with one-line messages on bad input)."""
+    from atgs.checkpoint import model_from_checkpoint, read_checkpoint
+    from atgs.data.scene import PreparedScene
+
+    if not args.ckpt.is_file():
+        raise EvalError(f"{args.ckpt}: checkpoint not found; pass the ckpt.pt written by atgs-train")
+    ckpt = read_checkpoint(args.ckpt)  # validated, weights_only: the same path as atgs.load()
+    model = model_from_checkpoint(ckpt, args.ckpt)
+    data = args.data or checkpoint_data_dir(ckpt)
+    if data is None:
+        raise EvalError(f"{args.ckpt} does not record its data directory; pass --data DIR")
+    if not Path(data).is_dir():
+        raise EvalError(f"--data {data}: not a directory" + ("" if args.data else " (path stored in the checkpoint)"))
+    scene = PreparedScene.load(data)
+    out = args.out or args.ckpt.parent / "eval"
+    background = (ckpt.get("train_config") or {}).get("background")  # render over what training used
+    settings = {"checkpoint": str(args.ckpt.resolve()), "data": str(Path(data).resolve()),
+                "step": ckpt.get("step")}
+    return evaluate(model, scene, args.eval, out, background=background, settings=settings)
+
+
+def format_summary(result: EvalResult) -> str:
+    def f(v: Any) -> str:
+        return v if isinstance(v, str) else f"{v:.4f}"
+
+    lines = [f"{result.summary['num_views']} views -> {result.out_dir}"]
+    lines.append("  mean      " + "  ".join(f"{m}={f(result.mean(m))}" for m in METRICS))
+    for cam, means in result.summary["per_camera"].items():
+        lines.append(f"  {cam:<9} " + "  ".join(f"{m}={f(means[m])}" for m in METRICS))
+    if not result.summary["lpips"]["available"]:
+        lines.append(f"  lpips unavailable: {result.summary['lpips']['reason']}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from atgs.checkpoint import CheckpointError
+    from atgs.data.errors import DataError
+
+    args = tyro.cli(EvalArgs, args=argv)
+    try:
+        result = run(args)
+    except (EvalError, DataError, CheckpointError) as e:
+        print(f"atgs-eval: error: {e}", file=sys.stderr)
+        return 2
+    print(format_summary(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

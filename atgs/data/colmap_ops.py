@@ -1,0 +1,157 @@
+"""pycolmap (CPU) steps of the ingest: SfM for unposed cameras, known-pose triangulation.
+
+Dense stereo (``patch_match_stereo``) needs CUDA, so keyframe points come from sparse
+SIFT matching + triangulation with the camera poses held fixed.
+
+Pitfall handled here: the reconstruction handed to ``triangulate_points`` must use the image
+and camera ids of the database, so the database is filled first and its ids are read back.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from atgs.cameras import Camera
+from atgs.data.camera_formats import camera_from_colmap, colmap_camera_of, rigid3d_of
+from atgs.data.errors import DataError
+
+
+@dataclass(frozen=True)
+class ColmapOptions:
+    max_image_size: int = 1600  # SIFT on at most this many pixels along the long side
+    max_num_features: int = 8192
+    min_track_length: int = 2
+    max_reproj_error: float = 2.0  # px; triangulated points above this are dropped
+    min_tri_angle: float = 1.5  # degrees
+    num_threads: int = -1
+
+
+@contextlib.contextmanager
+def _quiet_glog():
+    """COLMAP logs through glog to stderr; keep the console for our progress bars."""
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 2
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def _extract_and_match(db: Path, image_root: Path, names: Sequence[str], opts: ColmapOptions,
+                       camera_model: str = "PINHOLE", shared_intrinsics: bool = False) -> None:
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    # Import sequentially first so that ids are deterministic: image i, camera i, rig i and
+    # frame i all equal position + 1 in ``names`` (parallel extraction would shuffle them).
+    pycolmap.Database.open(db).close()  # creates the empty database
+    mode = pycolmap.CameraMode.SINGLE if shared_intrinsics else pycolmap.CameraMode.PER_IMAGE
+    pycolmap.import_images(db, image_root, camera_mode=mode, image_names=list(names), options=reader)
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.max_image_size = opts.max_image_size
+    ext.num_threads = opts.num_threads
+    ext.sift.max_num_features = opts.max_num_features
+    pycolmap.extract_features(db, image_root, image_names=list(names), camera_mode=mode,
+                              reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.num_threads
+    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+
+
+def triangulate_known_poses(image_root: Path, image_names: Sequence[str], cameras: Sequence[Camera],
+                            work_dir: Path, opts: ColmapOptions = ColmapOptions()) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse points seen by the given posed, undistorted images.
+
+    ``image_names[i]`` (relative to ``image_root``) was taken by ``cameras[i]``.
+    Returns xyz (P,3) float64 and rgb (P,3) uint8.
+    """
+    import pycolmap
+
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db_path = work_dir / "database.db"
+    if db_path.exists():
+        db_path.unlink()
+    with _quiet_glog():
+        _extract_and_match(db_path, image_root, image_names, opts)
+        db = pycolmap.Database.open(db_path)
+        try:
+            by_name = {img.name: img for img in db.read_all_images()}
+        finally:
+            db.close()
+        rec = pycolmap.Reconstruction()
+        for i, (name, cam) in enumerate(zip(image_names, cameras)):
+            if name not in by_name:
+                raise DataError(f"{image_root / name}: COLMAP could not read this image")
+            dbimg = by_name[name]
+            if dbimg.image_id != i + 1 or dbimg.camera_id != i + 1:
+                raise RuntimeError(f"COLMAP database ids out of order for {name}")
+            rec.add_camera_with_trivial_rig(colmap_camera_of(cam, dbimg.camera_id))
+            img = pycolmap.Image(name=name, camera_id=dbimg.camera_id, image_id=dbimg.image_id)
+            rec.add_image_with_trivial_frame(img, rigid3d_of(cam))
+        popts = pycolmap.IncrementalPipelineOptions()
+        popts.triangulation.min_angle = opts.min_tri_angle
+        popts.num_threads = opts.num_threads
+        out_dir = work_dir / "model"
+        out_dir.mkdir(exist_ok=True)
+        rec = pycolmap.triangulate_points(rec, db_path, image_root, out_dir, clear_points=True, options=popts,
+                                          refine_intrinsics=False)
+    xyz, rgb = [], []
+    for p in rec.points3D.values():
+        if p.track.length() >= opts.min_track_length and p.error <= opts.max_reproj_error:
+            xyz.append(p.xyz)
+            rgb.append(p.color)
+    if not xyz:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return np.array(xyz, np.float64), np.array(rgb, np.uint8)
+
+
+def sfm_static_cameras(image_root: Path, image_names: Sequence[str], camera_names: Sequence[str],
+                       work_dir: Path, opts: ColmapOptions = ColmapOptions(),
+                       camera_model: str = "SIMPLE_RADIAL", shared_intrinsics: bool = True) -> list[Camera]:
+    """Poses and intrinsics of static cameras from one image each (incremental SfM).
+
+    With one image per camera the focal length of each camera is weakly constrained, so by
+    default all cameras share one intrinsic model (typical of a capture rig of identical
+    cameras); ``shared_intrinsics=False`` estimates one model per camera.
+
+    Every camera must register, else a :class:`DataError` names the ones that failed.
+    """
+    import pycolmap
+
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db_path = work_dir / "database.db"
+    if db_path.exists():
+        db_path.unlink()
+    with _quiet_glog():
+        _extract_and_match(db_path, image_root, image_names, opts, camera_model, shared_intrinsics)
+        popts = pycolmap.IncrementalPipelineOptions()
+        popts.num_threads = opts.num_threads
+        popts.random_seed = 0
+        popts.multiple_models = False
+        out_dir = work_dir / "sparse"
+        out_dir.mkdir(exist_ok=True)
+        models = pycolmap.incremental_mapping(db_path, image_root, out_dir, options=popts)
+    if not models:
+        raise DataError(f"{image_root}: structure-from-motion found no model from the first frames; "
+                        "the cameras need overlapping, textured views (or provide poses)")
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    by_name = {img.name: img for img in rec.images.values() if img.has_pose}
+    missing = [cn for n, cn in zip(image_names, camera_names) if n not in by_name]
+    if missing:
+        raise DataError(f"{image_root}: SfM could not register camera(s) {', '.join(missing)}; "
+                        "they need more overlap with the others (or provide poses)")
+    cams = []
+    for n, cn in zip(image_names, camera_names):
+        img = by_name[n]
+        cams.append(camera_from_colmap(rec.cameras[img.camera_id], img.cam_from_world(), cn))
+    return cams

@@ -1,0 +1,255 @@
+"""``atgs-prepare``: any supported multi-view video layout -> one prepared scene directory.
+
+Steps (each long one shows a progress bar):
+1. detect/open the source and check that every camera has the same number of frames;
+2. cameras: from the dataset's poses, or pycolmap SfM on the first selected frame (static rig);
+3. frames: decode lazily, undistort when the model has distortion, downscale, write PNG/JPG;
+4. keyframe points: pycolmap SIFT + exhaustive matching + triangulation with fixed poses at each
+   of K keyframes (CPU only; dense MVS would need CUDA);
+5. scene.json + points.ply; the directory is built as ``OUT.tmp-xxxx`` and renamed at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from PIL import Image
+
+from atgs.cameras import Camera
+from atgs.data.atomic import atomic_dir, check_output_dir
+from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras, triangulate_known_poses
+from atgs.data.errors import DataError
+from atgs.data.scene import save_frame, write_scene_metadata
+from atgs.data.sources import Source, SourceFormat, open_source
+from atgs.data.undistort import apply_undistort_map, build_undistort_map
+
+
+@dataclass(frozen=True)
+class PrepareConfig:
+    """Turn a multi-view video dataset into a prepared ATGS scene."""
+
+    src: Path
+    """Dataset directory (N3DV, COLMAP frame folders, EasyVolcap, plain videos or image folders)."""
+    out: Path
+    """Output directory; written atomically, never half-written."""
+    format: SourceFormat = "auto"
+    """Input layout; 'auto' detects it."""
+    downscale: float = 1.0
+    """Divide the resolution by this factor (2 = half width and height)."""
+    frames: str | None = None
+    """Frame range 'start:end[:step]' (end exclusive, Python style; empty parts allowed)."""
+    start: int | None = None
+    """First frame (alternative to --frames)."""
+    end: int | None = None
+    """End frame, exclusive (alternative to --frames)."""
+    test_cams: tuple[str, ...] | None = None
+    """Held-out camera names or indices (default: the dataset's convention, e.g. cam00)."""
+    keyframes: int = 5
+    """Number of evenly spaced keyframes at which sparse points are triangulated."""
+    trim_mismatch: bool = False
+    """If cameras have different frame counts, keep the shortest length (with a warning)."""
+    overwrite: bool = False
+    """Replace an existing output directory (only after the new one is complete)."""
+    image_format: Literal["png", "jpg"] = "png"
+    """Frame file format in the prepared scene."""
+    sift_max_image_size: int = 1600
+    """Longest image side used for SIFT."""
+    sfm_camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model estimated by SfM when the source has no poses."""
+    sfm_shared_intrinsics: bool = True
+    """SfM: one intrinsic model for all cameras (identical cameras); else one per camera."""
+    name: str | None = None
+    """Scene name (default: the output directory name)."""
+    progress: bool = True
+    """Show progress bars."""
+
+
+def parse_frame_range(spec: str | None, start: int | None, end: int | None, n: int) -> range:
+    """Selected source frames. ``spec`` is 'start:end[:step]' (end exclusive)."""
+    step = 1
+    if spec:
+        parts = spec.split(":")
+        if len(parts) not in (2, 3):
+            raise DataError(f"--frames {spec!r}: expected start:end or start:end:step")
+        try:
+            vals = [int(p) if p.strip() else None for p in parts]
+        except ValueError:
+            raise DataError(f"--frames {spec!r}: start, end and step must be integers") from None
+        if start is not None or end is not None:
+            raise DataError("--frames cannot be combined with --start/--end")
+        start, end = vals[0], vals[1]
+        step = vals[2] if len(vals) == 3 and vals[2] is not None else 1
+    s = 0 if start is None else start
+    e = n if end is None else end
+    if s < 0:
+        s += n
+    if e < 0:
+        e += n
+    if step < 1:
+        raise DataError(f"--frames: step must be >= 1, got {step}")
+    e = min(e, n)
+    if not 0 <= s < e:
+        raise DataError(f"frame range {s}:{e} is empty; the source has {n} frames per camera")
+    return range(s, e, step)
+
+
+def keyframe_indices(num_frames: int, k: int) -> list[int]:
+    """K evenly spaced frames: keyframe j at round(j (F-1) / (K-1)) (the model's timeline convention)."""
+    k = max(1, min(int(k), num_frames))
+    if k == 1:
+        return [0]
+    return sorted({int(round(j * (num_frames - 1) / (k - 1))) for j in range(k)})
+
+
+def resolve_test_cams(spec: tuple[str, ...] | None, names: list[str], default: list[str]) -> list[str]:
+    if spec is None:
+        return [n for n in default if n in names]
+    out = []
+    for s in spec:
+        for item in str(s).split(","):
+            item = item.strip()
+            if not item:
+                continue
+            if item in names:
+                out.append(item)
+            elif item.lstrip("-").isdigit() and -len(names) <= int(item) < len(names):
+                out.append(names[int(item)])
+            else:
+                raise DataError(f"--test-cams {item!r}: no such camera (cameras: {', '.join(names)})")
+    return sorted(set(out), key=names.index)
+
+
+def check_frame_counts(src: Source, trim: bool) -> int:
+    counts = src.num_frames
+    n = min(counts)
+    if max(counts) != n:
+        short = int(np.argmin(counts))
+        longest = max(counts)
+        where = src.extra.get("missing", {}).get(src.camera_names[short]) or src.file_of(short)
+        msg = (f"{where}: camera {src.camera_names[short]} has {counts[short]} frames but others have up to "
+               f"{longest}")
+        if not trim:
+            raise DataError(msg + "; pass --trim-mismatch to keep the first " + str(n) + " frames of every camera")
+        print(f"warning: {msg}; trimming every camera to {n} frames", file=sys.stderr)
+    return n
+
+
+def prepare(cfg: PrepareConfig) -> Path:
+    """Run the whole ingest; returns the prepared directory."""
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    out = Path(cfg.out)
+    check_output_dir(out, cfg.overwrite)  # fail before any slow work
+    if cfg.downscale < 1.0:
+        raise DataError(f"--downscale {cfg.downscale}: must be >= 1 (2 halves the resolution)")
+    if cfg.keyframes < 1:
+        raise DataError(f"--keyframes {cfg.keyframes}: must be >= 1")
+    src = open_source(Path(cfg.src), cfg.format)
+    n_src = check_frame_counts(src, cfg.trim_mismatch)
+    sel = parse_frame_range(cfg.frames, cfg.start, cfg.end, n_src)
+    num_frames = len(sel)
+    test = resolve_test_cams(cfg.test_cams, src.camera_names, src.default_test)
+    colmap_opts = ColmapOptions(max_image_size=cfg.sift_max_image_size)
+    timings: dict[str, float] = {}
+    with atomic_dir(out, cfg.overwrite) as tmp:
+        work = tmp / "_work"
+        cams = src.cameras
+        if cams is None:
+            t = time.perf_counter()
+            cams = _sfm_cameras(src, sel[0], work / "sfm", cfg, colmap_opts)
+            timings["sfm"] = time.perf_counter() - t
+        for c, (w, h) in zip(cams, src.sizes):
+            if (c.width, c.height) != (w, h):
+                raise DataError(f"{src.file_of(src.camera_names.index(c.name))}: frames are {w}x{h} but the "
+                                f"camera model says {c.width}x{c.height}")
+        out_cams = [_output_camera(c, cfg.downscale) for c in cams]
+        t = time.perf_counter()
+        ext = "." + cfg.image_format
+        with tqdm(total=len(cams) * num_frames, desc="extract frames", unit="img", disable=not cfg.progress) as bar:
+            for ci, (cam, ocam) in enumerate(zip(cams, out_cams)):
+                (tmp / "images" / ocam.name).mkdir(parents=True)
+                umap = build_undistort_map(cam) if cam.dist is not None else None
+                for j, (_, img) in enumerate(src.frames(ci, sel)):
+                    if img.shape[:2] != (cam.height, cam.width):
+                        raise DataError(f"{src.file_of(ci)}: frame {sel[j]} is {img.shape[1]}x{img.shape[0]}, "
+                                        f"expected {cam.width}x{cam.height}")
+                    if umap is not None:
+                        img = apply_undistort_map(umap, img)
+                    if (ocam.width, ocam.height) != (cam.width, cam.height):
+                        img = np.asarray(Image.fromarray(img).resize((ocam.width, ocam.height), Image.BOX))
+                    save_frame(tmp, ocam, j, img, ext)
+                    bar.update(1)
+        timings["frames"] = time.perf_counter() - t
+        t = time.perf_counter()
+        kfs = keyframe_indices(num_frames, cfg.keyframes)
+        pts, cols, pkf = _keyframe_points(tmp, out_cams, test, kfs, ext, work, colmap_opts, cfg.progress)
+        timings["points"] = time.perf_counter() - t
+        shutil.rmtree(work, ignore_errors=True)
+        fps = src.fps / sel.step
+        source = {"path": str(Path(cfg.src).resolve()), "format": src.kind, "frames": [sel.start, sel.stop, sel.step],
+                  "downscale": cfg.downscale, "source_frames": n_src, **{k: v for k, v in src.extra.items()
+                                                                          if k not in ("missing",)}}
+        synth_side = Path(cfg.src) / "synth.json"
+        if synth_side.is_file():  # keep the ground truth description with the prepared scene
+            shutil.copy2(synth_side, tmp / "synth.json")
+            source["synth"] = "synth.json"
+        timings["total"] = time.perf_counter() - t0
+        source["timings_s"] = {k: round(v, 2) for k, v in timings.items()}
+        write_scene_metadata(tmp, out_cams, num_frames, pts, cols, pkf, fps=fps, keyframes=kfs, test_cameras=test,
+                             name=cfg.name or out.name, source=source)
+    return out
+
+
+def _output_camera(cam: Camera, downscale: float) -> Camera:
+    c = replace(cam, dist=None)
+    return c if downscale == 1.0 else c.scaled(1.0 / downscale)
+
+
+def _sfm_cameras(src: Source, frame: int, work: Path, cfg: PrepareConfig, opts: ColmapOptions) -> list[Camera]:
+    from tqdm import tqdm
+
+    img_dir = work / "images"
+    img_dir.mkdir(parents=True)
+    names = []
+    for ci, name in enumerate(tqdm(src.camera_names, desc="SfM: first frames", disable=not cfg.progress)):
+        for _, img in src.frames(ci, [frame]):
+            Image.fromarray(img).save(img_dir / f"{name}.png")
+        names.append(f"{name}.png")
+    print(f"running SfM on {len(names)} cameras (pycolmap, CPU)...", file=sys.stderr) if cfg.progress else None
+    return sfm_static_cameras(img_dir, names, src.camera_names, work, opts, cfg.sfm_camera_model,
+                              cfg.sfm_shared_intrinsics)
+
+
+def _keyframe_points(root: Path, cams: list[Camera], test: list[str], kfs: list[int], ext: str, work: Path,
+                     opts: ColmapOptions, progress: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Known-pose triangulation at each keyframe; test cameras are held out when possible."""
+    from tqdm import tqdm
+
+    use = [c for c in cams if c.name not in test]
+    if len(use) < 2:
+        use = list(cams)
+    P, C, Kf = [], [], []
+    for j, f in enumerate(tqdm(kfs, desc="keyframe points", disable=not progress)):
+        names = [f"{c.name}/{f:06d}{ext}" for c in use]
+        xyz, rgb = triangulate_known_poses(root / "images", names, use, work / f"kf{j:04d}", opts)
+        P.append(xyz)
+        C.append(rgb)
+        Kf.append(np.full(len(xyz), j, np.int64))
+    pts = np.concatenate(P) if P else np.zeros((0, 3))
+    if len(pts) == 0:
+        print("warning: no keyframe points could be triangulated (textureless or too few overlapping views); "
+              "the trainer will start from random points", file=sys.stderr)
+    return pts, np.concatenate(C) if C else np.zeros((0, 3), np.uint8), np.concatenate(Kf) if Kf else np.zeros(0, np.int64)
+
+
+def load_source_summary(path: Path) -> dict:
+    """Metadata of a prepared scene's source (what was prepared from where)."""
+    return json.loads((Path(path) / "scene.json").read_text()).get("source", {})

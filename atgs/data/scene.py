@@ -1,0 +1,285 @@
+"""Prepared scene: the on-disk layout written by ``atgs-prepare`` and its lazy reader.
+
+Layout (contract, see docs/ARCHITECTURE.md and docs/data.md)::
+
+    DIR/
+      scene.json   {"format": "atgs-scene", "version": 1, "name", "fps", "num_frames",
+                    "cameras": [Camera.to_dict(), ...]  (undistorted: dist is null),
+                    "test_cameras": [names], "keyframes": [frame indices, ascending],
+                    "bounds": {"min": [x,y,z], "max": [x,y,z]}, "source": {...}}
+      images/<camera name>/<frame:06d>.png  (or .jpg)   frame 0 .. num_frames-1
+      points.ply   x y z red green blue keyframe   (keyframe = index into "keyframes")
+
+Frames are never held in memory: :meth:`PreparedScene.image` decodes one file per call.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from atgs.cameras import Camera
+from atgs.data.atomic import atomic_dir
+from atgs.data.errors import DataError
+
+SCENE_FORMAT = "atgs-scene"
+SCENE_VERSION = 1
+IMAGE_EXTS = (".png", ".jpg")
+
+
+def frame_path(root: Path, camera_name: str, frame: int, ext: str = ".png") -> Path:
+    return Path(root) / "images" / camera_name / f"{frame:06d}{ext}"
+
+
+@dataclass
+class PreparedScene:
+    """A prepared multi-view video scene (read-only view of a directory)."""
+
+    root: Path
+    name: str
+    fps: float
+    num_frames: int
+    cameras: list[Camera]
+    test_cameras: list[str]
+    keyframes: list[int]
+    bounds: np.ndarray  # (2,3) float64: row 0 = min corner, row 1 = max corner
+    points: np.ndarray  # (P,3) float32
+    point_colors: np.ndarray  # (P,3) float32 in [0,1]
+    point_keyframes: np.ndarray  # (P,) int64, index into ``keyframes``
+    source: dict = field(default_factory=dict)
+    image_ext: str = ".png"
+
+    # --- loading ------------------------------------------------------------------------
+    @classmethod
+    def load(cls, root: str | Path) -> "PreparedScene":
+        root = Path(root)
+        meta_path = root / "scene.json"
+        if not meta_path.is_file():
+            raise DataError(f"{meta_path}: not found; is {root} a directory written by atgs-prepare?")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, ValueError) as e:
+            raise DataError(f"{meta_path}: unreadable JSON ({e}); re-run atgs-prepare") from None
+        if meta.get("format") != SCENE_FORMAT:
+            raise DataError(f"{meta_path}: 'format' is {meta.get('format')!r}, expected {SCENE_FORMAT!r}")
+        if meta.get("version") != SCENE_VERSION:
+            raise DataError(f"{meta_path}: unsupported version {meta.get('version')!r} (this reader knows {SCENE_VERSION})")
+        try:
+            cameras = [Camera.from_dict(c) for c in meta["cameras"]]
+            num_frames = int(meta["num_frames"])
+            fps = float(meta["fps"])
+            keyframes = [int(k) for k in meta.get("keyframes", [0])]
+            test_cameras = [str(n) for n in meta.get("test_cameras", [])]
+            b = meta["bounds"]
+            bounds = np.array([b["min"], b["max"]], dtype=np.float64).reshape(2, 3)
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataError(f"{meta_path}: missing or malformed field ({e}); re-run atgs-prepare") from None
+        names = [c.name for c in cameras]
+        if not cameras or num_frames < 1:
+            raise DataError(f"{meta_path}: no cameras or no frames")
+        if len(set(names)) != len(names):
+            raise DataError(f"{meta_path}: duplicate camera names")
+        unknown = [n for n in test_cameras if n not in names]
+        if unknown:
+            raise DataError(f"{meta_path}: test camera(s) {unknown} are not in 'cameras'")
+        if sorted(set(keyframes)) != keyframes or not keyframes or keyframes[0] < 0 or keyframes[-1] >= num_frames:
+            raise DataError(f"{meta_path}: 'keyframes' must be ascending unique frame indices in [0, {num_frames})")
+        cam_dir = root / "images" / names[0]
+        ext = next((e for e in IMAGE_EXTS if frame_path(root, names[0], 0, e).is_file()), None)
+        if ext is None:
+            raise DataError(f"{frame_path(root, names[0], 0)}: first frame of camera {names[0]} not found in {cam_dir}")
+        pts, cols, kfs = read_points_ply(root / "points.ply")
+        if len(kfs) and (kfs.min() < 0 or kfs.max() >= len(keyframes)):
+            raise DataError(f"{root / 'points.ply'}: keyframe index out of range [0, {len(keyframes)})")
+        return cls(
+            root=root, name=str(meta.get("name", root.name)), fps=fps, num_frames=num_frames,
+            cameras=cameras, test_cameras=test_cameras, keyframes=keyframes, bounds=bounds,
+            points=pts, point_colors=cols, point_keyframes=kfs, source=dict(meta.get("source", {})),
+            image_ext=ext,
+        )
+
+    # --- camera splits ------------------------------------------------------------------
+    @property
+    def camera_names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    @property
+    def test_indices(self) -> list[int]:
+        test = set(self.test_cameras)
+        return [i for i, c in enumerate(self.cameras) if c.name in test]
+
+    @property
+    def train_indices(self) -> list[int]:
+        test = set(self.test_cameras)
+        return [i for i, c in enumerate(self.cameras) if c.name not in test]
+
+    # --- frames -------------------------------------------------------------------------
+    def image_path(self, cam_index: int, frame: int) -> Path:
+        if not 0 <= cam_index < len(self.cameras):
+            raise IndexError(f"camera index {cam_index} out of range [0, {len(self.cameras)})")
+        if not 0 <= frame < self.num_frames:
+            raise IndexError(f"frame {frame} out of range [0, {self.num_frames})")
+        return frame_path(self.root, self.cameras[cam_index].name, frame, self.image_ext)
+
+    def image(self, cam_index: int, frame: int) -> np.ndarray:
+        """Frame ``frame`` of camera ``cam_index`` as (H,W,3) float32 in [0,1], read from disk now."""
+        return self.image_uint8(cam_index, frame).astype(np.float32) / 255.0
+
+    def image_uint8(self, cam_index: int, frame: int) -> np.ndarray:
+        path = self.image_path(cam_index, frame)
+        try:
+            with Image.open(path) as im:
+                arr = np.asarray(im.convert("RGB"))
+        except FileNotFoundError:
+            raise DataError(f"{path}: frame file missing; re-run atgs-prepare") from None
+        except OSError as e:
+            raise DataError(f"{path}: unreadable image ({e}); re-run atgs-prepare") from None
+        cam = self.cameras[cam_index]
+        if arr.shape[:2] != (cam.height, cam.width):
+            raise DataError(f"{path}: size {arr.shape[1]}x{arr.shape[0]} differs from camera {cam.name} ({cam.width}x{cam.height})")
+        return arr
+
+
+# --- points.ply -----------------------------------------------------------------------------
+
+def write_points_ply(path: Path, points: np.ndarray, colors: np.ndarray, keyframes: np.ndarray) -> None:
+    """Binary PLY with x y z (float32), red green blue (uint8), keyframe (int32)."""
+    from plyfile import PlyData, PlyElement
+
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    colors = np.asarray(colors).reshape(-1, 3)
+    # float colors are in [0,1], integer colors in [0,255]
+    colors = colors.astype(np.float64) * 255.0 if colors.dtype.kind == "f" else colors.astype(np.float64)
+    keyframes = np.asarray(keyframes, dtype=np.int64).reshape(-1)
+    if not (len(points) == len(colors) == len(keyframes)):
+        raise ValueError("points, colors and keyframes must have the same length")
+    v = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"),
+                                     ("green", "u1"), ("blue", "u1"), ("keyframe", "i4")])
+    v["x"], v["y"], v["z"] = points.T
+    c = np.clip(np.round(colors), 0, 255).astype(np.uint8)
+    v["red"], v["green"], v["blue"] = c.T
+    v["keyframe"] = keyframes
+    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(path))
+
+
+def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    from plyfile import PlyData
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: not found; re-run atgs-prepare")
+    try:
+        v = PlyData.read(str(path))["vertex"].data
+        pts = np.stack([v["x"], v["y"], v["z"]], axis=-1).astype(np.float32)
+        cols = np.stack([v["red"], v["green"], v["blue"]], axis=-1).astype(np.float32) / 255.0
+        kfs = np.asarray(v["keyframe"], dtype=np.int64)
+    except Exception as e:  # plyfile raises several types for truncated/odd files
+        raise DataError(f"{path}: unreadable point cloud ({type(e).__name__}: {e})") from None
+    return pts.reshape(-1, 3), cols.reshape(-1, 3), kfs.reshape(-1)
+
+
+# --- builder (used by atgs-prepare and by tests to make toy scenes) --------------------------
+
+def compute_bounds(points: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
+    """Scene bounds: the point cloud's box (robust 1-99 percentile, padded), or the camera
+    centers' box when there are no points."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) >= 20:
+        lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+    elif len(pts):
+        lo, hi = pts.min(0), pts.max(0)
+    else:
+        c = np.array([cam.center for cam in cameras])
+        lo, hi = c.min(0), c.max(0)
+    pad = 0.05 * max(float(np.max(hi - lo)), 1e-6)
+    return np.stack([lo - pad, hi + pad])
+
+
+def write_prepared_scene(
+    out: str | Path,
+    cameras: Sequence[Camera],
+    frames_fn: Callable[[int, int], np.ndarray],
+    num_frames: int,
+    points: np.ndarray | None = None,
+    point_colors: np.ndarray | None = None,
+    point_keyframes: np.ndarray | None = None,
+    *,
+    fps: float = 30.0,
+    keyframes: Sequence[int] | None = None,
+    test_cameras: Sequence[str] = (),
+    name: str | None = None,
+    bounds: np.ndarray | None = None,
+    source: dict | None = None,
+    image_ext: str = ".png",
+    overwrite: bool = False,
+    progress: bool = False,
+) -> Path:
+    """Write a prepared scene atomically and return its path.
+
+    ``frames_fn(cam_index, frame)`` returns an (H,W,3) image (uint8, or float in [0,1]); it is
+    called once per file so the frames never need to be in memory together.
+    """
+    from tqdm import tqdm
+
+    out = Path(out)
+    cameras = list(cameras)
+    if any(c.dist is not None for c in cameras):
+        raise ValueError("prepared scenes hold undistorted cameras (dist must be None)")
+    if image_ext not in IMAGE_EXTS:
+        raise ValueError(f"image_ext must be one of {IMAGE_EXTS}")
+    pts = np.zeros((0, 3), np.float32) if points is None else np.asarray(points, np.float32).reshape(-1, 3)
+    cols = np.full_like(pts, 0.5) if point_colors is None else np.asarray(point_colors, np.float32).reshape(-1, 3)
+    kfs = np.zeros(len(pts), np.int64) if point_keyframes is None else np.asarray(point_keyframes, np.int64)
+    keyframes = [0] if keyframes is None else sorted({int(k) for k in keyframes})
+    with atomic_dir(out, overwrite) as tmp:
+        total = len(cameras) * num_frames
+        with tqdm(total=total, desc="write frames", unit="img", disable=not progress) as bar:
+            for ci, cam in enumerate(cameras):
+                (tmp / "images" / cam.name).mkdir(parents=True)
+                for f in range(num_frames):
+                    save_frame(tmp, cam, f, np.asarray(frames_fn(ci, f)), image_ext)
+                    bar.update(1)
+        write_scene_metadata(tmp, cameras, num_frames, pts, cols, kfs, fps=fps, keyframes=keyframes,
+                             test_cameras=test_cameras, name=name or out.name, bounds=bounds, source=source)
+    return out
+
+
+def save_frame(root: Path, cam: Camera, frame: int, img: np.ndarray, image_ext: str = ".png") -> None:
+    """Write one frame of a prepared scene (uint8, or float in [0,1])."""
+    if img.dtype != np.uint8:
+        img = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+    if img.shape[:2] != (cam.height, cam.width):
+        raise ValueError(f"frame {frame} of {cam.name}: shape {img.shape} != ({cam.height},{cam.width},3)")
+    opts = {"compress_level": 1} if image_ext == ".png" else {"quality": 95}
+    Image.fromarray(img[..., :3]).save(frame_path(root, cam.name, frame, image_ext), **opts)
+
+
+def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int, points: np.ndarray,
+                         point_colors: np.ndarray, point_keyframes: np.ndarray, *, fps: float,
+                         keyframes: Sequence[int], test_cameras: Sequence[str], name: str,
+                         bounds: np.ndarray | None = None, source: dict | None = None) -> None:
+    """Write scene.json and points.ply into ``root`` (whose images/ already exist), then validate."""
+    root = Path(root)
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    if bounds is None:
+        bounds = compute_bounds(pts, cameras)
+    meta = {
+        "format": SCENE_FORMAT,
+        "version": SCENE_VERSION,
+        "name": name,
+        "fps": float(fps),
+        "num_frames": int(num_frames),
+        "cameras": [c.to_dict() for c in cameras],
+        "test_cameras": list(test_cameras),
+        "keyframes": keyframes,
+        "bounds": {"min": np.asarray(bounds)[0].tolist(), "max": np.asarray(bounds)[1].tolist()},
+        "source": dict(source or {}),
+    }
+    write_points_ply(root / "points.ply", pts, point_colors, point_keyframes)
+    (root / "scene.json").write_text(json.dumps(meta, indent=1))
+    PreparedScene.load(root)  # validate what we wrote before it becomes visible

@@ -1,0 +1,249 @@
+"""Input dataset layouts: detection and uniform per-camera frame access.
+
+Supported (``--format``):
+- ``n3dv``: ``camXX.mp4`` + ``poses_bounds.npy`` (rows follow the sorted video names);
+- ``colmap-frames``: ``frameNNNNNN/images/camXX.png`` + a COLMAP model in ``sparse/0`` (at the
+  top level or inside the first frame folder), the 3DGStream / VRU / MeetRoom style;
+- ``easyvolcap``: ``intri.yml`` + ``extri.yml`` + ``images/<cam>/<frame>.jpg``;
+- ``videos``: plain ``*.mp4`` (one per static camera) with no poses -> SfM on the first frame;
+- ``images``: ``<cam>/<frame>.png`` folders with no poses -> SfM on the first frame.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from PIL import Image
+
+from atgs.cameras import Camera
+from atgs.data.camera_formats import cameras_from_poses_bounds, cameras_from_reconstruction, read_easyvolcap
+from atgs.data.errors import DataError
+from atgs.data.video import VIDEO_EXTS, iter_frames, video_info
+
+SourceFormat = Literal["auto", "n3dv", "colmap-frames", "easyvolcap", "videos", "images"]
+IMAGE_FILE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+_FRAME_DIR = re.compile(r"^frame_?\d+$|^\d+$")
+
+
+@dataclass
+class Source:
+    """One camera per entry; frames are decoded lazily, one at a time."""
+
+    kind: str
+    root: Path
+    camera_names: list[str]
+    cameras: list[Camera] | None  # None: poses unknown (SfM needed)
+    num_frames: list[int]
+    sizes: list[tuple[int, int]]  # (width, height) of the frames as stored
+    fps: float
+    default_test: list[str]
+    videos: list[Path] | None = None  # one video per camera, or
+    images: list[list[Path]] | None = None  # per camera, the frame files in order
+    extra: dict = field(default_factory=dict)
+
+    def file_of(self, ci: int) -> Path:
+        return self.videos[ci] if self.videos is not None else self.root / self.camera_names[ci]
+
+    def frames(self, ci: int, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield (frame index, (H,W,3) uint8) for ascending ``indices``."""
+        indices = list(indices)
+        if not indices:
+            return
+        if self.videos is not None:
+            wanted = set(indices)
+            got = 0
+            for i, img in iter_frames(self.videos[ci], indices[0], indices[-1] + 1):
+                if i in wanted:
+                    got += 1
+                    yield i, img
+            if got < len(indices):
+                raise DataError(f"{self.videos[ci]}: decoded only {got} of the {len(indices)} requested frames "
+                                f"(the file is truncated or its header overstates the frame count)")
+        else:
+            for i in indices:
+                yield i, load_image(self.images[ci][i])
+
+
+def load_image(path: Path) -> np.ndarray:
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except FileNotFoundError:
+        raise DataError(f"{path}: image not found") from None
+    except OSError as e:
+        raise DataError(f"{path}: unreadable image ({e})") from None
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise DataError(f"{path}: image not found") from None
+    except OSError as e:
+        raise DataError(f"{path}: unreadable image ({e})") from None
+
+
+def _videos_in(root: Path) -> list[Path]:
+    return sorted(p for p in root.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_EXTS)
+
+
+def _images_in(d: Path) -> list[Path]:
+    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix in IMAGE_FILE_EXTS)
+
+
+def _frame_dirs(root: Path) -> list[Path]:
+    return sorted(p for p in root.iterdir() if p.is_dir() and _FRAME_DIR.match(p.name) and (p / "images").is_dir())
+
+
+def _camera_dirs(root: Path) -> list[Path]:
+    return sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and _images_in(p))
+
+
+def detect_format(root: Path) -> str:
+    root = Path(root)
+    if not root.exists():
+        raise DataError(f"{root}: source path does not exist")
+    if not root.is_dir():
+        raise DataError(f"{root}: source must be a directory (of videos, image folders or frame folders)")
+    if (root / "poses_bounds.npy").is_file():
+        return "n3dv"
+    if (root / "intri.yml").is_file() or (root / "extri.yml").is_file():
+        return "easyvolcap"
+    if _frame_dirs(root):
+        return "colmap-frames"
+    if _videos_in(root):
+        return "videos"
+    if (root / "images").is_dir() and _camera_dirs(root / "images"):
+        return "images"
+    if _camera_dirs(root):
+        return "images"
+    if not any(root.iterdir()):
+        raise DataError(f"{root}: folder is empty; expected camXX.mp4 videos, <cam>/ image folders, "
+                        "frameNNNNNN/images/ folders or intri.yml/extri.yml")
+    raise DataError(f"{root}: cannot recognise the layout; expected camXX.mp4 (+ poses_bounds.npy), "
+                    "<cam>/ image folders, frameNNNNNN/images/ + sparse/0, or intri.yml/extri.yml + images/; "
+                    "or pass --format")
+
+
+def open_source(root: Path, fmt: SourceFormat = "auto") -> Source:
+    root = Path(root)
+    kind = detect_format(root) if fmt == "auto" else fmt
+    if not root.is_dir():
+        raise DataError(f"{root}: source directory not found")
+    return {"n3dv": _open_n3dv, "colmap-frames": _open_colmap_frames, "easyvolcap": _open_easyvolcap,
+            "videos": _open_videos, "images": _open_images}[kind](root)
+
+
+# --- video layouts --------------------------------------------------------------------------
+
+def _video_source(root: Path, kind: str) -> Source:
+    vids = _videos_in(root)
+    if not vids:
+        raise DataError(f"{root}: no videos ({', '.join(VIDEO_EXTS)}) found")
+    infos = [video_info(v) for v in vids]
+    names = [v.stem for v in vids]
+    sizes = [(i[1], i[2]) for i in infos]
+    fps = infos[0][3]
+    test = ["cam00"] if "cam00" in names else [names[0]]
+    return Source(kind, root, names, None, [i[0] for i in infos], sizes, fps, test, videos=vids)
+
+
+def _open_n3dv(root: Path) -> Source:
+    src = _video_source(root, "n3dv")
+    pb = root / "poses_bounds.npy"
+    try:
+        arr = np.load(pb)
+    except (OSError, ValueError) as e:
+        raise DataError(f"{pb}: unreadable ({e})") from None
+    src.cameras, near_far = cameras_from_poses_bounds(arr, src.camera_names, src.sizes, source=str(pb))
+    src.extra["near_far"] = near_far.tolist()
+    return src
+
+
+def _open_videos(root: Path) -> Source:
+    return _video_source(root, "videos")
+
+
+# --- image-folder layouts ---------------------------------------------------------------------
+
+def _image_source(kind: str, root: Path, names: list[str], files: list[list[Path]], cameras: list[Camera] | None,
+                  test: list[str]) -> Source:
+    if not names:
+        raise DataError(f"{root}: no camera image folders found")
+    for n, f in zip(names, files):
+        if not f:
+            raise DataError(f"{root}: camera {n} has no images")
+    sizes = []
+    for n, f in zip(names, files):
+        sizes.append(image_size(f[0]))
+    return Source(kind, root, names, cameras, [len(f) for f in files], sizes, 30.0, test, images=files)
+
+
+def _open_images(root: Path) -> Source:
+    base = root / "images" if (root / "images").is_dir() and _camera_dirs(root / "images") else root
+    dirs = _camera_dirs(base)
+    if not dirs:
+        raise DataError(f"{base}: no camera folders with images found")
+    names = [d.name for d in dirs]
+    return _image_source("images", root, names, [_images_in(d) for d in dirs], None, [names[0]])
+
+
+def _open_easyvolcap(root: Path) -> Source:
+    img_root = root / "images"
+    if not img_root.is_dir():
+        raise DataError(f"{img_root}: missing (EasyVolcap scenes keep frames in images/<cam>/)")
+    dirs = {d.name: d for d in _camera_dirs(img_root)}
+    sizes = {n: image_size(_images_in(d)[0]) for n, d in dirs.items()}
+    cams = read_easyvolcap(root, sizes)
+    missing = [c.name for c in cams if c.name not in dirs]
+    if missing:
+        raise DataError(f"{img_root / missing[0]}: image folder missing for camera {missing[0]} listed in intri.yml")
+    names = [c.name for c in cams]
+    return _image_source("easyvolcap", root, names, [_images_in(dirs[n]) for n in names], cams, [names[0]])
+
+
+def _find_colmap_model(root: Path, first_frame: Path) -> Path:
+    for cand in (root / "sparse" / "0", root / "sparse", first_frame / "sparse" / "0", first_frame / "sparse"):
+        if (cand / "cameras.bin").is_file() or (cand / "cameras.txt").is_file():
+            return cand
+    raise DataError(f"{root / 'sparse' / '0'}: COLMAP model not found (also looked in {first_frame / 'sparse' / '0'})")
+
+
+def _open_colmap_frames(root: Path) -> Source:
+    import pycolmap
+
+    frames = _frame_dirs(root)
+    if not frames:
+        raise DataError(f"{root}: no frameNNNNNN/images/ folders found")
+    model = _find_colmap_model(root, frames[0])
+    try:
+        rec = pycolmap.Reconstruction(str(model))
+    except Exception as e:  # noqa: BLE001 - pycolmap raises generic errors for bad models
+        raise DataError(f"{model}: unreadable COLMAP model ({str(e).splitlines()[0][:120]})") from None
+    cams = cameras_from_reconstruction(rec)
+    if not cams:
+        raise DataError(f"{model}: the COLMAP model has no posed images")
+    first = {p.stem: p for p in _images_in(frames[0] / "images")}
+    cams = [c for c in cams if c.name in first]
+    if not cams:
+        raise DataError(f"{frames[0] / 'images'}: no image matches a COLMAP image name in {model}")
+    names = [c.name for c in cams]
+    files: list[list[Path]] = []
+    for n in names:
+        ext = first[n].suffix
+        files.append([f / "images" / f"{n}{ext}" for f in frames])
+    # a frame folder missing a camera's image makes that camera shorter: count present prefix
+    counts = []
+    for n, fl in zip(names, files):
+        k = next((i for i, p in enumerate(fl) if not p.is_file()), len(fl))
+        counts.append(k)
+    src = _image_source("colmap-frames", root, names, [fl[:k] for fl, k in zip(files, counts)], cams, [names[0]])
+    src.extra["colmap_model"] = str(model)
+    src.extra["missing"] = {n: str(fl[k]) for n, fl, k in zip(names, files, counts) if k < len(fl)}
+    return src

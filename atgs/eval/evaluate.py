@@ -1,0 +1,366 @@
+"""Evaluation of a model on the held-out cameras of a prepared scene.
+
+:func:`evaluate` is a library function (the trainer calls it for periodic and final
+evaluation; ``atgs-eval`` wraps it): for every selected camera and frame it renders
+``model.gaussians_at_frame(frame)`` with :func:`atgs.render.rasterize` from that camera,
+compares with the ground-truth image and returns per-view rows and a summary. With an output
+directory it also writes::
+
+    OUT/
+      per_view.csv           camera, frame, psnr, ssim, dssim1, dssim2, ms_ssim, dssim_ms, lpips
+      summary.json           means (overall, per camera), settings, metric definitions
+      images/<camera>/<frame:06d>.png   render | ground truth | error, a few frames per camera
+
+The directory is built beside OUT and swapped in only when complete: a failed or interrupted
+run leaves a previous OUT untouched.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import torch
+from PIL import Image
+
+from atgs.cameras import Camera
+from atgs.data.errors import DataError
+from atgs.data.atomic import atomic_dir
+from atgs.eval.lpips import LPIPS, load_lpips
+from atgs.eval.metrics import all_metrics, ms_ssim_levels
+from atgs.gaussians import Gaussians
+from atgs.progress import progress_bar
+
+METRICS = ("psnr", "ssim", "dssim1", "dssim2", "ms_ssim", "dssim_ms", "lpips")
+METRIC_DEFINITIONS = {
+    "psnr": "10 log10(1 / MSE), MSE over all pixels and channels of the view; averaged over views",
+    "ssim": "Gaussian window 11, sigma 1.5, K1 0.01, K2 0.03, data range 1, zero 'same' padding (3DGS)",
+    "dssim1": "(1 - ssim) / 2",
+    "dssim2": "(1 - SSIM with data range 2) / 2: scikit-image legacy defaults (7x7 uniform window, "
+              "sample covariance), as in SpacetimeGaussians and the ATGS paper's DSSIM2",
+    "ms_ssim": "MS-SSIM, 5 scales (fewer for small images, weights renormalised), weights "
+               "0.0448 0.2856 0.3001 0.2363 0.1333, valid Gaussian windows, 2x2 average pooling",
+    "dssim_ms": "(1 - ms_ssim) / 2 (the DSSIM of 4DGS, Yang et al.)",
+    "lpips": "LPIPS v0.1 AlexNet, inputs in [-1,1]; 'unavailable' when its weights are not on disk",
+}
+UNAVAILABLE = "unavailable"
+
+
+class EvalError(Exception):
+    """Bad evaluation input (cameras, frames, files); the message is one line for the user."""
+
+
+class EvalModel(Protocol):
+    num_frames: int
+    cameras: list[Camera]
+
+    def gaussians_at_frame(self, frame: int) -> Gaussians: ...
+
+
+class EvalScene(Protocol):
+    cameras: list[Camera]
+    num_frames: int
+
+    @property
+    def test_indices(self) -> list[int]: ...
+
+    def image(self, cam_index: int, frame: int) -> np.ndarray: ...
+
+
+@dataclass
+class EvalConfig:
+    """What to evaluate and what to write."""
+
+    frames: tuple[int, ...] = ()
+    """Frames to evaluate (default: all frames, thinned by --every)."""
+    every: int = 1
+    """Evaluate every N-th of the selected frames."""
+    cameras: tuple[str, ...] = ()
+    """Camera names to evaluate (default: the scene's test cameras)."""
+    images_per_camera: int = 3
+    """Side-by-side render|GT|error PNGs written per camera (evenly spaced frames; 0 = none)."""
+    error_gain: float = 4.0
+    """Absolute error is multiplied by this before colouring the error panel."""
+    lpips: bool = True
+    """Compute LPIPS when its weights are on disk (never downloaded)."""
+    lpips_backbone: Path | None = None
+    """torchvision AlexNet weights (default: the torch hub cache)."""
+    lpips_linear: Path | None = None
+    """LPIPS v0.1 alex.pth linear heads (default: an installed 'lpips' package)."""
+    resolution_scale: float = 1.0
+    """Evaluate at this fraction of the scene's resolution (ground truth downsampled with
+    Lanczos, as the trainer does); numbers below 1.0 do not compare with full-resolution ones."""
+    backend: Literal["auto", "cpu", "torch", "cuda"] = "auto"
+    """Rasterizer backend (auto: compiled CPU rasterizer, or gsplat for GPU tensors)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+@dataclass
+class EvalResult:
+    rows: list[dict[str, Any]]
+    summary: dict[str, Any]
+    out_dir: Path | None = None
+    renders: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
+
+    def mean(self, metric: str) -> float | str:
+        return self.summary["mean"][metric]
+
+
+# --- selection and validation ----------------------------------------------------------------------
+
+def select_cameras(model: EvalModel, scene: EvalScene, names: Sequence[str]) -> list[int]:
+    """Indices into ``scene.cameras`` to evaluate; checks they agree with the model's cameras."""
+    scene_names = [c.name for c in scene.cameras]
+    if names:
+        unknown = [n for n in names if n not in scene_names]
+        if unknown:
+            raise EvalError(f"--cameras: {unknown} not in the scene (cameras: {', '.join(scene_names)})")
+        indices = [scene_names.index(n) for n in dict.fromkeys(names)]
+    else:
+        indices = list(scene.test_indices)
+        if not indices:
+            raise EvalError("the scene has no test cameras; name the cameras to evaluate with --cameras")
+    model_cams = {c.name: c for c in model.cameras}
+    for i in indices:
+        sc = scene.cameras[i]
+        mc = model_cams.get(sc.name)
+        if mc is None:
+            raise EvalError(f"camera {sc.name!r} of the scene is not one of the checkpoint's cameras "
+                            f"({', '.join(model_cams)}); pass the --data the model was trained on")
+        if not cameras_agree(mc, sc):
+            raise EvalError(f"camera {sc.name!r} differs between the checkpoint and the scene (pose or "
+                            "intrinsics); pass the --data the model was trained on")
+    return indices
+
+
+def cameras_agree(a: Camera, b: Camera, tol: float = 1e-4) -> bool:
+    """Same pose, and same intrinsics up to an image rescale (K relative to the image size)."""
+    scale = max(1.0, float(np.abs(a.w2c[:3, 3]).max()))
+    if not np.allclose(a.w2c[:3, :3], b.w2c[:3, :3], atol=tol) or not np.allclose(a.t, b.t, atol=tol * scale):
+        return False
+    ka = a.K[:2] / np.array([[a.width], [a.height]])
+    kb = b.K[:2] / np.array([[b.width], [b.height]])
+    return bool(np.allclose(ka, kb, atol=tol))
+
+
+def select_frames(model: EvalModel, scene: EvalScene, frames: Sequence[int], every: int) -> list[int]:
+    if every < 1:
+        raise EvalError(f"--every must be >= 1, got {every}")
+    if int(model.num_frames) != int(scene.num_frames):
+        raise EvalError(f"the checkpoint has {model.num_frames} frames but the scene has {scene.num_frames}; "
+                        "pass the --data the model was trained on")
+    n = int(scene.num_frames)
+    chosen = sorted(dict.fromkeys(int(f) for f in frames)) if frames else list(range(n))
+    bad = [f for f in chosen if not 0 <= f < n]
+    if bad:
+        raise EvalError(f"--frames: {bad} out of range [0, {n})")
+    return chosen[::every]
+
+
+def image_frames(frames: Sequence[int], count: int) -> set[int]:
+    """``count`` evenly spaced entries of ``frames`` (first and last included)."""
+    if count <= 0 or not frames:
+        return set()
+    pos = np.unique(np.round(np.linspace(0, len(frames) - 1, min(count, len(frames)))).astype(int))
+    return {frames[p] for p in pos}
+
+
+# --- rendering and images --------------------------------------------------------------------------
+
+def render_view(g: Gaussians, cam: Camera, background: torch.Tensor | None, backend: str) -> torch.Tensor:
+    """(H,W,3) render of ``g`` from ``cam``, clamped to [0,1]."""
+    from atgs.render import rasterize
+
+    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors,
+                    torch.as_tensor(cam.w2c, dtype=g.means.dtype), torch.as_tensor(cam.K, dtype=g.means.dtype),
+                    cam.width, cam.height, background=background, backend=backend)
+    return out.image.detach().clamp(0.0, 1.0)
+
+
+def comparison_image(render: np.ndarray, gt: np.ndarray, gain: float) -> np.ndarray:
+    """render | ground truth | error heat map (black -> red -> yellow -> white), uint8."""
+    err = np.clip(np.abs(render - gt).mean(-1) * gain, 0.0, 1.0)
+    heat = np.stack([np.clip(3 * err, 0, 1), np.clip(3 * err - 1, 0, 1), np.clip(3 * err - 2, 0, 1)], -1)
+    panel = np.concatenate([render, gt, heat], axis=1)
+    return np.clip(np.round(panel * 255.0), 0, 255).astype(np.uint8)
+
+
+# --- the evaluation --------------------------------------------------------------------------------
+
+def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, out: Path | None = None,
+             *, background: Sequence[float] | torch.Tensor | None = None,
+             settings: dict[str, Any] | None = None, keep_renders: bool = False) -> EvalResult:
+    """Evaluate ``model`` on ``scene`` (see the module docstring).
+
+    ``background``: the RGB the model was trained over (the trainer's ``background``; default
+    ``model.background`` if it has one, else black). ``settings`` are extra entries for
+    summary.json (e.g. checkpoint and data paths). ``keep_renders`` keeps the (H,W,3) renders in
+    the result. Raises :class:`EvalError` on bad input.
+    """
+    cfg = cfg or EvalConfig()
+    if background is None:
+        background = getattr(model, "background", None)
+    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32).reshape(3)
+    cam_indices = select_cameras(model, scene, cfg.cameras)
+    frames = select_frames(model, scene, cfg.frames, cfg.every)
+    if not 0.0 < cfg.resolution_scale <= 1.0:
+        raise EvalError(f"--resolution-scale must be in (0, 1], got {cfg.resolution_scale}")
+    if cfg.lpips:
+        lpips_net, lpips_reason = load_lpips(cfg.lpips_backbone, cfg.lpips_linear)
+    else:
+        lpips_net, lpips_reason = None, "disabled (--no-lpips)"
+    small = [c.name for c in _eval_cameras(scene, cam_indices, cfg.resolution_scale)
+             if min(c.width, c.height) < LPIPS.MIN_SIZE]
+    if lpips_net is not None and small:
+        lpips_net, lpips_reason = None, f"images of {', '.join(small)} are smaller than {LPIPS.MIN_SIZE} px"
+    if out is None:
+        return _run(model, scene, cfg, cam_indices, frames, lpips_net, lpips_reason, None, bg, settings,
+                    keep_renders)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise EvalError(f"--out {out}: exists and is not a directory; choose another --out")
+    with atomic_dir(out, overwrite=True) as tmp:
+        result = _run(model, scene, cfg, cam_indices, frames, lpips_net, lpips_reason, tmp, bg, settings,
+                      keep_renders)
+    result.out_dir = out
+    return result
+
+
+def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[int], frames: list[int],
+         lpips_net: Any, lpips_reason: str, tmp: Path | None, background: torch.Tensor | None,
+         settings: dict[str, Any] | None, keep_renders: bool) -> EvalResult:
+    t0 = time.perf_counter()
+    cams = _eval_cameras(scene, cam_indices, cfg.resolution_scale)
+    picture_frames = image_frames(frames, cfg.images_per_camera) if tmp is not None else set()
+    rows: list[dict[str, Any]] = []
+    renders: dict[tuple[str, int], np.ndarray] = {}
+    num_gaussians: list[int] = []
+    was_training = getattr(model, "training", None)
+    if was_training and hasattr(model, "train"):
+        model.train(False)
+    try:
+        with torch.no_grad(), progress_bar(len(frames) * len(cams), "evaluate", unit="view",
+                                           enabled=cfg.progress) as bar:
+            for f in frames:
+                g = model.gaussians_at_frame(f).detach()
+                num_gaussians.append(len(g))
+                for ci, cam in zip(cam_indices, cams):
+                    gt_np = _ground_truth(scene, ci, f, cam)  # checked against the scene, resized to cam
+                    render = render_view(g, cam, None if background is None else background.to(g.means.dtype),
+                                         cfg.backend)
+                    gt = torch.from_numpy(gt_np).to(render.dtype)
+                    row: dict[str, Any] = {"camera": cam.name, "frame": f, **all_metrics(render, gt)}
+                    row["lpips"] = float(lpips_net(render, gt)) if lpips_net is not None else UNAVAILABLE
+                    rows.append(row)
+                    render_np = render.cpu().numpy().astype(np.float32)
+                    if keep_renders:
+                        renders[(cam.name, f)] = render_np
+                    if f in picture_frames:
+                        d = tmp / "images" / cam.name
+                        d.mkdir(parents=True, exist_ok=True)
+                        Image.fromarray(comparison_image(render_np, gt_np, cfg.error_gain)).save(
+                            d / f"{f:06d}.png", compress_level=1)
+                    bar.update(1)
+                    bar.set_postfix(cam=cam.name, frame=f, psnr=f"{row['psnr']:.2f}")
+    finally:
+        if was_training and hasattr(model, "train"):
+            model.train(True)
+    elapsed = time.perf_counter() - t0
+    summary = _summary(rows, cams, frames, cfg, lpips_net is not None, lpips_reason, num_gaussians, elapsed,
+                       background, settings or {})
+    if tmp is not None:
+        write_csv(tmp / "per_view.csv", rows)
+        (tmp / "summary.json").write_text(json.dumps(json_safe(summary), indent=1) + "\n")
+    return EvalResult(rows=rows, summary=summary, renders=renders)
+
+
+def _eval_cameras(scene: EvalScene, cam_indices: list[int], scale: float) -> list[Camera]:
+    return [scene.cameras[i].scaled(scale) if scale != 1.0 else scene.cameras[i] for i in cam_indices]
+
+
+def _ground_truth(scene: EvalScene, ci: int, f: int, cam: Camera) -> np.ndarray:
+    """Ground truth of camera ``ci`` at frame ``f`` as float32 (H,W,3), at ``cam``'s size."""
+    full = scene.cameras[ci]
+    try:
+        img = np.asarray(scene.image(ci, f), dtype=np.float32)
+    except DataError as e:  # already one line naming the file
+        raise EvalError(str(e)) from None
+    except (OSError, IndexError) as e:
+        raise EvalError(f"ground truth of camera {cam.name!r} frame {f}: {e}") from None
+    if img.shape != (full.height, full.width, 3):
+        raise EvalError(f"ground truth of camera {cam.name!r} frame {f} has shape {img.shape}, "
+                        f"expected ({full.height}, {full.width}, 3)")
+    if (cam.width, cam.height) != (full.width, full.height):
+        u8 = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+        small = Image.fromarray(u8).resize((cam.width, cam.height), Image.Resampling.LANCZOS)
+        img = np.asarray(small, dtype=np.float32) / 255.0
+    return img
+
+
+def _mean(rows: list[dict[str, Any]], metric: str) -> float | str:
+    vals = [r[metric] for r in rows]
+    if not vals or any(isinstance(v, str) for v in vals):
+        return UNAVAILABLE
+    return float(np.mean(vals))  # PSNR: mean of per-view PSNR (inf if any view is exact)
+
+
+def _summary(rows: list[dict[str, Any]], cams: list[Camera], frames: list[int], cfg: EvalConfig,
+             lpips_ok: bool, lpips_reason: str, num_gaussians: list[int], elapsed: float,
+             background: torch.Tensor | None, settings: dict[str, Any]) -> dict[str, Any]:
+    h, w = (cams[0].height, cams[0].width) if cams else (0, 0)
+    return {
+        "format": "atgs-eval",
+        "version": 1,
+        "num_views": len(rows),
+        "mean": {m: _mean(rows, m) for m in METRICS},
+        "per_camera": {c.name: {m: _mean([r for r in rows if r["camera"] == c.name], m) for m in METRICS}
+                       for c in cams},
+        "lpips": {"available": lpips_ok, "reason": "" if lpips_ok else lpips_reason},
+        "settings": {
+            **settings,
+            "cameras": [c.name for c in cams],
+            "frames": frames,
+            "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
+            "background": None if background is None else [float(v) for v in background],
+            "image_sizes": sorted({f"{c.width}x{c.height}" for c in cams}),
+            "ms_ssim_levels": ms_ssim_levels(h, w) if cams else None,
+            "mean_gaussians": float(np.mean(num_gaussians)) if num_gaussians else 0.0,
+            "seconds": round(elapsed, 3),
+        },
+        "definitions": METRIC_DEFINITIONS,
+    }
+
+
+# --- output files ----------------------------------------------------------------------------------
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return "inf" if math.isinf(v) and v > 0 else ("nan" if math.isnan(v) else f"{v:.6f}")
+    return str(v)
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["camera", "frame", *METRICS])
+        for r in rows:
+            w.writerow([r["camera"], r["frame"], *(_fmt(r[m]) for m in METRICS)])
+
+
+def json_safe(obj: Any) -> Any:
+    """Strict JSON: non-finite floats become the strings "inf", "-inf", "nan"."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return "nan" if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj

@@ -1,0 +1,85 @@
+"""Time-conditioned anchors from keyframe point clouds: voxel downsampling per keyframe and
+the initial log scale v (6 numbers: v[:3] scales offsets, v[3:] the base Gaussian scale)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class AnchorInit:
+    mu: torch.Tensor  # (A, 3) float32
+    log_scale: torch.Tensor  # (A, 6)
+    keyframe: torch.Tensor  # (A,) int64
+    voxel_size: float
+
+
+def auto_voxel_size(points: torch.Tensor, sample: int = 4096, generator: torch.Generator | None = None) -> float:
+    """Median nearest-neighbour spacing of (a sample of) the points."""
+    points = torch.unique(points, dim=0)  # duplicated points would give a zero spacing
+    if points.shape[0] < 2:
+        return 0.01
+    n = points.shape[0]
+    sel = torch.randperm(n, generator=generator)[: min(sample, n)]
+    d = knn_mean_sq_dist(points[sel], points, k=1, exclude_self=False, skip_zero=True)
+    return float(d.sqrt().median().clamp_min(1e-6))
+
+
+def knn_mean_sq_dist(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = True,
+                     skip_zero: bool = False, chunk: int = 2048) -> torch.Tensor:
+    """Mean squared distance from each query point to its k nearest reference points."""
+    out = []
+    extra = 1 if (exclude_self or skip_zero) else 0
+    kk = min(k + extra, ref.shape[0])
+    for i in range(0, query.shape[0], chunk):
+        d2 = torch.cdist(query[i: i + chunk].double(), ref.double()).pow(2)
+        vals = d2.topk(kk, dim=1, largest=False).values
+        if skip_zero:
+            vals = torch.where(vals <= 1e-18, torch.full_like(vals, float("inf")), vals)
+            vals = vals.sort(dim=1).values
+        if extra:
+            vals = vals[:, : kk - 1] if kk > 1 else vals
+        vals = vals[:, :k]
+        finite = torch.isfinite(vals)
+        mean = torch.where(finite, vals, torch.zeros_like(vals)).sum(1) / finite.sum(1).clamp_min(1)
+        out.append(mean.float())
+    return torch.cat(out) if out else torch.zeros(0)
+
+
+def voxel_downsample(points: torch.Tensor, voxel: float) -> torch.Tensor:
+    """One point per occupied voxel: the voxel center (as Scaffold-GS)."""
+    if points.shape[0] == 0:
+        return points
+    cells = torch.unique(torch.round(points / voxel).long(), dim=0)
+    return cells.float() * voxel
+
+
+def init_anchors(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: float = 0.0,
+                 max_per_keyframe: int = 0, generator: torch.Generator | None = None) -> AnchorInit:
+    """Anchors per keyframe group: voxel downsampled points; v = log(sqrt(mean squared distance
+    to the 3 nearest anchors of the same keyframe)) for all six numbers."""
+    points = points.float()
+    if points.shape[0] == 0:
+        raise ValueError("the scene has no points to initialize anchors from (points.ply is empty)")
+    if voxel_size > 0:
+        voxel = voxel_size
+    else:  # spacing within keyframe groups: groups re-observe the same static points
+        groups = [points[keyframes == k] for k in torch.unique(keyframes).tolist()]
+        voxel = float(np.median([auto_voxel_size(g, generator=generator) for g in groups]))
+    mus, kfs, scales = [], [], []
+    for k in torch.unique(keyframes).tolist():
+        p = voxel_downsample(points[keyframes == k], voxel)
+        if max_per_keyframe and p.shape[0] > max_per_keyframe:
+            p = p[torch.randperm(p.shape[0], generator=generator)[:max_per_keyframe]]
+        if p.shape[0] >= 2:
+            d2 = knn_mean_sq_dist(p, p, k=3)
+        else:
+            d2 = torch.full((p.shape[0],), voxel**2)
+        s = d2.clamp_min(1e-7 * voxel * voxel + 1e-12).sqrt().log()
+        mus.append(p)
+        kfs.append(torch.full((p.shape[0],), int(k), dtype=torch.int64))
+        scales.append(s[:, None].expand(-1, 6))
+    return AnchorInit(torch.cat(mus), torch.cat(scales).contiguous(), torch.cat(kfs), float(voxel))

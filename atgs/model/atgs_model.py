@@ -1,0 +1,275 @@
+"""ATGSModel: time-conditioned anchors + F_s + F_T,m + decoder -> Gaussians at time t.
+
+Large tables (anchor features and scales, F_s, the hash tables, the per-segment temporal MLPs)
+are plain tensors updated row-sparsely by :class:`atgs.train.optim.SparseAdam`; a tracked
+decode returns the leaves of the rows it touched. The decoder MLPs are an ``nn.Module``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+
+import numpy as np
+import torch
+
+from atgs.cameras import Camera
+from atgs.gaussians import Gaussians
+from atgs.model.anchors import AnchorInit, init_anchors
+from atgs.model.config import ModelConfig
+from atgs.model.decoder import DecodedGaussians, GaussianDecoder
+from atgs.model.grids import HashGrid4D, SpatialGrid
+from atgs.model.timeline import Timeline
+
+# Sparse (row-updated) tensors of the model; anchors are rows of the first three.
+ANCHOR_TABLES = ("anchor_feature", "anchor_log_scale")
+TEMPORAL_MLP = ("tmlp_w1", "tmlp_b1", "tmlp_w2", "tmlp_b2")
+
+
+@dataclass
+class SparseLeaf:
+    name: str
+    rows: torch.Tensor
+    leaf: torch.Tensor
+
+
+@dataclass
+class Decoded:
+    gaussians: Gaussians  # the Gaussians passed to the rasterizer
+    anchor_ids: torch.Tensor  # (N,) global anchor index of each Gaussian
+    slot_ids: torch.Tensor  # (N,) slot in 0..q-1
+    active: torch.Tensor  # (A,) global ids of decoded anchors
+    raw: DecodedGaussians  # all q Gaussians of each decoded anchor (for statistics)
+    segment: int
+    sparse: list[SparseLeaf] = field(default_factory=list)
+
+
+def num_segments_for(cfg: ModelConfig, num_frames: int) -> int:
+    if cfg.frames_per_segment > 0:
+        return max(1, math.ceil(num_frames / cfg.frames_per_segment))
+    return max(1, cfg.num_segments)
+
+
+def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Tensor, timeline: Timeline
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Map points of the scene's keyframes onto the model's K keyframes: keyframe j takes the
+    points of the scene keyframe nearest to its frame. Returns (point mask, new keyframe index)."""
+    sk = torch.tensor(scene_keyframes, dtype=torch.int64)
+    new_k = torch.full((len(scene_keyframes),), -1, dtype=torch.int64)
+    for j, f in enumerate(timeline.keyframe_frames()):
+        s = int((sk - f).abs().argmin())
+        if new_k[s] < 0:
+            new_k[s] = j
+    mapped = new_k[point_keyframes]
+    return mapped >= 0, mapped.clamp_min(0)
+
+
+class ATGSModel:
+    def __init__(self, cfg: ModelConfig, timeline: Timeline, cameras: list[Camera], fps: float,
+                 anchors: AnchorInit, bbox_min: torch.Tensor, bbox_max: torch.Tensor, extent: float,
+                 seed: int = 0) -> None:
+        self.cfg, self.timeline = cfg, timeline
+        self.cameras, self.fps, self.extent = list(cameras), float(fps), float(extent)
+        self.voxel_size = anchors.voxel_size
+        self.test_camera_names: list[str] = []
+        self.bbox_min, self.bbox_max = bbox_min.float(), bbox_max.float()
+        gen = torch.Generator().manual_seed(seed)
+        d = cfg.feature_dim
+        self.anchor_mu = anchors.mu.float().contiguous()
+        self.anchor_keyframe = anchors.keyframe.long()
+        self.anchor_feature = torch.zeros(self.num_anchors, d)
+        self.anchor_log_scale = anchors.log_scale.float().clone()
+        self.spatial = SpatialGrid(cfg.spatial_resolution if cfg.use_spatial_grid else 2, d)
+        h = cfg.hash
+        M = timeline.num_segments
+        self.hash = HashGrid4D(M, h.levels, h.features_per_level, h.log2_table_size, h.base_resolution,
+                               h.growth, h.max_time_resolution, generator=gen)
+        n_in = h.levels * h.features_per_level
+
+        def uni(shape: tuple[int, ...], fan_in: int) -> torch.Tensor:
+            b = 1.0 / math.sqrt(fan_in)
+            return (torch.rand(shape, generator=gen) * 2 - 1) * b
+
+        self.tmlp_w1 = uni((M, n_in, h.mlp_hidden), n_in)
+        self.tmlp_b1 = uni((M, h.mlp_hidden), n_in)
+        self.tmlp_w2 = uni((M, h.mlp_hidden, d), h.mlp_hidden)
+        self.tmlp_b2 = uni((M, d), h.mlp_hidden)
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            self.decoder = GaussianDecoder(2 * d, cfg.gaussians_per_anchor, cfg.hidden_opacity,
+                                           cfg.hidden_cov, cfg.hidden_color, cfg.hidden_offset)
+
+    # --- construction -------------------------------------------------------------------
+    @classmethod
+    def from_points(cls, cfg: ModelConfig, points: torch.Tensor, point_keyframes: torch.Tensor,
+                    scene_keyframes: list[int], num_frames: int, fps: float, cameras: list[Camera],
+                    train_cameras: list[Camera] | None = None, seed: int = 0) -> "ATGSModel":
+        K = cfg.num_keyframes if cfg.num_keyframes > 0 else len(scene_keyframes)
+        tl = Timeline(num_frames, K, cfg.window, num_segments_for(cfg, num_frames))
+        keep, kf = select_keyframe_points(scene_keyframes, point_keyframes.long(), tl)
+        gen = torch.Generator().manual_seed(seed)
+        anchors = init_anchors(points[keep], kf[keep], cfg.voxel_size, cfg.max_anchors_per_keyframe, gen)
+        lo, hi = anchors.mu.min(0).values, anchors.mu.max(0).values
+        size = (hi - lo).clamp_min(1e-3)
+        pad = cfg.bbox_padding * size
+        centers = np.stack([c.center for c in (train_cameras or cameras)])
+        radius = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 1.0
+        return cls(cfg, tl, cameras, fps, anchors, lo - pad, hi + pad, 1.1 * max(radius, 1e-3), seed)
+
+    # --- public API (docs/ARCHITECTURE.md) ----------------------------------------------------
+    @property
+    def num_frames(self) -> int:
+        return self.timeline.num_frames
+
+    @property
+    def num_keyframes(self) -> int:
+        return self.timeline.num_keyframes
+
+    @property
+    def num_segments(self) -> int:
+        return self.timeline.num_segments
+
+    @property
+    def num_anchors(self) -> int:
+        return int(self.anchor_mu.shape[0])
+
+    def window_at(self, t: float) -> tuple[int, int]:
+        return self.timeline.window_at(t)
+
+    def gaussians_at(self, t: float) -> Gaussians:
+        """All Gaussians at normalized time t (clamped to [0, 1])."""
+        f = self.timeline.frame_at(t)
+        m, tau = self.timeline.segment_at(t)
+        with torch.no_grad():
+            return self._decode(f, m, tau, None, track=False).gaussians
+
+    def gaussians_at_frame(self, f: int) -> Gaussians:
+        tl = self.timeline
+        with torch.no_grad():
+            return self._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), None, track=False).gaussians
+
+    def decode_frame(self, f: int, camera: Camera | None = None, track: bool = True) -> Decoded:
+        """Decode frame f for training (``track``: sparse leaves for the optimizer)."""
+        tl = self.timeline
+        return self._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), camera, track)
+
+    # --- decoding -----------------------------------------------------------------------------
+    def active_anchors(self, f: int) -> torch.Tensor:
+        lo, hi = self.timeline.window_of_frame(f)
+        k = self.anchor_keyframe
+        mask = (k >= lo) & (k <= hi)
+        if self.cfg.static_keyframe0:
+            mask |= k == 0
+        return mask
+
+    def in_frustum(self, cam: Camera, margin: float = 0.15) -> torch.Tensor:
+        R = torch.from_numpy(cam.R).float()
+        tr = torch.from_numpy(cam.t).float()
+        pc = self.anchor_mu @ R.T + tr
+        z = pc[:, 2]
+        zs = z.clamp_min(1e-6)
+        u = cam.fx * pc[:, 0] / zs + cam.cx
+        v = cam.fy * pc[:, 1] / zs + cam.cy
+        mw, mh = margin * cam.width, margin * cam.height
+        return (z > 0.01) & (u > -mw) & (u < cam.width + mw) & (v > -mh) & (v < cam.height + mh)
+
+    def normalized_positions(self, mu: torch.Tensor) -> torch.Tensor:
+        return (mu - self.bbox_min) / (self.bbox_max - self.bbox_min)
+
+    def _decode(self, f: int, m: int, tau: float, camera: Camera | None, track: bool) -> Decoded:
+        mask = self.active_anchors(f)
+        if camera is not None and self.cfg.frustum_cull:
+            mask &= self.in_frustum(camera)
+        active = mask.nonzero().squeeze(1)
+        sparse: list[SparseLeaf] = []
+
+        def rows_of(name: str, rows: torch.Tensor) -> torch.Tensor:
+            full = getattr(self, name)
+            if not track:
+                return full[rows]
+            leaf = full[rows].detach().requires_grad_(True)
+            sparse.append(SparseLeaf(name, rows, leaf))
+            return leaf
+
+        mu = self.anchor_mu[active]
+        fa = rows_of("anchor_feature", active)
+        log_scale = rows_of("anchor_log_scale", active)
+        xn = self.normalized_positions(mu)
+        inside = ((xn >= 0) & (xn <= 1)).all(1, keepdim=True).to(mu.dtype)
+        if self.cfg.use_spatial_grid:
+            fs, g = self.spatial.query(xn, track)
+            if g is not None:
+                sparse.append(SparseLeaf("spatial", g.rows, g.leaf))
+            fa = fa + fs
+        h, g = self.hash.query(xn, tau, m, track)
+        if g is not None:
+            sparse.append(SparseLeaf("hash", g.rows, g.leaf))
+        seg = torch.tensor([m])
+        w1, b1, w2, b2 = (rows_of(n, seg)[0] for n in TEMPORAL_MLP)
+        ft = torch.relu((h * inside) @ w1 + b1) @ w2 + b2
+        fw = torch.cat([fa, ft], dim=1)
+        raw = self.decoder(fw, mu, log_scale)
+        q = self.cfg.gaussians_per_anchor
+        anchor_ids = active[:, None].expand(-1, q).reshape(-1)
+        slot_ids = torch.arange(q).repeat(active.numel())
+        opac = raw.opacities.reshape(-1)
+        keep = None
+        if self.cfg.opacity_threshold > 0:
+            keep = (opac.detach() > self.cfg.opacity_threshold).nonzero().squeeze(1)
+        parts = [raw.means.reshape(-1, 3), raw.quats.reshape(-1, 4), raw.scales.reshape(-1, 3), opac,
+                 raw.colors.reshape(-1, 3)]
+        if keep is not None:
+            parts = [p[keep] for p in parts]
+            anchor_ids, slot_ids = anchor_ids[keep], slot_ids[keep]
+        return Decoded(Gaussians(*parts), anchor_ids, slot_ids, active, raw, m, sparse)
+
+    # --- anchor set edits (growing / pruning) ------------------------------------------------------
+    def add_anchors(self, mu: torch.Tensor, feature: torch.Tensor, log_scale: torch.Tensor,
+                    keyframe: torch.Tensor) -> None:
+        self.anchor_mu = torch.cat([self.anchor_mu, mu.float()])
+        self.anchor_feature = torch.cat([self.anchor_feature, feature.float()])
+        self.anchor_log_scale = torch.cat([self.anchor_log_scale, log_scale.float()])
+        self.anchor_keyframe = torch.cat([self.anchor_keyframe, keyframe.long()])
+
+    def keep_anchors(self, keep: torch.Tensor) -> None:
+        for name in ("anchor_mu", "anchor_feature", "anchor_log_scale", "anchor_keyframe"):
+            setattr(self, name, getattr(self, name)[keep].contiguous())
+
+    # --- serialization ---------------------------------------------------------------------
+    def sparse_tensors(self) -> dict[str, torch.Tensor]:
+        return {"anchor_feature": self.anchor_feature, "anchor_log_scale": self.anchor_log_scale,
+                "spatial": self.spatial.table, "hash": self.hash.table,
+                **{n: getattr(self, n) for n in TEMPORAL_MLP}}
+
+    def set_sparse_tensor(self, name: str, value: torch.Tensor) -> None:
+        if name == "spatial":
+            self.spatial.table = value
+        elif name == "hash":
+            self.hash.table = value
+        else:
+            setattr(self, name, value)
+
+    def state_dict(self) -> dict:
+        return {
+            "anchor_mu": self.anchor_mu, "anchor_keyframe": self.anchor_keyframe,
+            **self.sparse_tensors(),
+            "bbox_min": self.bbox_min, "bbox_max": self.bbox_max,
+            "extent": self.extent, "voxel_size": self.voxel_size,
+            "num_keyframes": self.timeline.num_keyframes, "num_segments": self.timeline.num_segments,
+            "decoder": {k: v.detach().clone() for k, v in self.decoder.state_dict().items()},
+        }
+
+    @classmethod
+    def from_state(cls, cfg: ModelConfig, state: dict, num_frames: int, fps: float,
+                   cameras: list[Camera]) -> "ATGSModel":
+        tl = Timeline(num_frames, int(state["num_keyframes"]), cfg.window, int(state["num_segments"]))
+        a = AnchorInit(state["anchor_mu"], state["anchor_log_scale"], state["anchor_keyframe"],
+                       float(state["voxel_size"]))
+        model = cls(cfg, tl, cameras, fps, a, state["bbox_min"], state["bbox_max"], float(state["extent"]))
+        for name, ref in model.sparse_tensors().items():
+            value = state[name]
+            if name not in ANCHOR_TABLES and value.shape != ref.shape:
+                raise ValueError(f"tensor {name!r} has shape {tuple(value.shape)}, config expects {tuple(ref.shape)}")
+            model.set_sparse_tensor(name, value.float().contiguous())
+        model.decoder.load_state_dict(state["decoder"])
+        return model

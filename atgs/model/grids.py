@@ -1,0 +1,140 @@
+"""Feature grids in pure PyTorch: the dense spatial grid F_s (trilinear) and the 4D
+multi-resolution hash grids F_T,m (Instant-NGP style, quadrilinear).
+
+Both are gather based: a query computes integer row indices into a 2D table (rows, features)
+and interpolation weights. :func:`gather_rows` turns the table rows touched by a query into a
+small leaf tensor, so that backward produces a gradient for the touched rows only (an
+index_add into a (U, D) tensor) and the optimizer updates only those rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import torch
+
+# Instant-NGP spatial hash primes (first dimension uses 1).
+_PRIMES = (1, 2654435761, 805459861, 3674653429)
+
+
+@dataclass
+class RowGather:
+    """Rows of a table touched by one query; ``leaf.grad`` after backward is their gradient."""
+
+    rows: torch.Tensor  # (U,) int64 unique, ascending
+    leaf: torch.Tensor  # (U, D) a copy of table[rows] that requires grad
+
+
+def gather_rows(table: torch.Tensor, idx: torch.Tensor, track: bool) -> tuple[torch.Tensor, RowGather | None]:
+    """``table[idx]`` (shape idx.shape + (D,)); with ``track`` the result depends on a leaf of the
+    unique touched rows (found with a mask, no sort of the query indices)."""
+    if not track:
+        return table[idx], None
+    flat = idx.reshape(-1)
+    mask = torch.zeros(table.shape[0], dtype=torch.bool)
+    mask[flat] = True
+    rows = mask.nonzero().squeeze(1)
+    remap = torch.empty(table.shape[0], dtype=torch.int64)
+    remap[rows] = torch.arange(rows.numel())
+    leaf = table[rows].detach().requires_grad_(True)
+    out = leaf[remap[flat]].reshape(*idx.shape, table.shape[1])
+    return out, RowGather(rows, leaf)
+
+
+def _corner_offsets(dims: int) -> torch.Tensor:
+    """(2^dims, dims) 0/1 offsets of the corners of a unit cell."""
+    c = torch.arange(2**dims)
+    return torch.stack([(c >> d) & 1 for d in range(dims)], dim=1)
+
+
+def interp_indices(x: torch.Tensor, res: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cell corners and multilinear weights of points x (N, d) in [0, 1]^d on a grid with
+    ``res[d] + 1`` vertices along dimension d. Returns corners (N, 2^d, d) int64 and
+    weights (N, 2^d)."""
+    d = x.shape[1]
+    r = torch.tensor(res, dtype=x.dtype)
+    pos = x.clamp(0.0, 1.0) * r
+    base = torch.minimum(pos.floor(), r - 1).clamp_min(0)
+    frac = pos - base
+    offs = _corner_offsets(d)  # (C, d)
+    corners = base.long()[:, None, :] + offs[None]
+    w = torch.where(offs[None].bool(), frac[:, None, :], 1.0 - frac[:, None, :]).prod(dim=2)
+    return corners, w
+
+
+class SpatialGrid:
+    """Dense grid of ``res^3`` vertices x D features over [0, 1]^3, trilinear, zero init."""
+
+    def __init__(self, res: int, dim: int) -> None:
+        self.res, self.dim = int(res), int(dim)
+        self.table = torch.zeros(self.res**3, self.dim)
+
+    def indices(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        n = self.res - 1
+        corners, w = interp_indices(x, [n, n, n])
+        idx = corners[..., 0] + self.res * (corners[..., 1] + self.res * corners[..., 2])
+        return idx, w
+
+    def query(self, x: torch.Tensor, track: bool) -> tuple[torch.Tensor, RowGather | None]:
+        """Features (N, D) of points x (N, 3) in [0, 1]^3; points outside get zeros."""
+        inside = ((x >= 0) & (x <= 1)).all(dim=1)
+        idx, w = self.indices(x)
+        feats, g = gather_rows(self.table, idx, track)
+        out = (feats * w[..., None]).sum(dim=1)
+        return out * inside[:, None].to(out.dtype), g
+
+
+class HashGrid4D:
+    """M independent 4D multi-resolution hash grids stored in one table.
+
+    Table rows: ``((m * L) + level) * T + slot``; level l has spatial resolution
+    ``floor(base * growth^l)`` and time resolution ``min(that, max_time_res)``. A level whose
+    vertices fit in T slots is indexed densely (no collisions), else hashed.
+    """
+
+    def __init__(self, num_grids: int, levels: int, features: int, log2_table: int, base_res: int,
+                 growth: float, max_time_res: int, init_scale: float = 1e-4,
+                 generator: torch.Generator | None = None) -> None:
+        self.num_grids, self.levels, self.features = int(num_grids), int(levels), int(features)
+        self.table_size = 2 ** int(log2_table)
+        self.res = [max(1, int(math.floor(base_res * growth**lv))) for lv in range(self.levels)]
+        self.time_res = [max(1, min(r, int(max_time_res))) for r in self.res]
+        rows = self.num_grids * self.levels * self.table_size
+        # Instant-NGP initializes uniformly in [-1e-4, 1e-4].
+        self.table = (torch.rand(rows, self.features, generator=generator) * 2 - 1) * init_scale
+
+    def dense_level(self, lv: int) -> bool:
+        r, rt = self.res[lv], self.time_res[lv]
+        return (r + 1) ** 3 * (rt + 1) <= self.table_size
+
+    def level_slots(self, corners: torch.Tensor, lv: int) -> torch.Tensor:
+        """Slot in [0, T) of integer 4D vertices (..., 4) at level lv."""
+        r = self.res[lv]
+        x, y, z, w = corners.unbind(-1)
+        if self.dense_level(lv):
+            return x + (r + 1) * (y + (r + 1) * (z + (r + 1) * w))
+        h = x * _PRIMES[0]
+        for c, p in zip((y, z, w), _PRIMES[1:]):
+            h = h ^ (c * p)  # int64 wrap-around keeps the low bits exact
+        return h & (self.table_size - 1)
+
+    def indices(self, x: torch.Tensor, tau: float, grid: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows (N, L, 16) and weights (N, L, 16) of points x (N, 3) in [0,1]^3 at local time tau."""
+        n = x.shape[0]
+        x4 = torch.cat([x.clamp(0, 1), torch.full((n, 1), float(tau), dtype=x.dtype).clamp(0, 1)], dim=1)
+        all_idx, all_w = [], []
+        for lv in range(self.levels):
+            r, rt = self.res[lv], self.time_res[lv]
+            corners, w = interp_indices(x4, [r, r, r, rt])
+            slots = self.level_slots(corners, lv)
+            all_idx.append(slots + (grid * self.levels + lv) * self.table_size)
+            all_w.append(w)
+        return torch.stack(all_idx, dim=1), torch.stack(all_w, dim=1)
+
+    def query(self, x: torch.Tensor, tau: float, grid: int, track: bool) -> tuple[torch.Tensor, RowGather | None]:
+        """Concatenated level features (N, L*F)."""
+        idx, w = self.indices(x, tau, grid)
+        feats, g = gather_rows(self.table, idx, track)  # (N, L, 16, F)
+        out = (feats * w[..., None]).sum(dim=2)
+        return out.reshape(x.shape[0], self.levels * self.features), g

@@ -1,0 +1,11 @@
+"""Differentiable Gaussian rasterizer: ``rasterize(...) -> RasterOutput``.
+
+Backends: "cpu" (compiled C++/OpenMP, tile-based, hand-written backward), "torch" (slow dense
+reference used by the tests), "cuda" (thin gsplat wrapper, untested in CI). See docs/rasterizer.md.
+"""
+
+from atgs.render.api import BACKENDS, rasterize
+from atgs.render.types import RasterOutput
+from atgs.render.validate import RasterInputError
+
+__all__ = ["BACKENDS", "RasterInputError", "RasterOutput", "rasterize"]

@@ -1,0 +1,109 @@
+"""The one public entry point: :func:`rasterize`, which validates inputs and picks a backend."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+
+from atgs.render.projection import project
+from atgs.render.reference import rasterize_reference
+from atgs.render.types import RasterOutput
+from atgs.render.validate import RasterInputError, as_tensor, check_inputs
+
+BACKENDS = ("auto", "cpu", "torch", "cuda")
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor | np.ndarray,
+    K: torch.Tensor | np.ndarray,
+    width: int,
+    height: int,
+    background: torch.Tensor | np.ndarray | None = None,
+    backend: str = "auto",
+) -> RasterOutput:
+    """Render N 3D Gaussians into a ``height x width`` image.
+
+    means (N,3); quats (N,4) as (w,x,y,z), any norm; scales (N,3) linear; opacities (N,) in
+    [0,1]; colors (N,3); viewmat (4,4) world-to-camera, OpenCV axes; K (3,3) pinhole
+    intrinsics, pixel centers at +0.5; background (3,) or None (black).
+    backend: "cpu" (compiled C++/OpenMP, float32), "torch" (slow dense reference, any float
+    dtype), "cuda" (gsplat, untested in CI), "auto" (cuda if the tensors are on a GPU and
+    gsplat imports, else cpu if the extension builds, else torch with a warning).
+    Gradients flow to means, quats, scales, opacities, colors (and background); the "torch"
+    backend also differentiates viewmat and K.
+    """
+    if backend not in BACKENDS:
+        raise RasterInputError(f"rasterize(): argument 'backend' is {backend!r}; choose one of {BACKENDS}")
+    if not isinstance(means, torch.Tensor):
+        raise RasterInputError(f"rasterize(): argument 'means' has type {type(means).__name__}; pass a torch.Tensor")
+    viewmat = as_tensor(viewmat, "viewmat", means)
+    K = as_tensor(K, "K", means)
+    if background is None:
+        background = torch.zeros(3, dtype=means.dtype, device=means.device)
+    background = as_tensor(background, "background", means)
+    tensors = dict(
+        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+        viewmat=viewmat, K=K, background=background,
+    )  # fmt: skip
+    width, height = check_inputs(tensors, width, height)
+    chosen = _choose_backend(backend, means)
+    if chosen == "torch":
+        return _rasterize_torch(**tensors, width=width, height=height)
+    if chosen == "cpu":
+        from atgs.render.cpu import rasterize_cpu
+
+        return rasterize_cpu(**tensors, width=width, height=height)
+    from atgs.render.cuda import rasterize_cuda
+
+    return rasterize_cuda(**tensors, width=width, height=height)
+
+
+def _choose_backend(backend: str, means: torch.Tensor) -> str:
+    if backend != "auto":
+        if backend == "cpu" and means.device.type != "cpu":
+            raise RasterInputError(f"rasterize(): backend 'cpu' needs CPU tensors, got {means.device}; call .cpu()")
+        return backend
+    if means.device.type == "cuda":
+        from atgs.render.cuda import gsplat_available
+
+        if gsplat_available():
+            return "cuda"
+        return "torch"
+    from atgs.render.cpu import cpu_backend_error
+
+    error = cpu_backend_error()
+    if error is None:
+        return "cpu"
+    warnings.warn(
+        f"atgs.render: the compiled CPU rasterizer is unavailable ({error}); "
+        "falling back to the slow torch reference",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+    return "torch"
+
+
+def _rasterize_torch(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    background: torch.Tensor,
+    width: int,
+    height: int,
+) -> RasterOutput:
+    proj = project(means, quats, scales, viewmat, K, width, height)
+    image, alpha, depth = rasterize_reference(
+        proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width, height, background
+    )
+    return RasterOutput(image, alpha, depth, proj.means2d, proj.radii, backend="torch")

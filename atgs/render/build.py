@@ -1,0 +1,80 @@
+"""Compile-at-first-use of the C++/OpenMP rasterizer, cached by source hash."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import platform
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+CSRC = Path(__file__).parent / "csrc"
+SOURCES = ("rasterize.cpp",)
+HEADERS = ("projection.h",)
+BASE_CFLAGS = ("-O3", "-fopenmp", "-std=c++17")
+LDFLAGS = ("-fopenmp",)
+
+
+def cpu_flags() -> tuple[str, ...]:
+    """AVX2/FMA when this CPU has them (the build is cached per machine, keyed by the flags)."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return ()
+    try:
+        words = set(Path("/proc/cpuinfo").read_text().split())
+    except OSError:
+        return ()
+    return ("-mavx2", "-mfma") if {"avx2", "fma"} <= words else ()
+
+
+def compile_flags() -> tuple[str, ...]:
+    return BASE_CFLAGS + cpu_flags()
+
+
+def cache_root() -> Path:
+    """$ATGS_CACHE_DIR/torch_extensions, or ~/.cache/atgs/torch_extensions."""
+    base = os.environ.get("ATGS_CACHE_DIR")
+    root = Path(base) if base else Path.home() / ".cache" / "atgs"
+    return root / "torch_extensions"
+
+
+def build_key() -> str:
+    """Hash of the sources, flags, torch and Python versions: any change triggers a rebuild."""
+    h = hashlib.sha256()
+    for name in SOURCES + HEADERS:
+        h.update((CSRC / name).read_bytes())
+    h.update(repr((compile_flags(), LDFLAGS, torch.__version__, sys.version_info[:2])).encode())
+    return h.hexdigest()[:16]
+
+
+@functools.lru_cache(maxsize=1)
+def load_extension() -> ModuleType:
+    """Import the compiled extension, compiling it first if this source version is new."""
+    from torch.utils.cpp_extension import load
+
+    name = f"atgs_raster_{build_key()}"
+    build_dir = cache_root() / name
+    build_dir.mkdir(parents=True, exist_ok=True)
+    if not (build_dir / f"{name}.so").exists():
+        print(f"compiling the ATGS CPU rasterizer (first use, ~1 min), cached in {build_dir}", flush=True)
+    return load(
+        name=name,
+        sources=[str(CSRC / s) for s in SOURCES],
+        extra_cflags=list(compile_flags()),
+        extra_ldflags=list(LDFLAGS),
+        build_directory=str(build_dir),
+        verbose=False,
+    )
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_backend_error() -> str | None:
+    """None if the extension loads, else a one-line reason (used by backend='auto')."""
+    try:
+        load_extension()
+    except Exception as exc:  # compiler missing, headers missing, ...
+        return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+    return None

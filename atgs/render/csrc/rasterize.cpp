@@ -1,0 +1,496 @@
+// Tile-based CPU rasterizer of 2D Gaussians (forward and hand-written backward).
+//
+// Conventions follow SPEC section 2 and atgs/render/reference.py exactly:
+//   sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,  dx = u - (x + 0.5),  dy = v - (y + 0.5)
+//   a pixel is skipped if sigma < 0 or sigma > sigma_cutoff (the 3-sigma ellipse),
+//   alpha = min(alpha_max, o exp(-sigma)), skipped if alpha < alpha_min,
+//   front to back, stop (excluding that Gaussian) when T (1 - alpha) < t_min,
+//   out = sum_i f_i alpha_i T_i + T_final bg  for C feature channels (RGB + view depth).
+// Every pixel sees the same Gaussians in the same order whatever the tile size, because the
+// cut-off is a per-pixel test; tiles and per-Gaussian boxes only skip work.
+//
+// Parallelism: OpenMP over tiles. Within a tile the loop runs Gaussian-outer / pixel-inner
+// over the box where the Gaussian can be non-negligible, keeping per-pixel state in local
+// arrays; the per-pixel order is still front to back. The backward pass writes one gradient
+// record per (tile, Gaussian) pair and reduces them serially, so results are deterministic.
+#include <torch/extension.h>
+
+#include "projection.h"
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <numeric>
+#include <vector>
+
+namespace {
+
+constexpr int kChannels = 4;  // RGB + view depth
+constexpr int kTile = 16;  // tile edge in pixels; rows are processed as whole SIMD vectors
+constexpr int kTilePix = kTile * kTile;
+constexpr int kGradStride = 6 + kChannels;  // mean(2) conic(3) opacity(1) features(4)
+
+// 8-lane vectors (GCC/Clang vector extensions): AVX2 when compiled with -mavx2, two SSE
+// registers otherwise. A tile row of 16 pixels is two of them; lanes are masked, not looped.
+typedef float v8f __attribute__((vector_size(32)));
+typedef int32_t v8i __attribute__((vector_size(32)));
+
+inline v8f splat(float x) { return v8f{x, x, x, x, x, x, x, x}; }
+inline v8i splati(int32_t x) { return v8i{x, x, x, x, x, x, x, x}; }
+inline v8f vmin(v8f a, v8f b) { return a < b ? a : b; }
+inline v8f vmax(v8f a, v8f b) { return a > b ? a : b; }
+inline v8f select(v8i m, v8f a, v8f b) { return m ? a : b; }
+inline bool any(v8i m) {
+  int32_t r = 0;
+  for (int l = 0; l < 8; ++l) r |= m[l];
+  return r != 0;
+}
+inline float hsum(v8f a) {
+  float r = 0.f;
+  for (int l = 0; l < 8; ++l) r += a[l];
+  return r;
+}
+
+// exp(-s) for s in [0, 4.5] on 8 lanes, branch-free: exp(-s) = 2^-n exp(y), n = round(s / ln 2),
+// |y| <= ln(2)/2, degree-6 Taylor polynomial (relative error < 2e-7 against std::exp).
+inline v8f exp_neg(v8f s) {
+  const v8f t = s * 1.44269504f;
+  const v8i n = __builtin_convertvector(t + 0.5f, v8i);
+  const v8f y = __builtin_convertvector(n, v8f) * 0.693147181f - s;
+  v8f q = splat(1.f / 720.f);
+  q = q * y + 1.f / 120.f;
+  q = q * y + 1.f / 24.f;
+  q = q * y + 1.f / 6.f;
+  q = q * y + 0.5f;
+  q = q * y + 1.f;
+  q = q * y + 1.f;
+  const v8i bits = (127 - n) << 23;
+  return q * reinterpret_cast<const v8f&>(bits);
+}
+
+struct Params {
+  float alpha_max, alpha_min, t_min, sigma_cutoff;
+  int width, height, tile, channels, threads;
+  int tiles_x() const { return (width + tile - 1) / tile; }
+  int tiles_y() const { return (height + tile - 1) / tile; }
+};
+
+// Inclusive pixel box outside which Gaussian g cannot pass the sigma and alpha_min tests.
+struct Box {
+  int x0, x1, y0, y1;
+  bool empty() const { return x0 > x1 || y0 > y1; }
+};
+
+Box gaussian_box(const float* m2, const float* con, float opacity, const Params& p) {
+  Box none{1, 0, 1, 0};
+  if (!(opacity >= p.alpha_min)) return none;
+  // alpha >= alpha_min  <=>  sigma <= log(o / alpha_min); never beyond the 3-sigma cut-off.
+  float lim = std::min(p.sigma_cutoff, std::log(opacity / p.alpha_min));
+  if (lim < 0.f) return none;
+  const double a = con[0], b = con[1], c = con[2];
+  const double det = a * c - b * b;
+  if (!(det > 0.0)) return none;
+  // The ellipse sigma <= lim has half-extents sqrt(2 lim Sigma_xx), Sigma = conic^-1.
+  // Slightly enlarged: the box only has to contain every pixel that passes the tests.
+  const double ex = std::sqrt(2.0 * lim * c / det) * 1.0001 + 1e-3;
+  const double ey = std::sqrt(2.0 * lim * a / det) * 1.0001 + 1e-3;
+  const double u = m2[0], v = m2[1];
+  double fx0 = std::ceil(u - ex - 0.5), fx1 = std::floor(u + ex - 0.5);
+  double fy0 = std::ceil(v - ey - 0.5), fy1 = std::floor(v + ey - 0.5);
+  fx0 = std::max(fx0, 0.0);
+  fy0 = std::max(fy0, 0.0);
+  fx1 = std::min(fx1, double(p.width - 1));
+  fy1 = std::min(fy1, double(p.height - 1));
+  if (!(fx0 <= fx1 && fy0 <= fy1)) return none;
+  return Box{int(fx0), int(fx1), int(fy0), int(fy1)};
+}
+
+struct Binning {
+  std::vector<Box> boxes;          // per Gaussian
+  std::vector<int64_t> offsets;    // per tile, size n_tiles + 1
+  std::vector<int32_t> ids;        // Gaussian ids, front to back within each tile
+};
+
+Binning bin_gaussians(const float* means2d, const float* conics, const float* opac,
+                      const float* depths, const int32_t* radii, int64_t n, const Params& p) {
+  Binning bins;
+  bins.boxes.resize(n);
+  std::vector<int32_t> order;
+  order.reserve(n);
+  for (int64_t i = 0; i < n; ++i) {
+    bins.boxes[i] = radii[i] > 0 ? gaussian_box(means2d + 2 * i, conics + 3 * i, opac[i], p)
+                                 : Box{1, 0, 1, 0};
+    if (!bins.boxes[i].empty()) order.push_back(int32_t(i));
+  }
+  // Same order as the reference: stable sort of ascending ids by depth.
+  std::stable_sort(order.begin(), order.end(),
+                   [depths](int32_t i, int32_t j) { return depths[i] < depths[j]; });
+  const int tx = p.tiles_x(), ty = p.tiles_y();
+  bins.offsets.assign(int64_t(tx) * ty + 1, 0);
+  for (int32_t g : order) {
+    const Box& b = bins.boxes[g];
+    for (int y = b.y0 / kTile; y <= b.y1 / kTile; ++y)
+      for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x) bins.offsets[int64_t(y) * tx + x + 1]++;
+  }
+  std::partial_sum(bins.offsets.begin(), bins.offsets.end(), bins.offsets.begin());
+  bins.ids.resize(bins.offsets.back());
+  std::vector<int64_t> cursor(bins.offsets.begin(), bins.offsets.end() - 1);
+  for (int32_t g : order) {
+    const Box& b = bins.boxes[g];
+    for (int y = b.y0 / kTile; y <= b.y1 / kTile; ++y)
+      for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x)
+        bins.ids[cursor[int64_t(y) * tx + x]++] = g;
+  }
+  return bins;
+}
+
+Params make_params(int64_t width, int64_t height, int64_t tile, int64_t channels, int64_t threads,
+                   double alpha_max, double alpha_min, double t_min, double sigma_cutoff) {
+  TORCH_CHECK(channels == kChannels, "expected 4 feature channels (RGB + depth)");
+  TORCH_CHECK(tile == kTile, "the kernel is compiled for 16x16 tiles");
+  return Params{float(alpha_max), float(alpha_min), float(t_min), float(sigma_cutoff),
+                int(width), int(height), int(tile), int(channels), int(std::max<int64_t>(1, threads))};
+}
+
+void check_input(const torch::Tensor& t, const char* name, torch::ScalarType type) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+  TORCH_CHECK(t.scalar_type() == type, name, " has the wrong dtype");
+  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+}
+
+}  // namespace
+
+// Returns out (H,W,C), T_final (H,W), last (H,W) int32 (per-pixel count of list entries used),
+// tile offsets (n_tiles+1) int64, tile ids (pairs) int32.
+std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
+                                   torch::Tensor feats, torch::Tensor depths, torch::Tensor radii,
+                                   torch::Tensor background, int64_t width, int64_t height,
+                                   int64_t tile, int64_t threads, double alpha_max, double alpha_min,
+                                   double t_min, double sigma_cutoff) {
+  for (auto& [t, name] : {std::pair{means2d, "means2d"}, {conics, "conics"}, {opacities, "opacities"},
+                          {feats, "feats"}, {depths, "depths"}, {background, "background"}})
+    check_input(t, name, torch::kFloat32);
+  check_input(radii, "radii", torch::kInt32);
+  const int64_t n = means2d.size(0);
+  const int C = int(feats.size(1));
+  const Params p = make_params(width, height, tile, C, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
+  const float* m2 = means2d.data_ptr<float>();
+  const float* con = conics.data_ptr<float>();
+  const float* op = opacities.data_ptr<float>();
+  const float* ft = feats.data_ptr<float>();
+  const float* bg = background.data_ptr<float>();
+  Binning bins = bin_gaussians(m2, con, op, depths.data_ptr<float>(), radii.data_ptr<int32_t>(), n, p);
+
+  auto out = torch::empty({height, width, C}, means2d.options());
+  auto t_final = torch::empty({height, width}, means2d.options());
+  auto last = torch::empty({height, width}, radii.options());
+  float* out_p = out.data_ptr<float>();
+  float* tf_p = t_final.data_ptr<float>();
+  int32_t* last_p = last.data_ptr<int32_t>();
+  const int tx = p.tiles_x(), n_tiles = p.tiles_x() * p.tiles_y();
+
+  const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
+  const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
+
+#pragma omp parallel for schedule(dynamic, 1) num_threads(p.threads)
+  for (int t = 0; t < n_tiles; ++t) {
+    const int px0 = (t % tx) * kTile, py0 = (t / tx) * kTile;
+    const int pw = std::min(kTile, p.width - px0), ph = std::min(kTile, p.height - py0);
+    const int64_t begin = bins.offsets[t], end = bins.offsets[t + 1];
+    // Per-pixel state: row y, half h (pixels 8h .. 8h+7) -> index 2y + h; planar channels.
+    v8f T[2 * kTile], acc[kChannels][2 * kTile];
+    v8i stop[2 * kTile];
+    for (int r = 0; r < 2 * kTile; ++r) {
+      T[r] = splat(1.f);
+      stop[r] = splati(int32_t(end - begin));
+      for (int ch = 0; ch < kChannels; ++ch) acc[ch][r] = splat(0.f);
+    }
+    int n_done = 0;
+    const int n_pix = pw * ph;
+    for (int64_t k = begin; k < end && n_done < n_pix; ++k) {
+      const int32_t g = bins.ids[k];
+      const Box& b = bins.boxes[g];
+      const float ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2], o = op[g];
+      const float f[kChannels] = {ft[4 * g], ft[4 * g + 1], ft[4 * g + 2], ft[4 * g + 3]};
+      const int x0 = std::max(b.x0, px0) - px0, x1 = std::min(b.x1, px0 + pw - 1) - px0;
+      const int y0 = std::max(b.y0, py0) - py0, y1 = std::min(b.y1, py0 + ph - 1) - py0;
+      const int32_t idx = int32_t(k - begin);
+      const float ux = m2[2 * g] - float(px0), vy = m2[2 * g + 1] - float(py0);
+      for (int y = y0; y <= y1; ++y) {
+        const float dy = vy - (float(y) + 0.5f);
+        for (int h = x0 / 8; h <= x1 / 8; ++h) {
+          const int r = 2 * y + h;
+          const v8f dx = ux - (lane_x0 + float(8 * h));
+          const v8i xi = lane_i0 + 8 * h;
+          const v8f sigma = 0.5f * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+          const v8i inside = (xi >= x0) & (xi <= x1) & (stop[r] > idx) & (sigma >= 0.f) & (sigma <= p.sigma_cutoff);
+          if (!any(inside)) continue;  // cheap test first: skips exp() outside the ellipse
+          const v8f alpha = vmin(splat(p.alpha_max), o * exp_neg(vmin(vmax(sigma, splat(0.f)), splat(p.sigma_cutoff))));
+          const v8i live = inside & (alpha >= p.alpha_min);
+          const v8f next_T = T[r] * (1.f - alpha);
+          const v8i low = next_T < p.t_min;
+          const v8i halt = live & low, use = live & ~low;
+          if (any(halt)) {
+            stop[r] = halt ? splati(idx) : stop[r];
+            for (int l = 0; l < 8; ++l) n_done += halt[l] ? 1 : 0;
+          }
+          const v8f w = select(use, alpha * T[r], splat(0.f));
+          for (int ch = 0; ch < kChannels; ++ch) acc[ch][r] += f[ch] * w;
+          T[r] = select(use, next_T, T[r]);
+        }
+      }
+    }
+    for (int y = 0; y < ph; ++y)
+      for (int x = 0; x < pw; ++x) {
+        const int r = 2 * y + x / 8, l = x % 8;
+        const int64_t pix = int64_t(py0 + y) * p.width + (px0 + x);
+        for (int ch = 0; ch < kChannels; ++ch) out_p[pix * kChannels + ch] = acc[ch][r][l] + T[r][l] * bg[ch];
+        tf_p[pix] = T[r][l];
+        last_p[pix] = stop[r][l];
+      }
+  }
+  auto offsets = torch::from_blob(bins.offsets.data(), {int64_t(bins.offsets.size())}, torch::kInt64).clone();
+  auto ids = torch::from_blob(bins.ids.data(), {int64_t(bins.ids.size())}, torch::kInt32).clone();
+  return {out, t_final, last, offsets, ids};
+}
+
+// Gradients w.r.t. means2d (N,2), conics (N,3), opacities (N,), feats (N,C), background (C,).
+std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
+                                    torch::Tensor feats, torch::Tensor radii, torch::Tensor background,
+                                    torch::Tensor t_final, torch::Tensor last, torch::Tensor offsets,
+                                    torch::Tensor ids, torch::Tensor grad_out, torch::Tensor grad_alpha,
+                                    int64_t width, int64_t height, int64_t tile, int64_t threads,
+                                    double alpha_max, double alpha_min, double t_min, double sigma_cutoff) {
+  for (auto& [t, name] : {std::pair{means2d, "means2d"}, {conics, "conics"}, {opacities, "opacities"},
+                          {feats, "feats"}, {background, "background"}, {t_final, "t_final"},
+                          {grad_out, "grad_out"}, {grad_alpha, "grad_alpha"}})
+    check_input(t, name, torch::kFloat32);
+  check_input(radii, "radii", torch::kInt32);
+  check_input(last, "last", torch::kInt32);
+  check_input(offsets, "offsets", torch::kInt64);
+  check_input(ids, "ids", torch::kInt32);
+  const int64_t n = means2d.size(0);
+  const int C = int(feats.size(1));
+  const Params p = make_params(width, height, tile, C, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
+  const float* m2 = means2d.data_ptr<float>();
+  const float* con = conics.data_ptr<float>();
+  const float* op = opacities.data_ptr<float>();
+  const float* ft = feats.data_ptr<float>();
+  const float* bg = background.data_ptr<float>();
+  const float* tf_p = t_final.data_ptr<float>();
+  const int32_t* last_p = last.data_ptr<int32_t>();
+  const int64_t* off = offsets.data_ptr<int64_t>();
+  const int32_t* id_p = ids.data_ptr<int32_t>();
+  const float* go = grad_out.data_ptr<float>();
+  const float* ga = grad_alpha.data_ptr<float>();
+  const int64_t n_pairs = ids.size(0);
+  const int tx = p.tiles_x(), n_tiles = p.tiles_x() * p.tiles_y();
+  TORCH_CHECK(offsets.size(0) == n_tiles + 1, "offsets do not match the image size");
+
+  // Boxes are recomputed exactly as in the forward pass (same inputs, same code).
+  std::vector<Box> boxes(n);
+  for (int64_t i = 0; i < n; ++i)
+    boxes[i] = radii.data_ptr<int32_t>()[i] > 0 ? gaussian_box(m2 + 2 * i, con + 3 * i, op[i], p)
+                                                 : Box{1, 0, 1, 0};
+  std::vector<float> pair_grads(n_pairs * kGradStride, 0.f);
+  std::vector<double> tile_bg(int64_t(n_tiles) * C, 0.0);
+
+  const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
+  const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
+
+#pragma omp parallel for schedule(dynamic, 1) num_threads(p.threads)
+  for (int t = 0; t < n_tiles; ++t) {
+    const int px0 = (t % tx) * kTile, py0 = (t / tx) * kTile;
+    const int pw = std::min(kTile, p.width - px0), ph = std::min(kTile, p.height - py0);
+    const int64_t begin = off[t], end = off[t + 1];
+    v8f T[2 * kTile], Tf[2 * kTile], bgterm[2 * kTile], B[kChannels][2 * kTile], G[kChannels][2 * kTile];
+    v8i stop[2 * kTile];
+    for (int r = 0; r < 2 * kTile; ++r) {  // lanes outside the image stay inert (stop = 0)
+      T[r] = Tf[r] = splat(1.f);
+      bgterm[r] = splat(0.f);
+      stop[r] = splati(0);
+      for (int ch = 0; ch < kChannels; ++ch) B[ch][r] = G[ch][r] = splat(0.f);
+    }
+    for (int y = 0; y < ph; ++y)
+      for (int x = 0; x < pw; ++x) {
+        const int r = 2 * y + x / 8, l = x % 8;
+        const int64_t pix = int64_t(py0 + y) * p.width + (px0 + x);
+        const float tf = tf_p[pix];
+        T[r][l] = Tf[r][l] = tf;
+        stop[r][l] = last_p[pix];
+        // d loss / d T_final = bg . g - g_alpha  (alpha_out = 1 - T_final)
+        float s = -ga[pix];
+        for (int ch = 0; ch < kChannels; ++ch) {
+          const float gch = go[pix * kChannels + ch];
+          G[ch][r][l] = gch;
+          s += bg[ch] * gch;
+          tile_bg[int64_t(t) * kChannels + ch] += double(tf) * gch;
+        }
+        bgterm[r][l] = s * tf;
+      }
+    for (int64_t k = end - 1; k >= begin; --k) {
+      const int32_t g = id_p[k];
+      const Box& b = boxes[g];
+      const float ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2], o = op[g];
+      const float f[kChannels] = {ft[4 * g], ft[4 * g + 1], ft[4 * g + 2], ft[4 * g + 3]};
+      const int x0 = std::max(b.x0, px0) - px0, x1 = std::min(b.x1, px0 + pw - 1) - px0;
+      const int y0 = std::max(b.y0, py0) - py0, y1 = std::min(b.y1, py0 + ph - 1) - py0;
+      const int32_t idx = int32_t(k - begin);
+      const float ux = m2[2 * g] - float(px0), vy = m2[2 * g + 1] - float(py0);
+      const v8f zero = splat(0.f);
+      v8f gu = zero, gv = zero, gA = zero, gB = zero, gC = zero, gO = zero;
+      v8f gf[kChannels] = {zero, zero, zero, zero};
+      for (int y = y0; y <= y1; ++y) {
+        const float dy = vy - (float(y) + 0.5f);
+        for (int h = x0 / 8; h <= x1 / 8; ++h) {
+          const int r = 2 * y + h;
+          const v8f dx = ux - (lane_x0 + float(8 * h));
+          const v8i xi = lane_i0 + 8 * h;
+          const v8f sigma = 0.5f * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+          const v8i inside = (xi >= x0) & (xi <= x1) & (stop[r] > idx) & (sigma >= 0.f) & (sigma <= p.sigma_cutoff);
+          if (!any(inside)) continue;  // cheap test first: skips exp() outside the ellipse
+          const v8f e = exp_neg(vmin(vmax(sigma, zero), splat(p.sigma_cutoff)));
+          const v8f raw = o * e;
+          const v8f alpha = vmin(splat(p.alpha_max), raw);
+          const v8i live = inside & (alpha >= p.alpha_min);
+          const v8f ra = 1.f / vmax(splat(1e-6f), 1.f - alpha);
+          const v8f Ti = T[r] * ra;  // transmittance in front of this Gaussian
+          const v8f w = select(live, alpha * Ti, zero);
+          v8f dalpha = -bgterm[r] * ra;
+          for (int ch = 0; ch < kChannels; ++ch) {
+            dalpha += (f[ch] * Ti - B[ch][r] * ra) * G[ch][r];
+            gf[ch] += w * G[ch][r];
+            B[ch][r] += f[ch] * w;
+          }
+          T[r] = select(live, Ti, T[r]);
+          const v8f da = select(live & (raw <= p.alpha_max), dalpha, zero);  // clamped alpha: no gradient
+          gO += e * da;
+          const v8f vs = -raw * da;  // d loss / d sigma
+          gA += 0.5f * vs * dx * dx;
+          gB += vs * dx * dy;
+          gC += 0.5f * vs * dy * dy;
+          gu += vs * (ca * dx + cb * dy);
+          gv += vs * (cb * dx + cc * dy);
+        }
+      }
+      float* rec = pair_grads.data() + k * kGradStride;
+      rec[0] = hsum(gu); rec[1] = hsum(gv); rec[2] = hsum(gA); rec[3] = hsum(gB); rec[4] = hsum(gC);
+      rec[5] = hsum(gO);
+      for (int ch = 0; ch < kChannels; ++ch) rec[6 + ch] = hsum(gf[ch]);
+    }
+  }
+
+  auto g_m2 = torch::zeros({n, 2}, means2d.options());
+  auto g_con = torch::zeros({n, 3}, means2d.options());
+  auto g_op = torch::zeros({n}, means2d.options());
+  auto g_ft = torch::zeros({n, C}, means2d.options());
+  auto g_bg = torch::zeros({C}, means2d.options());
+  float *pm = g_m2.data_ptr<float>(), *pc = g_con.data_ptr<float>(), *po = g_op.data_ptr<float>(),
+        *pf = g_ft.data_ptr<float>();
+  for (int64_t k = 0; k < n_pairs; ++k) {  // serial reduction: deterministic
+    const int64_t g = id_p[k];
+    const float* r = pair_grads.data() + k * kGradStride;
+    pm[2 * g] += r[0]; pm[2 * g + 1] += r[1];
+    pc[3 * g] += r[2]; pc[3 * g + 1] += r[3]; pc[3 * g + 2] += r[4];
+    po[g] += r[5];
+    for (int ch = 0; ch < C; ++ch) pf[g * C + ch] += r[6 + ch];
+  }
+  for (int ch = 0; ch < C; ++ch) {
+    double s = 0.0;
+    for (int t = 0; t < n_tiles; ++t) s += tile_bg[int64_t(t) * C + ch];
+    g_bg.data_ptr<float>()[ch] = float(s);
+  }
+  return {g_m2, g_con, g_op, g_ft, g_bg};
+}
+
+namespace {
+
+// consts = (near, dilation, clamp_margin, radius_sigmas, quat_eps, max_radius)
+atgs::Camera make_camera(const torch::Tensor& viewmat, const torch::Tensor& K, int64_t width, int64_t height,
+                         double clamp_margin) {
+  check_input(viewmat, "viewmat", torch::kFloat32);
+  check_input(K, "K", torch::kFloat32);
+  const float* V = viewmat.data_ptr<float>();
+  const float* k = K.data_ptr<float>();
+  atgs::Camera cam;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) cam.R[3 * i + j] = V[4 * i + j];
+    cam.t[i] = V[4 * i + 3];
+  }
+  cam.fx = k[0];
+  cam.fy = k[4];
+  cam.cx = k[2];
+  cam.cy = k[5];
+  const float m = float(clamp_margin);
+  const float tan_x = 0.5f * float(width) / cam.fx, tan_y = 0.5f * float(height) / cam.fy;
+  cam.lim_x_neg = cam.cx / cam.fx + m * tan_x;
+  cam.lim_x_pos = (float(width) - cam.cx) / cam.fx + m * tan_x;
+  cam.lim_y_neg = cam.cy / cam.fy + m * tan_y;
+  cam.lim_y_pos = (float(height) - cam.cy) / cam.fy + m * tan_y;
+  cam.width = int(width);
+  cam.height = int(height);
+  return cam;
+}
+
+atgs::ProjectConsts make_consts(const std::vector<double>& c) {
+  TORCH_CHECK(c.size() == 6, "expected 6 projection constants");
+  return atgs::ProjectConsts{float(c[0]), float(c[1]), float(c[3]), float(c[4]), float(c[5])};
+}
+
+}  // namespace
+
+// Returns means2d (N,2), conics (N,3), depths (N,), radii (N,) int32.
+std::vector<torch::Tensor> project_fwd(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                       torch::Tensor viewmat, torch::Tensor K, int64_t width, int64_t height,
+                                       int64_t threads, std::vector<double> consts) {
+  for (auto& [t, name] : {std::pair{means, "means"}, {quats, "quats"}, {scales, "scales"}})
+    check_input(t, name, torch::kFloat32);
+  const atgs::Camera cam = make_camera(viewmat, K, width, height, consts.at(2));
+  const atgs::ProjectConsts k = make_consts(consts);
+  const int64_t n = means.size(0);
+  auto m2 = torch::empty({n, 2}, means.options());
+  auto con = torch::empty({n, 3}, means.options());
+  auto dep = torch::empty({n}, means.options());
+  auto rad = torch::empty({n}, means.options().dtype(torch::kInt32));
+  const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
+  float *o_m2 = m2.data_ptr<float>(), *o_con = con.data_ptr<float>(), *o_dep = dep.data_ptr<float>();
+  int32_t* o_rad = rad.data_ptr<int32_t>();
+#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > 4096)
+  for (int64_t i = 0; i < n; ++i)
+    atgs::project_forward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, o_m2 + 2 * i, o_con + 3 * i, o_dep + i,
+                          o_rad + i);
+  return {m2, con, dep, rad};
+}
+
+// Gradients w.r.t. means (N,3), quats (N,4), scales (N,3).
+std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                       torch::Tensor viewmat, torch::Tensor K, int64_t width, int64_t height,
+                                       int64_t threads, std::vector<double> consts, torch::Tensor v_means2d,
+                                       torch::Tensor v_conics, torch::Tensor v_depths) {
+  for (auto& [t, name] : {std::pair{means, "means"}, {quats, "quats"}, {scales, "scales"},
+                          {v_means2d, "v_means2d"}, {v_conics, "v_conics"}, {v_depths, "v_depths"}})
+    check_input(t, name, torch::kFloat32);
+  const atgs::Camera cam = make_camera(viewmat, K, width, height, consts.at(2));
+  const atgs::ProjectConsts k = make_consts(consts);
+  const int64_t n = means.size(0);
+  auto g_means = torch::empty({n, 3}, means.options());
+  auto g_quats = torch::empty({n, 4}, means.options());
+  auto g_scales = torch::empty({n, 3}, means.options());
+  const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
+  const float *vm = v_means2d.data_ptr<float>(), *vc = v_conics.data_ptr<float>(), *vd = v_depths.data_ptr<float>();
+  float *gm = g_means.data_ptr<float>(), *gq = g_quats.data_ptr<float>(), *gs = g_scales.data_ptr<float>();
+#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > 4096)
+  for (int64_t i = 0; i < n; ++i)
+    atgs::project_backward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, vm + 2 * i, vc + 3 * i, vd[i],
+                           gm + 3 * i, gq + 4 * i, gs + 3 * i);
+  return {g_means, g_quats, g_scales};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &forward, "rasterize 2D Gaussians (forward)");
+  m.def("backward", &backward, "rasterize 2D Gaussians (backward)");
+  m.def("project_forward", &project_fwd, "EWA projection (forward)");
+  m.def("project_backward", &project_bwd, "EWA projection (backward)");
+}

@@ -1,0 +1,69 @@
+"""Optional GPU backend: a thin wrapper over gsplat's ``rasterization``.
+
+UNTESTED IN CI (no GPU on the build machines). Numerics differ slightly from the CPU backends:
+gsplat uses its own radius rule (3.33 sigma per axis) and tile-level truncation instead of the
+exact 3-sigma ellipse cut-off used by "cpu" and "torch".
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+
+from atgs.render.constants import NEAR
+from atgs.render.types import RasterOutput
+
+
+@functools.lru_cache(maxsize=1)
+def gsplat_available() -> bool:
+    """True when CUDA is present and gsplat imports."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import gsplat  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+def rasterize_cuda(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    background: torch.Tensor,
+    width: int,
+    height: int,
+) -> RasterOutput:
+    """gsplat rendering with our output contract (UNTESTED IN CI)."""
+    if not gsplat_available():
+        raise RuntimeError("rasterize(backend='cuda') needs a CUDA device and `pip install gsplat`")
+    if means.device.type != "cuda":
+        raise RuntimeError(f"rasterize(backend='cuda') needs CUDA tensors, got {means.device}; call .cuda()")
+    from gsplat import rasterization
+
+    n = means.shape[0]
+    z = (means @ viewmat[:3, :3].T + viewmat[:3, 3])[:, 2:3]
+    # Render RGB + view z as a 4th channel so the depth is alpha-weighted like the CPU backends.
+    feats = torch.cat([colors, z], dim=-1).float()
+    bg = torch.cat([background, background.new_zeros(1)]).float()
+    render, alpha, meta = rasterization(
+        means.float(), quats.float(), scales.float(), opacities.float(), feats,
+        viewmat.float()[None], K.float()[None], width, height,
+        near_plane=NEAR, backgrounds=bg[None], packed=False, absgrad=False,
+    )  # fmt: skip
+    means2d = meta["means2d"]  # (1, N, 2), an autograd node in gsplat
+    radii = meta["radii"].reshape(n, -1)
+    radii = radii.max(dim=-1).values if radii.shape[-1] > 1 else radii[:, 0]
+    return RasterOutput(
+        image=render[0, :, :, :3],
+        alpha=alpha[0, :, :, 0],
+        depth=render[0, :, :, 3],
+        means2d=means2d[0] if means2d.requires_grad is False else means2d.select(0, 0),
+        radii=radii.to(torch.int32),
+        backend="cuda",
+    )

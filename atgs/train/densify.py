@@ -1,0 +1,152 @@
+"""Anchor growing and pruning (Scaffold-GS style, SPEC section 1), time-conditioned.
+
+Statistics: per Gaussian slot (anchor * q + slot) the accumulated NDC-scaled screen-space
+gradient norm of its mean and how often it was rendered, and the last world position it had;
+per anchor the accumulated opacity of its q Gaussians and how often it was decoded in view.
+Growing adds anchors at voxel centres (3 voxel levels) where the mean gradient is high and no
+anchor of the same keyframe exists; a new anchor inherits the keyframe of its parent and the
+element-wise max of its parents' features. Pruning removes anchors whose mean opacity stays
+below a threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import torch
+
+from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
+from atgs.model.config import DensifyConfig
+from atgs.train.optim import SparseAdam
+
+
+@dataclass
+class DensifyStats:
+    grad_accum: torch.Tensor  # (A*q,)
+    grad_count: torch.Tensor  # (A*q,)
+    last_pos: torch.Tensor  # (A*q, 3)
+    opacity_accum: torch.Tensor  # (A,)
+    anchor_count: torch.Tensor  # (A,)
+
+    @classmethod
+    def zeros(cls, num_anchors: int, q: int) -> "DensifyStats":
+        n = num_anchors * q
+        return cls(torch.zeros(n), torch.zeros(n), torch.zeros(n, 3), torch.zeros(num_anchors),
+                   torch.zeros(num_anchors))
+
+    def record(self, dec: Decoded, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int,
+               height: int, q: int) -> None:
+        self.opacity_accum.index_add_(0, dec.active, dec.raw.opacities.detach().sum(1))
+        self.anchor_count.index_add_(0, dec.active, torch.ones(dec.active.numel()))
+        if means2d_grad is None:
+            return
+        vis = radii > 0
+        slots = (dec.anchor_ids * q + dec.slot_ids)[vis]
+        g = means2d_grad[vis] * torch.tensor([0.5 * width, 0.5 * height])
+        self.grad_accum.index_add_(0, slots, g.norm(dim=1))
+        self.grad_count.index_add_(0, slots, torch.ones(slots.numel()))
+        self.last_pos[slots] = dec.gaussians.means.detach()[vis]
+
+    def append(self, n: int, q: int) -> None:
+        z = DensifyStats.zeros(n, q)
+        for name in self.__dataclass_fields__:
+            setattr(self, name, torch.cat([getattr(self, name), getattr(z, name)]))
+
+    def keep(self, keep: torch.Tensor, q: int) -> None:
+        slot_keep = keep[:, None].expand(-1, q).reshape(-1)
+        for name in ("grad_accum", "grad_count", "last_pos"):
+            setattr(self, name, getattr(self, name)[slot_keep])
+        for name in ("opacity_accum", "anchor_count"):
+            setattr(self, name, getattr(self, name)[keep])
+
+    def state_dict(self) -> dict:
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "DensifyStats":
+        return cls(**{k: state[k].clone() for k in cls.__dataclass_fields__})
+
+
+def _voxel_keys(pos: torch.Tensor, keyframe: torch.Tensor, size: float) -> torch.Tensor:
+    return torch.cat([keyframe[:, None], torch.round(pos / size).long()], dim=1)
+
+
+def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None,
+                 generator: torch.Generator) -> int:
+    """Add anchors where the mean screen-space gradient is high; returns how many were added."""
+    q = model.cfg.gaussians_per_anchor
+    room = cfg.max_anchors - model.num_anchors
+    min_count = cfg.interval * cfg.success_threshold * 0.5
+    eligible = stats.grad_count > min_count
+    grads = torch.where(eligible, stats.grad_accum / stats.grad_count.clamp_min(1), torch.zeros(()))
+    slot_anchor = torch.arange(model.num_anchors).repeat_interleave(q)
+    new_mu, new_feat, new_scale, new_kf = [], [], [], []
+    existing_kf = model.anchor_keyframe
+    for i in range(cfg.levels):
+        if room <= 0:
+            break
+        thr = cfg.grad_threshold * (cfg.hierarchy_factor // 2) ** i
+        size = model.voxel_size * cfg.init_factor / cfg.hierarchy_factor**i
+        cand = eligible & (grads >= thr)
+        if i < cfg.levels - 1:
+            cand &= grads < cfg.grad_threshold * (cfg.hierarchy_factor // 2) ** (i + 1)
+        # random thinning, stronger at the finer levels (Scaffold-GS)
+        cand &= torch.rand(cand.shape, generator=generator) > 0.5 ** (i + 1)
+        idx = cand.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            continue
+        parents = slot_anchor[idx]
+        keys = _voxel_keys(stats.last_pos[idx], model.anchor_keyframe[parents], size)
+        old_keys = _voxel_keys(model.anchor_mu, existing_kf, size)
+        allk, inv = torch.unique(torch.cat([old_keys, keys]), dim=0, return_inverse=True)
+        occupied = torch.zeros(allk.shape[0], dtype=torch.bool)
+        occupied[inv[: old_keys.shape[0]]] = True
+        cand_inv = inv[old_keys.shape[0]:]
+        free = ~occupied[cand_inv]
+        if not free.any():
+            continue
+        ids, local = torch.unique(cand_inv[free], return_inverse=True)
+        ids, local = ids[:room], local
+        sel = local < ids.numel()
+        n_new = ids.numel()
+        feat = torch.full((n_new, model.cfg.feature_dim), -math.inf)
+        feat = feat.scatter_reduce(0, local[sel, None].expand(-1, feat.shape[1]),
+                                   model.anchor_feature[parents[free][sel]], reduce="amax")
+        key = allk[ids]
+        new_mu.append(key[:, 1:].float() * size)
+        new_kf.append(key[:, 0])
+        new_feat.append(feat)
+        new_scale.append(torch.full((n_new, 6), math.log(size)))
+        room -= n_new
+    reset = eligible
+    stats.grad_accum[reset] = 0
+    stats.grad_count[reset] = 0
+    if not new_mu:
+        return 0
+    mu, feat, scale, kf = (torch.cat(x) for x in (new_mu, new_feat, new_scale, new_kf))
+    model.add_anchors(mu, feat, scale, kf)
+    stats.append(mu.shape[0], q)
+    if opt is not None:
+        for name in ANCHOR_TABLES:
+            opt.append_rows(name, mu.shape[0])
+    return int(mu.shape[0])
+
+
+def prune_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None) -> int:
+    """Remove anchors seen often enough whose mean opacity (per visit, summed over q) is below
+    ``min_opacity``; returns how many were removed (never all of them)."""
+    q = model.cfg.gaussians_per_anchor
+    seen = stats.anchor_count > cfg.interval * cfg.success_threshold
+    prune = seen & (stats.opacity_accum < cfg.min_opacity * stats.anchor_count)
+    stats.opacity_accum[seen] = 0
+    stats.anchor_count[seen] = 0
+    if not prune.any() or bool(prune.all()):
+        return 0
+    keep = ~prune
+    model.keep_anchors(keep)
+    stats.keep(keep, q)
+    if opt is not None:
+        for name in ANCHOR_TABLES:
+            opt.keep_rows(name, keep)
+    return int(prune.sum())

@@ -1,0 +1,368 @@
+"""The training loop: balanced view sampling, sparse/dense Adam, schedules, densification,
+robustness to non-finite values, periodic evaluation, CSV log, checkpoints and resume."""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+import math
+from pathlib import Path
+import time
+from typing import Protocol
+
+import numpy as np
+from PIL import Image
+import torch
+from tqdm import tqdm
+
+from atgs.cameras import Camera
+from atgs.checkpoint import read_checkpoint, save_checkpoint
+from atgs.model.atgs_model import TEMPORAL_MLP, ATGSModel, Decoded
+from atgs.model.config import ModelConfig, TrainConfig, from_dict, to_dict
+from atgs.render import rasterize
+from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors
+from atgs.train.losses import image_loss, psnr, volume_loss
+from atgs.train.optim import SparseAdam
+from atgs.train.sampling import ImageCache, SegmentSampler
+from atgs.train.schedule import exp_decay, warmup
+
+CSV_FIELDS = ("step", "loss", "psnr", "anchors", "gaussians", "seconds", "skipped", "eval_psnr", "eval_ssim")
+
+
+class SceneData(Protocol):
+    """What the trainer needs of a scene (``atgs.data.scene.PreparedScene`` provides it)."""
+
+    cameras: list[Camera]
+    num_frames: int
+    fps: float
+    keyframes: list[int]
+    points: np.ndarray
+    point_keyframes: np.ndarray
+    test_cameras: list[str]
+
+    @property
+    def train_indices(self) -> list[int]: ...
+
+    @property
+    def test_indices(self) -> list[int]: ...
+
+    def image_uint8(self, cam_index: int, frame: int) -> np.ndarray: ...
+
+
+class NonFiniteError(RuntimeError):
+    pass
+
+
+@dataclass
+class StepResult:
+    loss: float
+    psnr: float
+    gaussians: int
+    skipped: bool
+
+
+class Trainer:
+    def __init__(self, scene: SceneData, model_cfg: ModelConfig, cfg: TrainConfig, out_dir: str | Path,
+                 model: ATGSModel | None = None) -> None:
+        self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
+        self.out = Path(out_dir)
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        s = cfg.resolution_scale
+        self.cams = [c.scaled(s) if s != 1.0 else c for c in scene.cameras]
+        self.train_idx, self.test_idx = list(scene.train_indices), list(scene.test_indices)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        if model is None:
+            model = ATGSModel.from_points(
+                model_cfg, torch.from_numpy(np.asarray(scene.points, dtype=np.float32)),
+                torch.from_numpy(np.asarray(scene.point_keyframes, dtype=np.int64)), list(scene.keyframes),
+                scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in self.train_idx],
+                seed=cfg.seed)
+        self.model = model
+        self.model.test_camera_names = list(scene.test_cameras)
+        self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
+        dec = model.decoder
+        self.dense_opt = torch.optim.Adam(
+            [{"params": list(getattr(dec, h).parameters()), "name": h} for h in dec.HEADS], lr=0.0, eps=cfg.adam_eps)
+        self.stats = DensifyStats.zeros(model.num_anchors, model_cfg.gaussians_per_anchor)
+        self.sampler = SegmentSampler(model.timeline, self.train_idx, self.gen)
+        self.grid_visits = torch.zeros(model.num_segments, dtype=torch.int64)
+        self.step = 0
+        self.bad_in_row = 0
+        self.skipped = 0
+        self.images = ImageCache(self._load_image, cfg.image_cache_mb)
+
+    # --- data -------------------------------------------------------------------------------
+    def _load_image(self, cam: int, frame: int) -> np.ndarray:
+        arr = self.scene.image_uint8(cam, frame)
+        c = self.cams[cam]
+        if arr.shape[:2] != (c.height, c.width):
+            arr = np.asarray(Image.fromarray(arr).resize((c.width, c.height), Image.Resampling.LANCZOS))
+        return arr
+
+    def _background(self) -> torch.Tensor:
+        if self.cfg.random_background:
+            return torch.rand(3, generator=self.gen)
+        return torch.tensor(self.cfg.background, dtype=torch.float32)
+
+    def render(self, dec: Decoded, cam: Camera, background: torch.Tensor):
+        g = dec.gaussians
+        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors,
+                         torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
+                         cam.width, cam.height, background=background, backend=self.cfg.render_backend)
+
+    # --- learning rates -----------------------------------------------------------------------
+    def _expected_visits(self) -> int:
+        segs = max(1, len(self.sampler.segments))
+        return max(1, self.cfg.iterations * self.cfg.views_per_step // segs)
+
+    def dense_lrs(self, step: int) -> dict[str, float]:
+        lr, n = self.cfg.lr, self.cfg.iterations
+        w = warmup(step, lr.warmup_steps, lr.warmup_start)
+        return {"offset": w * exp_decay(lr.offset_init, lr.offset_final, step, n),
+                "opacity": w * exp_decay(lr.opacity_init, lr.opacity_final, step, n),
+                "cov": w * lr.cov,
+                "color": w * exp_decay(lr.color_init, lr.color_final, step, n)}
+
+    def sparse_lr(self, name: str, rows: torch.Tensor, step: int) -> float | torch.Tensor:
+        lr = self.cfg.lr
+        w = warmup(step, lr.warmup_steps, lr.warmup_start)
+        if name == "anchor_feature":
+            return w * lr.anchor_feature
+        if name == "anchor_log_scale":
+            return w * lr.anchor_scaling
+        if name == "spatial":
+            return w * lr.spatial_grid
+        # temporal grids: each decays with its own visit count
+        per_grid = self.model.hash.levels * self.model.hash.table_size
+        grid = rows // per_grid if name == "hash" else rows
+        visits, total = self.grid_visits[grid].double(), self._expected_visits()
+        p = (visits / total).clamp(0, 1)
+        if name == "hash":
+            a, b = lr.temporal_init * self.model.extent, lr.temporal_final * self.model.extent
+        else:
+            a, b = lr.temporal_mlp_init, lr.temporal_mlp_final
+        return (w * torch.exp(math.log(a) * (1 - p) + math.log(b) * p)).float()
+
+    # --- one optimisation step ---------------------------------------------------------------
+    def compute_loss(self, dec: Decoded, out, gt: torch.Tensor) -> torch.Tensor:
+        cfg = self.cfg
+        loss = image_loss(out.image, gt, cfg.lambda_ssim)
+        if cfg.lambda_volume > 0:
+            loss = loss + cfg.lambda_volume * volume_loss(dec.gaussians.scales, cfg.volume_reduction)
+        return loss
+
+    def train_step(self) -> StepResult:
+        cfg, model = self.cfg, self.model
+        q = model.cfg.gaussians_per_anchor
+        self.dense_opt.zero_grad(set_to_none=True)
+        grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {}
+        losses, psnrs, n_gauss, bad = [], [], 0, False
+        segments: list[int] = []
+        for _ in range(cfg.views_per_step):
+            ci, f = self.sampler.next()
+            cam = self.cams[ci]
+            gt = self.images.get(ci, f)
+            dec = model.decode_frame(f, cam, track=True)
+            segments.append(dec.segment)
+            if not all(bool(torch.isfinite(x).all()) for x in dec.gaussians.as_tuple()):
+                bad = True
+                break
+            bg = self._background()
+            out = self.render(dec, cam, bg)
+            out.means2d.retain_grad()
+            loss = self.compute_loss(dec, out, gt)
+            if not bool(torch.isfinite(loss)):
+                bad = True
+                break
+            (loss / cfg.views_per_step).backward()
+            losses.append(float(loss.detach()))
+            psnrs.append(psnr(out.image, gt))
+            n_gauss += len(dec.gaussians)
+            g2d = out.means2d.grad
+            self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
+            for s in dec.sparse:
+                if s.leaf.grad is not None:
+                    grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
+        if bad:
+            self.skipped += 1
+            self.bad_in_row += 1
+            self.dense_opt.zero_grad(set_to_none=True)
+            if self.bad_in_row > cfg.max_bad_steps:
+                raise NonFiniteError(f"{self.bad_in_row} consecutive steps had a non-finite loss or Gaussians "
+                                     f"(step {self.step}); lower the learning rates or resume from the last checkpoint")
+            self.step += 1
+            return StepResult(float("nan"), float("nan"), 0, True)
+        self.bad_in_row = 0
+        for m in set(segments):
+            self.grid_visits[m] += 1
+        self._apply_sparse(grads)
+        self._apply_dense()
+        self.step += 1
+        self._maybe_densify()
+        return StepResult(float(np.mean(losses)), float(np.mean(psnrs)), n_gauss // max(1, len(losses)), False)
+
+    def _apply_sparse(self, grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]]) -> None:
+        tables = self.model.sparse_tensors()
+        for name, parts in grads.items():
+            if len(parts) == 1:
+                rows, g = parts[0]
+            else:  # several views touched this table: sum gradients of shared rows
+                rows, inv = torch.unique(torch.cat([r for r, _ in parts]), return_inverse=True)
+                g = torch.zeros((rows.numel(),) + tuple(parts[0][1].shape[1:]))
+                g.index_add_(0, inv, torch.cat([x for _, x in parts]))
+            g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
+            norm = float(g.norm())
+            if self.cfg.grad_clip > 0 and norm > self.cfg.grad_clip:
+                g = g * (self.cfg.grad_clip / norm)
+            self.sparse_opt.step(name, tables[name], rows, g, self.sparse_lr(name, rows, self.step))
+
+    def _apply_dense(self) -> None:
+        lrs = self.dense_lrs(self.step)
+        for group in self.dense_opt.param_groups:
+            group["lr"] = lrs[group["name"]]
+            for p in group["params"]:
+                if p.grad is not None:
+                    torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            if self.cfg.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(group["params"], self.cfg.grad_clip)
+        self.dense_opt.step()
+
+    def _maybe_densify(self) -> None:
+        d = self.cfg.densify
+        stop = int(d.stop_fraction * self.cfg.iterations)
+        if not d.enabled or self.step < d.start or self.step > stop or self.step % d.interval:
+            return
+        n_add = grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
+        n_del = prune_anchors(self.model, self.stats, d, self.sparse_opt)
+        self.last_densify = (n_add, n_del)
+
+    # --- evaluation ---------------------------------------------------------------------------
+    def eval_frames(self) -> list[int]:
+        F, n = self.model.num_frames, max(1, self.cfg.eval_max_frames)
+        return sorted({round(i * (F - 1) / max(1, n - 1)) for i in range(n)}) if n > 1 else [0]
+
+    @torch.no_grad()
+    def render_view(self, cam_index: int, frame: int) -> torch.Tensor:
+        cam = self.cams[cam_index]
+        dec = self.model.decode_frame(frame, cam, track=False)
+        bg = torch.tensor(self.cfg.background, dtype=torch.float32)
+        return self.render(dec, cam, bg).image.clamp(0, 1)
+
+    @torch.no_grad()
+    def evaluate(self, save_dir: Path | None = None) -> dict[str, float]:
+        from atgs.eval.metrics import psnr as m_psnr, ssim as m_ssim
+
+        cams = self.test_idx or self.train_idx[:1]
+        ps, ss = [], []
+        for ci in cams:
+            for f in self.eval_frames():
+                img, gt = self.render_view(ci, f), self.images.get(ci, f)
+                ps.append(float(m_psnr(img, gt)))
+                ss.append(float(m_ssim(img, gt)))
+                if save_dir is not None:
+                    save_dir.mkdir(parents=True, exist_ok=True)
+                    both = torch.cat([img, gt], dim=1).mul(255).round().byte().numpy()
+                    Image.fromarray(both).save(save_dir / f"{self.cams[ci].name}_{f:06d}.png")
+        return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "views": len(ps),
+                "on_test_cameras": bool(self.test_idx)}
+
+    # --- checkpoints ----------------------------------------------------------------------------
+    def checkpoint_payload(self) -> dict:
+        m = self.model
+        return {
+            "model_config": to_dict(self.model_cfg), "train_config": to_dict(self.cfg),
+            "cameras": [c.to_dict() for c in m.cameras], "test_cameras": list(self.scene.test_cameras),
+            "num_frames": m.num_frames, "fps": m.fps,
+            "time_range": [0.0, (m.num_frames - 1) / m.fps if m.fps > 0 else 0.0],
+            "keyframes": m.timeline.keyframe_frames(), "step": self.step, "model": m.state_dict(),
+            "trainer": {
+                "sparse_opt": self.sparse_opt.state_dict(), "dense_opt": self.dense_opt.state_dict(),
+                "densify": self.stats.state_dict(), "sampler": self.sampler.state_dict(),
+                "grid_visits": self.grid_visits.clone(), "generator": self.gen.get_state(),
+                "skipped": self.skipped, "bad_in_row": self.bad_in_row,
+            },
+        }
+
+    def save(self, path: Path | None = None) -> Path:
+        path = path or self.out / "ckpt.pt"
+        save_checkpoint(path, self.checkpoint_payload())
+        return path
+
+    @classmethod
+    def resume(cls, scene: SceneData, path: str | Path, out_dir: str | Path,
+               iterations: int | None = None) -> "Trainer":
+        from atgs.checkpoint import CheckpointError, model_from_checkpoint
+
+        data = read_checkpoint(path)
+        if data.get("trainer") is None:
+            raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
+        model_cfg = from_dict(ModelConfig, data["model_config"])
+        cfg = from_dict(TrainConfig, data["train_config"])
+        if iterations is not None:
+            cfg.iterations = iterations
+        if int(data["num_frames"]) != scene.num_frames:
+            raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
+                                  f"{scene.num_frames}; resume with the same --data")
+        model = model_from_checkpoint(data, path)
+        tr = cls(scene, model_cfg, cfg, out_dir, model=model)
+        st = data["trainer"]
+        tr.sparse_opt.load_state_dict(st["sparse_opt"])
+        tr.dense_opt.load_state_dict(st["dense_opt"])
+        tr.stats = DensifyStats.from_state(st["densify"])
+        tr.sampler.load_state_dict(st["sampler"])
+        tr.grid_visits = st["grid_visits"].clone()
+        tr.gen.set_state(st["generator"])
+        tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
+        tr.step = int(data["step"])
+        return tr
+
+    # --- the loop -------------------------------------------------------------------------------------
+    def train(self, progress: bool = True, final_renders: bool = True, stop_at: int | None = None) -> dict:
+        """Train until ``cfg.iterations`` (or ``stop_at``, as if killed there: checkpoint written,
+        no final evaluation), then save ``ckpt.pt`` and evaluate."""
+        cfg = self.cfg
+        end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
+        self.out.mkdir(parents=True, exist_ok=True)
+        log_path = self.out / "train_log.csv"
+        new_log = not log_path.exists() or self.step == 0
+        log = open(log_path, "w" if new_log else "a", newline="")
+        writer = csv.DictWriter(log, fieldnames=CSV_FIELDS)
+        if new_log:
+            writer.writeheader()
+        t0 = time.perf_counter()
+        start = self.step
+        bar = tqdm(total=cfg.iterations, initial=start, disable=not progress, desc="atgs-train",
+                   dynamic_ncols=True)
+        last_eval: dict = {}
+        ema_loss = ema_psnr = None
+        try:
+            while self.step < end:
+                r = self.train_step()
+                if not r.skipped:
+                    ema_loss = r.loss if ema_loss is None else 0.9 * ema_loss + 0.1 * r.loss
+                    ema_psnr = r.psnr if ema_psnr is None else 0.9 * ema_psnr + 0.1 * r.psnr
+                row = {"step": self.step, "loss": f"{r.loss:.6f}", "psnr": f"{r.psnr:.3f}",
+                       "anchors": self.model.num_anchors, "gaussians": r.gaussians,
+                       "seconds": f"{time.perf_counter() - t0:.2f}", "skipped": self.skipped,
+                       "eval_psnr": "", "eval_ssim": ""}
+                if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iterations:
+                    last_eval = self.evaluate()
+                    row["eval_psnr"], row["eval_ssim"] = f"{last_eval['psnr']:.3f}", f"{last_eval['ssim']:.4f}"
+                writer.writerow(row)
+                if cfg.save_every > 0 and self.step % cfg.save_every == 0 and self.step < cfg.iterations:
+                    self.save()
+                bar.update(1)
+                if self.step % 5 == 0 or self.step == cfg.iterations:
+                    bar.set_postfix(loss=f"{ema_loss or float('nan'):.4f}", psnr=f"{ema_psnr or float('nan'):.2f}",
+                                    anchors=self.model.num_anchors, gs=r.gaussians, refresh=False)
+        finally:
+            bar.close()
+            log.close()
+        seconds = time.perf_counter() - t0
+        self.save()
+        result = {"steps": self.step - start, "seconds": seconds, "anchors": self.model.num_anchors,
+                  "skipped": self.skipped}
+        if stop_at is None and (final_renders or cfg.eval_every > 0):
+            result["eval"] = self.evaluate(self.out / "renders" if final_renders else None)
+        return result

@@ -1,0 +1,182 @@
+"""Training benchmark: the built-in large-motion scene in a CPU preset, the paper's ablations
+and peak memory for two sequence lengths.
+
+    python bench/train.py                       # everything (long)
+    python bench/train.py --only main           # just the main run
+    python bench/train.py --ablation-iterations 1500 --memory-frames 250 1000
+
+Each configuration runs in its own subprocess so that its peak RSS is its own. Results go to
+bench/results/train.json and a Markdown table to stdout (copied into docs/training.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+import time
+
+import tyro
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@dataclass
+class BenchArgs:
+    preset: str = "cpu"
+    iterations: int | None = None  # main run; default: the preset's
+    ablation_iterations: int = 1500
+    memory_iterations: int = 150
+    memory_frames: tuple[int, ...] = (250, 1000)
+    keyframes: int = 12  # keyframes of the prepared scene (the ablation "few" uses 3 of them)
+    test_cameras: int = 2
+    only: tuple[str, ...] = ("main", "ablations", "memory")
+    cache_dir: Path = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "atgs"
+    work_dir: Path = Path("/tmp/atgs-bench-train")
+    out: Path = ROOT / "bench" / "results" / "train.json"
+    threads: int = 0
+
+
+@dataclass
+class RunSpec:
+    name: str
+    preset: str
+    iterations: int | None
+    scene_frames: int = 120
+    scene_cameras: int = 12
+    scene_width: int = 256
+    scene_height: int = 192
+    keyframes: int = 12
+    test_cameras: int = 2
+    model_overrides: dict = field(default_factory=dict)
+    train_overrides: dict = field(default_factory=dict)
+    threads: int = 0
+
+
+def scene_for(spec: RunSpec, cache_dir: Path):
+    from atgs.data.scene import PreparedScene
+    from atgs.data.synth import default_config, ensure_default_scene, with_overrides
+
+    cfg = with_overrides(default_config(), frames=spec.scene_frames, cameras=spec.scene_cameras,
+                         width=spec.scene_width, height=spec.scene_height)
+    scene = PreparedScene.load(ensure_default_scene(cache_dir, cfg, keyframes=spec.keyframes, progress=False))
+    # hold out test_cameras cameras spread around the ring
+    n = len(scene.cameras)
+    held = sorted({round(i * n / spec.test_cameras) for i in range(spec.test_cameras)})
+    return replace(scene, test_cameras=[scene.cameras[i].name for i in held])
+
+
+def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
+    """Train one configuration in this process and return its measurements."""
+    import resource
+
+    import torch
+
+    from atgs.model.config import preset
+    from atgs.train.trainer import Trainer
+
+    if spec.threads:
+        torch.set_num_threads(spec.threads)
+    t_data = time.perf_counter()
+    scene = scene_for(spec, cache_dir)
+    t_data = time.perf_counter() - t_data
+    m, t = preset(spec.preset, spec.iterations)
+    for k, v in spec.model_overrides.items():
+        setattr(m, k, v)
+    for k, v in spec.train_overrides.items():
+        setattr(t, k, v)
+    t.eval_every, t.save_every = 0, 0
+    out = work_dir / spec.name
+    trainer = Trainer(scene, m, t, out)
+    res = trainer.train(progress=sys.stderr.isatty(), final_renders=True)
+    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {"name": spec.name, "preset": spec.preset, "iterations": t.iterations,
+            "frames": scene.num_frames, "cameras": len(scene.cameras), "test_cameras": scene.test_cameras,
+            "width": scene.cameras[0].width, "height": scene.cameras[0].height,
+            "keyframes": trainer.model.num_keyframes, "segments": trainer.model.num_segments,
+            "anchors": trainer.model.num_anchors, "train_seconds": res["seconds"],
+            "scene_seconds": t_data, "psnr": res["eval"]["psnr"], "ssim": res["eval"]["ssim"],
+            "eval_views": res["eval"]["views"], "peak_rss_mb": peak_kb / 1024.0,
+            "model_overrides": spec.model_overrides, "torch_threads": torch.get_num_threads()}
+
+
+def run_subprocess(spec: RunSpec, args: BenchArgs) -> dict:
+    spec_json = json.dumps(spec.__dict__)
+    cmd = [sys.executable, __file__, "--child", spec_json, str(args.cache_dir), str(args.work_dir)]
+    print(f"[bench] {spec.name}: {spec.preset}, {spec.iterations} it, {spec.scene_frames} frames, "
+          f"{spec.model_overrides}", flush=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        print(proc.stderr[-3000:], file=sys.stderr)
+        return {"name": spec.name, "error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"}
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    print(f"[bench]   PSNR {r['psnr']:.2f} SSIM {r['ssim']:.4f} train {r['train_seconds']:.0f}s "
+          f"peak RSS {r['peak_rss_mb']:.0f} MB anchors {r['anchors']}", flush=True)
+    return r
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| run | frames | K | M | iterations | anchors | PSNR | SSIM | train s | peak RSS MB |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['name']} | failed: {r['error']} |")
+            continue
+        lines.append(f"| {r['name']} | {r['frames']} | {r['keyframes']} | {r['segments']} | {r['iterations']} | "
+                     f"{r['anchors']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['train_seconds']:.0f} | "
+                     f"{r['peak_rss_mb']:.0f} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        spec = RunSpec(**json.loads(sys.argv[2]))
+        print(json.dumps(run_one(spec, Path(sys.argv[3]), Path(sys.argv[4]))))
+        return
+    args = tyro.cli(BenchArgs)
+    results: dict = {"machine": {"cpus": os.cpu_count()}, "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+    if args.out.is_file():
+        results = {**json.loads(args.out.read_text()), **results}
+    base = dict(keyframes=args.keyframes, test_cameras=args.test_cameras, threads=args.threads)
+
+    def save() -> None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(results, indent=1))
+        os.replace(tmp, args.out)
+
+    if "main" in args.only:
+        results["main"] = run_subprocess(RunSpec("main", args.preset, args.iterations, **base), args)
+        save()
+    if "ablations" in args.only:
+        it = args.ablation_iterations
+        specs = [
+            RunSpec("full (W=7, f_s, M=4, K=12)", args.preset, it, model_overrides={"num_segments": 4}, **base),
+            RunSpec("no window (W=0)", args.preset, it, model_overrides={"num_segments": 4, "window": 0}, **base),
+            RunSpec("without f_s", args.preset, it, model_overrides={"num_segments": 4, "use_spatial_grid": False},
+                    **base),
+            RunSpec("M=1", args.preset, it, model_overrides={"num_segments": 1}, **base),
+            RunSpec("few keyframes (K=3)", args.preset, it, model_overrides={"num_segments": 4, "num_keyframes": 3},
+                    **base),
+        ]
+        results["ablations"] = [run_subprocess(s, args) for s in specs]
+        save()
+    if "memory" in args.only:
+        mem = []
+        for frames in args.memory_frames:
+            spec = RunSpec(f"memory {frames} frames", args.preset, args.memory_iterations, scene_frames=frames,
+                           scene_cameras=6, scene_width=128, scene_height=96, keyframes=args.keyframes,
+                           test_cameras=1, threads=args.threads)
+            mem.append(run_subprocess(spec, args))
+            save()
+        results["memory"] = mem
+        save()
+    rows = ([results["main"]] if "main" in results else []) + results.get("ablations", []) + results.get("memory", [])
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()

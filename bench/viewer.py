@@ -1,0 +1,275 @@
+"""Viewer benchmark: decode, sort, upload, draw times and FPS of the GLSL splatting player on
+this machine's software OpenGL (llvmpipe through EGL).
+
+    python bench/viewer.py                       # writes bench/results/viewer.json
+    python bench/viewer.py --checkpoint ckpt.pt  # playback of a real model at 640x480
+
+Part 1: N random Gaussians (10k, 50k, 200k) seen by a 1280x720 camera: per-stage times of a
+frame whose Gaussians change (decode + sort + upload + draw) and of a static frame with a
+moving camera (sort + draw).
+Part 2: playback at 640x480 through the real player pipeline (background decode cache ->
+upload -> sort -> draw) for a model-sized scene: the given checkpoint, else an untrained
+ATGS model with the "cpu" preset (decoding a real network; its Gaussians have the sizes an
+initialised model has), and the built-in demo scene.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path as _Path
+
+# This file is named like the `viewer` package; drop its own directory from the import path
+# so that `import viewer` finds the package, not this script.
+sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
+
+import json
+import math
+import os
+import platform
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+
+from atgs.cameras import Camera, look_at
+from atgs.gaussians import Gaussians
+from atgs.headless_gl import create_headless_context, gl_description
+from atgs.progress import progress_bar
+from viewer.decode_cache import DecodeCache
+from viewer.packing import pack_gaussians
+from viewer.playback import FrameFeeder, Playback
+from viewer.source import GaussianSource, SyntheticSource, decode_frame
+from viewer.splat_renderer import RenderSettings, SplatRenderer
+
+
+@dataclass
+class BenchConfig:
+    counts: tuple[int, ...] = (10_000, 50_000, 200_000)
+    size: tuple[int, int] = (1280, 720)
+    repeats: int = 3
+    playback_size: tuple[int, int] = (640, 480)
+    playback_frames: int = 40
+    checkpoint: Path | None = None
+    """A trained ckpt.pt for the playback part (default: an untrained 'cpu'-preset model)."""
+    gl: str = "egl"
+    out: Path = Path("bench/results/viewer.json")
+    target_dtypes: tuple[str, ...] = ("f4", "f2")
+    docs: Path | None = Path("docs/viewer.md")
+    """Replace the table between the bench markers in this file (None: leave the docs alone)."""
+
+
+def random_gaussians(n: int, seed: int = 0) -> Gaussians:
+    """N Gaussians in a 2x2x2 box with a fixed size distribution (independent of N): seen by
+    the 1280x720 bench camera a typical splat has sigma ~3 px, i.e. a ~20 px wide 3-sigma quad
+    (the SPEC's reference size), so the per-frame work can be compared across N."""
+    gen = torch.Generator().manual_seed(seed)
+    typical = 0.0125
+    return Gaussians(
+        means=torch.rand(n, 3, generator=gen) * 2 - 1,
+        quats=torch.randn(n, 4, generator=gen),
+        scales=typical * torch.exp(torch.randn(n, 3, generator=gen) * 0.3),
+        opacities=torch.rand(n, generator=gen) * 0.8 + 0.1,
+        colors=torch.rand(n, 3, generator=gen),
+    )
+
+
+def bench_camera(width: int, height: int, angle: float = 0.0) -> Camera:
+    f = 0.5 * height / math.tan(math.radians(25))
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    eye = np.array([3.2 * math.cos(angle), 3.2 * math.sin(angle), 1.0])
+    return Camera("bench", width, height, K, look_at(eye, np.zeros(3), np.array([0, 0, 1.0])))
+
+
+def _median(xs: list[float]) -> float:
+    return float(statistics.median(xs)) if xs else 0.0
+
+
+def bench_counts(cfg: BenchConfig, renderer: SplatRenderer, dtype: str) -> list[dict]:
+    renderer.target_dtype = dtype
+    rows = []
+    W, H = cfg.size
+    for n in cfg.counts:
+        g = random_gaussians(n)
+        decode, sort, upload, draw, static_sort, static_draw = [], [], [], [], [], []
+        for r in range(cfg.repeats):
+            t0 = time.perf_counter()
+            # "decode" here is the CPU part the player does per new frame: tensor -> packed
+            packed = pack_gaussians(g)
+            decode.append((time.perf_counter() - t0) * 1e3)
+            upload.append(renderer.set_gaussians(packed))
+            renderer.render(bench_camera(W, H, 0.1 * r), RenderSettings(), sync=True)
+            sort.append(renderer.timings.sort_ms)
+            draw.append(renderer.timings.draw_ms)
+            # same Gaussians, moved camera: the sort is redone, nothing is uploaded
+            renderer.render(bench_camera(W, H, 0.1 * r + 0.05), RenderSettings(), sync=True)
+            static_sort.append(renderer.timings.sort_ms)
+            static_draw.append(renderer.timings.draw_ms)
+        row = {
+            "gaussians": n, "target": dtype, "size": f"{W}x{H}",
+            "pack_ms": _median(decode), "sort_ms": _median(sort), "upload_ms": _median(upload),
+            "draw_ms": _median(draw), "camera_move_ms": _median(static_sort) + _median(static_draw),
+        }  # fmt: skip
+        row["fps_new_frame"] = 1000.0 / (row["pack_ms"] + row["sort_ms"] + row["upload_ms"] + row["draw_ms"])
+        row["fps_camera_move"] = 1000.0 / row["camera_move_ms"]
+        rows.append(row)
+        print(json.dumps(row))
+    return rows
+
+
+def untrained_model(num_points: int = 6_000, frames: int = 60) -> GaussianSource:
+    """An initialised (untrained) ATGS model with the 'cpu' preset over a synthetic point set."""
+    from atgs.model.atgs_model import ATGSModel
+    from atgs.model.config import preset
+
+    mcfg, _ = preset("cpu")
+    src = SyntheticSource(num_gaussians=num_points, frames=frames)
+    pts = src.gaussians_at_frame(0).means
+    gen = torch.Generator().manual_seed(0)
+    kf = torch.randint(0, 4, (pts.shape[0],), generator=gen)
+    scene_kf = [round(j * (frames - 1) / 3) for j in range(4)]
+    return ATGSModel.from_points(mcfg, pts, kf, scene_kf, frames, 30.0, src.cameras)
+
+
+def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer: SplatRenderer,
+                   preload: bool = False) -> dict:
+    """Wall-clock playback through the player's pipeline: feeder/cache (background decode),
+    upload on change, sort + draw every frame, camera slowly orbiting (so the sort runs)."""
+    W, H = cfg.playback_size
+    cams = list(source.cameras)
+    base = cams[0] if cams else bench_camera(W, H)
+    sx, sy = W / base.width, H / base.height
+    K = base.K.copy()
+    K[0] *= sx
+    K[1] *= sy
+    renderer.target_dtype = "f2"
+    decode_ms = [decode_frame(source, f).decode_ms for f in (0, 1)]
+    n_gauss = len(decode_frame(source, 0))
+    pb = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0), playing=True)
+    shown = []
+    pinned = {f: decode_frame(source, f) for f in range(source.num_frames)} if preload else None
+    with DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=pinned) as cache:
+        feeder = FrameFeeder(cache, lookahead=4)
+        cache.wait_for(0, timeout=120)
+        t_start = time.perf_counter()
+        last = t_start
+        draw, sort = [], []
+        for i in range(cfg.playback_frames):
+            now = time.perf_counter()
+            pb.advance(now - last)
+            last = now
+            packed, changed = feeder.update(pb)
+            if changed and packed is not None:
+                renderer.set_gaussians(packed)
+            if packed is not None:
+                shown.append(packed.frame)
+            a = 0.01 * i
+            R = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1.0]])
+            w2c = base.w2c.copy()
+            w2c[:3, :3] = base.w2c[:3, :3] @ R.T
+            cam = Camera("p", W, H, K, w2c)
+            renderer.render(cam, RenderSettings(), sync=True)
+            draw.append(renderer.timings.draw_ms)
+            sort.append(renderer.timings.sort_ms)
+        wall = time.perf_counter() - t_start
+    row = {
+        "scene": name + (" (--preload)" if preload else " (streaming decode)"), "size": f"{W}x{H}", "gaussians": n_gauss,
+        "decode_ms": _median(decode_ms), "sort_ms": _median(sort), "draw_ms": _median(draw),
+        "fps": cfg.playback_frames / wall, "distinct_frames_shown": len(set(shown)),
+        "frames_rendered": cfg.playback_frames, "source_fps": float(source.fps or 30.0),
+    }  # fmt: skip
+    print(json.dumps(row))
+    return row
+
+
+START, END = "<!-- bench:viewer:start -->", "<!-- bench:viewer:end -->"
+
+
+def markdown_table(result: dict) -> str:
+    m = result["machine"]
+    la = ", ".join(f"{x:.1f}" for x in m["loadavg_before"])
+    lines = [
+        f"Measured {result['date']} on {m['cpus']} CPUs, {m['gl']}; load average before the run: {la}"
+        f" (after: {', '.join(f'{x:.1f}' for x in m['loadavg_after'])}).",
+        "",
+        "| Gaussians | target | pack ms | sort ms | upload ms | draw ms | new frame FPS | camera move FPS |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in result["per_count"]:
+        lines.append(
+            f"| {r['gaussians']:,} | {r['target']} | {r['pack_ms']:.1f} | {r['sort_ms']:.1f} | {r['upload_ms']:.1f} "
+            f"| {r['draw_ms']:.0f} | {r['fps_new_frame']:.1f} | {r['fps_camera_move']:.1f} |"
+        )
+    lines += ["", "| playback scene | size | Gaussians | decode ms | sort ms | draw ms | FPS | distinct frames shown |",
+              "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in result["playback"]:
+        lines.append(
+            f"| {r['scene']} | {r['size']} | {r['gaussians']:,} | {r['decode_ms']:.0f} | {r['sort_ms']:.1f} "
+            f"| {r['draw_ms']:.0f} | {r['fps']:.1f} | {r['distinct_frames_shown']} / {r['frames_rendered']} |"
+        )
+    return "\n".join(lines)
+
+
+def update_docs(path: Path, table: str) -> None:
+    text = path.read_text()
+    if START not in text or END not in text:
+        print(f"{path}: no bench markers; table not written")
+        return
+    head, rest = text.split(START, 1)
+    _, tail = rest.split(END, 1)
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text(f"{head}{START}\n{table}\n{END}{tail}")
+    os.replace(tmp, path)
+
+
+def main(cfg: BenchConfig) -> None:
+    load_before = os.getloadavg()
+    ctx = create_headless_context(cfg.gl)
+    renderer = SplatRenderer(ctx)
+    renderer.set_gaussians(pack_gaussians(random_gaussians(1000)))
+    renderer.render(bench_camera(64, 64))  # compile shaders / warm up
+    rows: list[dict] = []
+    with progress_bar(len(cfg.target_dtypes), "viewer bench", unit="config") as bar:
+        for dt in cfg.target_dtypes:
+            rows += bench_counts(cfg, renderer, dt)
+            bar.update(1)
+    playback = []
+    if cfg.checkpoint is not None:
+        import atgs
+
+        playback.append(bench_playback(atgs.load(cfg.checkpoint), str(cfg.checkpoint), cfg, renderer))
+    else:
+        model = untrained_model()
+        name = "untrained ATGS model, cpu preset"
+        playback.append(bench_playback(model, name, cfg, renderer))
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True))
+    playback.append(bench_playback(SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480)),
+                                   "built-in demo scene (atgs-view demo)", cfg, renderer))
+    result = {
+        "machine": {
+            "gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
+            "torch_threads": torch.get_num_threads(),
+            "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
+        },
+        "per_count": rows,
+        "playback": playback,
+        "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+    }  # fmt: skip
+    renderer.release()
+    ctx.release()
+    cfg.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cfg.out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    os.replace(tmp, cfg.out)
+    print(f"wrote {cfg.out}")
+    table = markdown_table(result)
+    print(table)
+    if cfg.docs is not None:
+        update_docs(cfg.docs, table)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(BenchConfig))

@@ -1,0 +1,96 @@
+#version 330 core
+// One instanced quad per Gaussian (4-vertex triangle strip). The instance attribute is the
+// Gaussian's index in back-to-front order; its data lives in an integer texture, 3 texels per
+// Gaussian: (mean.xyz, opacity) | (cov00, cov01, cov02, cov11) | (cov12, cov22, rg16, b16).
+// Conventions follow atgs.render (OpenCV camera, pixel centers at +0.5, EWA with 0.3 px^2
+// dilation, gsplat's Jacobian clamp, near plane, 3-sigma support).
+
+uniform usampler2D u_data;
+uniform int u_per_row;          // Gaussians per texture row
+uniform mat4 u_w2c;             // OpenCV world-to-camera
+uniform vec4 u_intr;            // fx, fy, cx, cy
+uniform vec2 u_size;            // width, height in pixels
+uniform vec4 u_lim;             // Jacobian clamp: x/z in [-lim.x, lim.y], y/z in [-lim.z, lim.w]
+uniform float u_near;
+uniform float u_dilation;
+uniform float u_scale2;         // scale modifier squared (covariance scales with its square)
+uniform float u_extent;         // quad half-extent in standard deviations (3)
+uniform float u_alpha_min;
+
+layout(location = 0) in uint a_index;
+
+// Position in the Gaussian's whitened frame (units of standard deviations along the
+// eigen-axes); affine over the quad, so screen-linear interpolation gives every pixel center
+// its exact Mahalanobis coordinates: sigma = 0.5 |v_white|^2 = 0.5 d^T Sigma2d^-1 d.
+noperspective out vec2 v_white;
+flat out vec4 v_color;          // rgb, opacity
+flat out float v_depth;         // view-space z
+
+void cull() {
+    gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // every vertex at one point outside the clip volume
+}
+
+void main() {
+    int i = int(a_index);
+    ivec2 base = ivec2((i % u_per_row) * 3, i / u_per_row);
+    uvec4 t0 = texelFetch(u_data, base, 0);
+    uvec4 t1 = texelFetch(u_data, base + ivec2(1, 0), 0);
+    uvec4 t2 = texelFetch(u_data, base + ivec2(2, 0), 0);
+    vec3 mean = uintBitsToFloat(t0.xyz);
+    float opacity = uintBitsToFloat(t0.w);
+    vec4 c1 = uintBitsToFloat(t1);
+    vec2 c2 = uintBitsToFloat(t2.xy);
+    mat3 cov3 = mat3(c1.x, c1.y, c1.z,
+                     c1.y, c1.w, c2.x,
+                     c1.z, c2.x, c2.y) * u_scale2;
+
+    vec4 pc = u_w2c * vec4(mean, 1.0);
+    if (pc.z <= u_near || opacity < u_alpha_min) { cull(); return; }
+
+    float fx = u_intr.x, fy = u_intr.y;
+    float iz = 1.0 / pc.z;
+    float tx = pc.z * clamp(pc.x * iz, -u_lim.x, u_lim.y);
+    float ty = pc.z * clamp(pc.y * iz, -u_lim.z, u_lim.w);
+    // Rows of J (2x3) times the rotation of the view matrix.
+    mat3 Rv = mat3(u_w2c);
+    vec3 j0 = vec3(fx * iz, 0.0, -fx * tx * iz * iz);
+    vec3 j1 = vec3(0.0, fy * iz, -fy * ty * iz * iz);
+    vec3 r0 = j0 * Rv;   // row vector times matrix = (Rv^T j0)^T
+    vec3 r1 = j1 * Rv;
+    vec3 s0 = cov3 * r0;
+    float a = dot(r0, s0) + u_dilation;
+    float b = dot(r1, s0);
+    float c = dot(r1, cov3 * r1) + u_dilation;
+    float det = a * c - b * b;
+    if (!(det > 0.0)) { cull(); return; }
+
+    vec2 center = vec2(fx * pc.x * iz + u_intr.z, fy * pc.y * iz + u_intr.w);
+
+    // Eigen-decomposition of Sigma2d: the quad spans +-k sigma along both eigen-axes.
+    float mid = 0.5 * (a + c);
+    float disc = sqrt(max(mid * mid - det, 0.0));
+    float l1 = mid + disc;
+    float l2 = max(mid - disc, 1e-6);
+    vec2 e1;
+    if (abs(b) > 1e-12 * l1) {
+        e1 = normalize(vec2(b, l1 - a));
+    } else {
+        e1 = (a >= c) ? vec2(1.0, 0.0) : vec2(0.0, 1.0);
+    }
+    vec2 e2 = vec2(-e1.y, e1.x);
+    // Beyond sqrt(2 ln(255 o)) sigmas alpha < 1/255: a low-opacity Gaussian gets a smaller quad.
+    float k = min(u_extent, sqrt(max(2.0 * log(opacity / u_alpha_min), 0.0)));
+    if (k <= 0.0) { cull(); return; }
+    // Half a pixel of slack so that pixel centers on the ellipse's edge are not lost.
+    float h1 = k * sqrt(l1) + 0.5, h2 = k * sqrt(l2) + 0.5;
+
+    vec2 corner = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1)) * 2.0 - 1.0;
+    vec2 pix = center + corner.x * h1 * e1 + corner.y * h2 * e2;
+    vec2 ndc = vec2(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y);
+    gl_Position = vec4(ndc, 0.0, 1.0);
+
+    v_white = corner * vec2(h1 * inversesqrt(l1), h2 * inversesqrt(l2));
+    v_color = vec4(float(t2.z & 0xFFFFu), float(t2.z >> 16u), float(t2.w & 0xFFFFu), 0.0) / 65535.0;
+    v_color.a = opacity;
+    v_depth = pc.z;
+}

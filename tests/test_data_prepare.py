@@ -1,0 +1,235 @@
+"""atgs-synth -> atgs-prepare end to end on a tiny synthetic scene, every input layout, and bad input.
+
+Ground truth comes from the independent mesh renderer and the analytic scene geometry."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from atgs.cli.prepare import main as prepare_main
+from atgs.data.errors import DataError
+from atgs.data.layouts import write_colmap_frames_layout, write_easyvolcap_layout
+from atgs.data.prepare import PrepareConfig, keyframe_indices, parse_frame_range, prepare
+from atgs.data.scene import PreparedScene
+from atgs.data.synth import load_ground_truth, synthesize
+from atgs.data.synth_render import MeshRenderer
+from atgs.data.synth_scene import SynthConfig, distance_to_surfaces
+from atgs.data.video import VideoWriter, iter_frames
+
+CFG = SynthConfig(frames=6, cameras=12, width=256, height=192, seed=1, preset="large-motion")
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synth")
+    src = synthesize(root / "raw", CFG, progress=False)
+    scene = load_ground_truth(src)
+    r = MeshRenderer(scene, CFG.width, CFG.height)
+    cams = scene.cameras()
+    gt = {}
+    for f in range(CFG.frames):
+        r.set_frame(f)
+        for ci in (0, 3, 7):
+            gt[ci, f] = r.render(cams[ci])
+    r.release()
+    prepared = prepare(PrepareConfig(src=src, out=root / "prepared", keyframes=2, progress=False))
+    return {"root": root, "src": src, "scene": scene, "gt": gt, "cams": cams, "prepared": prepared}
+
+
+def test_synth_videos_are_lossless(synth) -> None:
+    frames = dict(iter_frames(synth["src"] / "cam03.mp4"))
+    assert sorted(frames) == list(range(CFG.frames))
+    for f in range(CFG.frames):
+        assert np.array_equal(frames[f], synth["gt"][3, f])
+
+
+def test_synth_has_motion_and_sidecar(synth) -> None:
+    side = json.loads((synth["src"] / "synth.json").read_text())
+    assert side["config"]["preset"] == "large-motion" and side["scene_size"] == pytest.approx(2 * CFG.ring_radius)
+    a, b = synth["gt"][0, 0].astype(float), synth["gt"][0, CFG.frames - 1].astype(float)
+    changed = np.mean(np.abs(a - b).sum(-1) > 30)
+    assert 0.02 < changed < 0.6  # objects move; the static backdrop does not
+
+
+def test_prepared_n3dv_matches_ground_truth(synth) -> None:
+    s = PreparedScene.load(synth["prepared"])
+    assert s.num_frames == CFG.frames and s.fps == CFG.fps
+    assert s.test_cameras == ["cam00"] and s.test_indices == [0] and len(s.train_indices) == 11
+    assert s.keyframes == [0, CFG.frames - 1]
+    for c, g in zip(s.cameras, synth["cams"]):
+        assert c.name == g.name and c.dist is None
+        np.testing.assert_allclose(c.w2c, g.w2c, atol=1e-6)
+        np.testing.assert_allclose(c.K, g.K, atol=1e-6)
+    for (ci, f), img in synth["gt"].items():
+        assert np.array_equal(np.round(s.image(ci, f) * 255).astype(np.uint8), img)
+    assert (Path(synth["prepared"]) / "synth.json").is_file()
+
+
+def test_keyframe_points_lie_on_true_surfaces(synth) -> None:
+    s = PreparedScene.load(synth["prepared"])
+    size = synth["scene"].cfg.scene_size
+    for j, f in enumerate(s.keyframes):
+        pts = s.points[s.point_keyframes == j]
+        assert len(pts) > 100
+        d = distance_to_surfaces(synth["scene"], f, pts)
+        assert np.median(d) < 0.01 * size, (j, np.median(d))
+    assert np.all(s.bounds[0] < s.points.min(0) + 1.0) and np.all(s.bounds[1] > s.points.max(0) - 1.0)
+
+
+def test_frame_range_downscale_and_test_cams(synth, tmp_path) -> None:
+    out = prepare(PrepareConfig(src=synth["src"], out=tmp_path / "p", frames="1:6:2", downscale=2.0,
+                                test_cams=("3", "cam07"), keyframes=1, progress=False))
+    s = PreparedScene.load(out)
+    assert s.num_frames == 3 and s.fps == CFG.fps / 2 and s.keyframes == [0]
+    assert s.test_cameras == ["cam03", "cam07"]
+    c = s.cameras[3]
+    assert (c.width, c.height) == (128, 96)
+    np.testing.assert_allclose(c.K, synth["cams"][3].scaled(0.5).K)
+    want = np.asarray(Image.fromarray(synth["gt"][3, 3]).resize((128, 96), Image.BOX))
+    assert np.array_equal(np.round(s.image(3, 1) * 255).astype(np.uint8), want)
+    assert s.source["frames"] == [1, 6, 2]
+
+
+def _gt_frame(synth):
+    def fn(ci: int, f: int) -> np.ndarray:
+        if (ci, f) in synth["gt"]:
+            return synth["gt"][ci, f]
+        return np.full((CFG.height, CFG.width, 3), (ci * 20 + f) % 255, np.uint8)
+    return fn
+
+
+@pytest.mark.parametrize("layout", ["colmap-frames", "colmap-frames-model-in-frame", "easyvolcap"])
+def test_other_layouts_give_same_scene(synth, tmp_path, layout) -> None:
+    src = tmp_path / "src"
+    cams = synth["cams"]
+    if layout == "easyvolcap":
+        write_easyvolcap_layout(src, cams, _gt_frame(synth), 2)
+    else:
+        write_colmap_frames_layout(src, cams, _gt_frame(synth), 2, model_in_first_frame=layout.endswith("frame"))
+    out = prepare(PrepareConfig(src=src, out=tmp_path / "p", keyframes=1, progress=False))
+    s = PreparedScene.load(out)
+    assert s.source["format"] == layout.replace("-model-in-frame", "")
+    assert s.num_frames == 2 and [c.name for c in s.cameras] == [c.name for c in cams]
+    for c, g in zip(s.cameras, cams):
+        np.testing.assert_allclose(c.w2c, g.w2c, atol=1e-9)
+        np.testing.assert_allclose(c.K, g.K, atol=1e-9)
+    assert np.array_equal(np.round(s.image(7, 1) * 255).astype(np.uint8), synth["gt"][7, 1])
+
+
+def test_frame_helpers() -> None:
+    assert list(parse_frame_range("2:10:3", None, None, 100)) == [2, 5, 8]
+    assert list(parse_frame_range(None, 5, None, 8)) == [5, 6, 7]
+    assert list(parse_frame_range(":-2", None, None, 5)) == [0, 1, 2]
+    with pytest.raises(DataError, match="--frames"):
+        parse_frame_range("a:b", None, None, 10)
+    with pytest.raises(DataError, match="empty"):
+        parse_frame_range("20:30", None, None, 10)
+    assert keyframe_indices(120, 5) == [0, 30, 60, 89, 119]  # round(j*119/4): 29.75 -> 30, 89.25 -> 89
+    assert keyframe_indices(3, 10) == [0, 1, 2] and keyframe_indices(1, 4) == [0]
+
+
+# --- bad input ------------------------------------------------------------------------------
+
+def _tiny_n3dv(root: Path, counts=(3, 3, 3)) -> Path:
+    from atgs.cameras import Camera, look_at
+    from atgs.data.camera_formats import cameras_to_poses_bounds
+
+    root.mkdir(parents=True)
+    cams = []
+    for i, n in enumerate(counts):
+        with VideoWriter(root / f"cam{i:02d}.mp4", 32, 24, 30) as w:
+            for f in range(n):
+                w.write(np.full((24, 32, 3), 40 * i + f, np.uint8))
+        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+        cams.append(Camera(f"cam{i:02d}", 32, 24, K, look_at(np.array([3.0, i, 1]), np.zeros(3))))
+    np.save(root / "poses_bounds.npy", cameras_to_poses_bounds(cams, [0.5, 10]))
+    return root
+
+
+def _existing_output(tmp_path: Path) -> Path:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("precious")
+    return out
+
+
+def _prep(src, out, **kw):
+    return prepare(PrepareConfig(src=src, out=out, keyframes=1, progress=False, **kw))
+
+
+def test_bad_inputs_give_one_line_errors_naming_the_file(tmp_path) -> None:
+    out = _existing_output(tmp_path)
+    # poses that do not match the number of videos
+    src = _tiny_n3dv(tmp_path / "a")
+    np.save(src / "poses_bounds.npy", np.load(src / "poses_bounds.npy")[:2])
+    with pytest.raises(DataError, match=r"poses_bounds.npy: 2 poses for 3 videos"):
+        _prep(src, out, overwrite=True)
+    # corrupt video
+    src = _tiny_n3dv(tmp_path / "b")
+    (src / "cam01.mp4").write_bytes(b"\x00\x00\x00 this is not a video" * 10)
+    with pytest.raises(DataError, match=r"cam01.mp4: "):
+        _prep(src, out, overwrite=True)
+    # unequal frame counts: error, or trimmed when asked
+    src = _tiny_n3dv(tmp_path / "c", counts=(3, 2, 3))
+    with pytest.raises(DataError, match=r"cam01.mp4: camera cam01 has 2 frames .*--trim-mismatch"):
+        _prep(src, out, overwrite=True)
+    # empty folder, missing folder, unknown layout
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match=r"empty: folder is empty"):
+        _prep(tmp_path / "empty", out, overwrite=True)
+    with pytest.raises(DataError, match=r"nothing: source path does not exist"):
+        _prep(tmp_path / "nothing", out, overwrite=True)
+    (tmp_path / "odd").mkdir()
+    (tmp_path / "odd" / "notes.txt").write_text("x")
+    with pytest.raises(DataError, match=r"odd: cannot recognise the layout"):
+        _prep(tmp_path / "odd", out, overwrite=True)
+    # nothing already written was destroyed, and no temp dirs are left
+    assert (out / "keep.txt").read_text() == "precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b", "c", "empty", "odd", "out"]
+    for e in [str(e) for e in ()]:
+        assert "\n" not in e
+
+
+def test_trim_mismatch_and_overwrite_rules(tmp_path, capsys) -> None:
+    src = _tiny_n3dv(tmp_path / "c", counts=(3, 2, 3))
+    out = _existing_output(tmp_path)
+    with pytest.raises(DataError, match="already exists; pass --overwrite"):
+        _prep(src, out, trim_mismatch=True)
+    assert (out / "keep.txt").is_file()
+    _prep(src, out, trim_mismatch=True, overwrite=True)
+    assert "trimming every camera to 2 frames" in capsys.readouterr().err
+    s = PreparedScene.load(out)
+    assert s.num_frames == 2 and not (out / "keep.txt").exists()
+    assert np.allclose(s.image(2, 1) * 255, 81, atol=2)  # camera 2, frame 1: value 40*2+1
+
+
+def test_truncated_video_is_an_error_not_a_short_scene(tmp_path) -> None:
+    src = _tiny_n3dv(tmp_path / "t", counts=(3, 3, 3))
+    data = (src / "cam02.mp4").read_bytes()
+    (src / "cam02.mp4").write_bytes(data[: len(data) // 2])
+    with pytest.raises(DataError, match="cam02.mp4"):
+        _prep(src, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_colmap_frames_missing_image_names_the_file(synth, tmp_path) -> None:
+    src = write_colmap_frames_layout(tmp_path / "src", synth["cams"][:4], _gt_frame(synth), 2)
+    (src / "frame000001" / "images" / "cam02.png").unlink()
+    with pytest.raises(DataError, match=r"frame000001/images/cam02.png: camera cam02 has 1 frames"):
+        _prep(src, tmp_path / "out")
+
+
+def test_cli_prints_one_line_and_exits_2(tmp_path, capsys) -> None:
+    (tmp_path / "empty").mkdir()
+    out = _existing_output(tmp_path)
+    code = prepare_main([str(tmp_path / "empty"), "--out", str(out), "--overwrite"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.count("\n") == 0 and err.startswith("error: ") and "empty" in err
+    assert "Traceback" not in err and (out / "keep.txt").is_file()
+    shutil.rmtree(tmp_path / "empty")

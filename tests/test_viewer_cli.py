@@ -1,0 +1,139 @@
+"""atgs-view --headless and atgs-render on a tiny real checkpoint; clear errors, exit code 2."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from atgs.headless_gl import HeadlessGLError
+from viewer.cli import main, render_main
+from viewer_fixtures import write_tiny_checkpoint
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("viewer") / "ckpt.pt")
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return 10 * math.log10(1.0 / max(mse, 1e-20))
+
+
+def test_headless_frame_matches_rasterizer_of_the_model(ckpt: Path, tmp_path: Path) -> None:
+    import atgs
+    from atgs.render import rasterize
+
+    out = tmp_path / "frame.png"
+    assert main([str(ckpt), "--headless", "--time", "0.5", "--camera", "2", "--out", str(out), "--gl", "osmesa"]) == 0
+    img = np.asarray(Image.open(out), dtype=np.float64) / 255.0
+    model = atgs.load(ckpt)
+    cam = model.cameras[2]
+    g = model.gaussians_at(0.5)
+    ref = rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
+                    cam.width, cam.height, backend="torch").image.numpy()
+    assert img.shape == (cam.height, cam.width, 3)
+    assert ref.std() > 0.02  # the tiny model draws something
+    assert _psnr(img, ref) >= 35.0
+
+
+def test_headless_modes_size_and_frame(ckpt: Path, tmp_path: Path) -> None:
+    for mode in ("depth", "alpha"):
+        out = tmp_path / f"{mode}.png"
+        assert main([str(ckpt), "--headless", "--frame", "8", "--mode", mode, "--size", "48x36", "--out", str(out)]) == 0
+        img = np.asarray(Image.open(out))
+        assert img.shape == (36, 48, 3) and img.std() > 1.0
+
+
+def test_missing_and_corrupt_checkpoints_exit_2_with_one_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint at all")
+    out = tmp_path / "keep.png"
+    out.write_bytes(b"existing")
+    for path in (tmp_path / "missing.pt", bad):
+        assert main([str(path), "--headless", "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and str(path) in err and "Traceback" not in err
+    assert out.read_bytes() == b"existing"  # failed runs never touch the output
+    assert render_main([str(tmp_path / "missing.pt"), "--out", str(tmp_path / "v.mp4")]) == 2
+    assert not (tmp_path / "v.mp4").exists()
+
+
+def test_bad_arguments_exit_2(ckpt: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    for args, needle in (
+        (["--camera", "7"], "--camera 7"),
+        (["--time", "1.5"], "--time"),
+        (["--size", "big"], "--size"),
+        (["--frame", "99"], "--frame 99"),
+    ):
+        assert main([str(ckpt), "--headless", "--out", str(tmp_path / "x.png"), *args]) == 2
+        err = capsys.readouterr().err
+        assert needle in err and err.strip().count("\n") == 0
+
+
+def test_unavailable_opengl_is_a_clear_error(ckpt: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    import viewer.headless as vh
+
+    def no_gl(backend: str = "auto"):
+        raise HeadlessGLError("no headless OpenGL 3.3 available; install Mesa: apt-get install libegl-mesa0 libosmesa6")
+
+    monkeypatch.setattr(vh, "create_headless_context", no_gl)
+    assert main([str(ckpt), "--headless", "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert "apt-get install" in err and "Traceback" not in err
+
+
+def test_too_old_opengl_is_refused() -> None:
+    from atgs.headless_gl import _check_version
+
+    class OldContext:
+        version_code = 210
+        info = {"GL_VERSION": "2.1 Mesa"}
+        released = False
+
+        def release(self) -> None:
+            self.released = True
+
+    ctx = OldContext()
+    with pytest.raises(HeadlessGLError, match="needs 3.3"):
+        _check_version(ctx, "OSMesa")
+    assert ctx.released
+
+
+@pytest.mark.parametrize("path", ["orbit", "cameras"])
+def test_render_video(ckpt: Path, tmp_path: Path, path: str) -> None:
+    import av
+
+    out = tmp_path / f"{path}.mp4"
+    assert render_main([str(ckpt), "--path", path, "--out", str(out), "--frames", "5", "--size", "64x48",
+                        "--fps", "12", "--gl", "osmesa"]) == 0
+    with av.open(str(out)) as c:
+        frames = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+        rate = c.streams.video[0].average_rate
+    assert len(frames) == 5 and frames[0].shape == (48, 64, 3)
+    assert float(rate) == pytest.approx(12.0)
+    assert max(f.std() for f in frames) > 2.0
+
+
+def test_cameras_path_passes_through_training_cameras() -> None:
+    from viewer.scene_utils import cameras_path, orbit_path
+    from viewer_fixtures import tiny_cameras
+
+    cams = tiny_cameras(3)
+    path = cameras_path(cams, 5)  # 2 segments: samples 0, 2, 4 are the cameras
+    for i, c in zip((0, 2, 4), cams):
+        np.testing.assert_allclose(path[i].w2c, c.w2c, atol=1e-9)
+    # midpoint rotation is orthonormal and between its neighbours
+    R = path[1].R
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    orbit = orbit_path(cams, 8)
+    radii = [np.linalg.norm(c.center[:2]) for c in orbit]
+    np.testing.assert_allclose(radii, 3.0, atol=1e-6)  # the rig's radius around its look center
+    for c in orbit:  # every orbit camera looks at the center (origin)
+        uv, z = c.project(np.zeros((1, 3)))
+        np.testing.assert_allclose(uv[0], [c.cx, c.cy], atol=1e-6)

@@ -1,0 +1,169 @@
+"""Time -> frame -> keyframe window mapping, playback state, and the decode cache."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from atgs.gaussians import Gaussians
+from viewer.decode_cache import DecodeCache
+from viewer.packing import PackedGaussians, pack_gaussians
+from viewer.playback import FrameFeeder, Playback
+from viewer.source import GaussianSource, SyntheticSource, decode_frame, frame_at, time_of_frame
+
+
+def _packed(frame: int) -> PackedGaussians:
+    g = Gaussians(torch.full((1, 3), float(frame)), torch.tensor([[1.0, 0, 0, 0]]), torch.ones(1, 3),
+                  torch.ones(1), torch.ones(1, 3))
+    return pack_gaussians(g, frame=frame)
+
+
+def test_time_frame_mapping_matches_the_model_timeline() -> None:
+    from atgs.model.timeline import Timeline
+
+    for F in (1, 2, 7, 300, 10000):
+        tl = Timeline(num_frames=F, num_keyframes=min(F, 15), window=7, num_segments=2)
+        for f in {0, F // 3, F // 2, F - 1}:
+            t = time_of_frame(f, F)
+            assert t == tl.time_of_frame(f)
+            assert frame_at(t, F) == f == tl.frame_at(t)
+        for t in np.linspace(0, 1, 37):
+            assert frame_at(float(t), F) == tl.frame_at(float(t))
+
+
+def test_synthetic_source_window_follows_the_paper_rule() -> None:
+    from atgs.model.timeline import Timeline
+
+    s = SyntheticSource(num_gaussians=10, frames=31, keyframes=7, window=3)
+    assert isinstance(s, GaussianSource)
+    tl = Timeline(num_frames=31, num_keyframes=7, window=3, num_segments=1)
+    for f in range(31):
+        t = time_of_frame(f, 31)
+        assert s.window_at(t) == tl.window_at(t)
+    # by hand: t = 0.5 -> t (K-1) = 3 -> kbar = 3 (0-based), h = 1 -> keyframes 2..4
+    assert s.window_at(0.5) == (2, 4)
+    assert s.window_at(0.0) == (0, 1) and s.window_at(1.0) == (5, 6)
+
+
+def test_playback_advance_loop_step_and_seek() -> None:
+    p = Playback(num_frames=10, fps=10.0)
+    p.advance(1.0)
+    assert p.frame == 0  # paused: nothing moves
+    p.toggle()
+    p.advance(0.25)  # 2.5 frames at 10 fps -> shows frame 3 (round half up)
+    assert p.frame == 3 and p.time == pytest.approx(3 / 9)
+    p.speed = 2.0
+    p.advance(0.3)  # +6 frames -> 8.5 -> frame 9
+    assert p.frame == 9
+    p.advance(0.05)  # +1 -> wraps to the start
+    assert p.frame == 0 and p.playing
+    p.loop = False
+    p.seek_frame(8)
+    p.advance(1.0)
+    assert p.frame == 9 and not p.playing  # stops at the end
+    p.step(1)
+    assert p.frame == 9  # clamped without loop
+    p.loop = True
+    p.step(1)
+    assert p.frame == 0 and not p.playing
+    p.step(-1)
+    assert p.frame == 9
+    p.seek_time(0.5)
+    assert p.frame == 5  # round(4.5) half up, same as the model
+    assert p.upcoming(4) == [5, 6]  # paused: the frame and its neighbour only
+    p.toggle()
+    assert p.upcoming(4) == [5, 6, 7, 8]
+    p.seek_frame(8)
+    assert p.upcoming(4) == [8, 9, 0, 1]
+
+
+def test_decode_cache_decodes_requested_frames_in_background_lru() -> None:
+    calls: list[int] = []
+
+    def decode(f: int) -> PackedGaussians:
+        calls.append(f)
+        return _packed(f)
+
+    with DecodeCache(decode, capacity=3) as cache:
+        cache.request([4, 5, 6])
+        assert cache.wait_for(6, timeout=10) is not None
+        assert cache.wait_for(4, timeout=10).frame == 4
+        assert sorted(cache.cached_frames()) == [4, 5, 6]
+        cache.request([7])
+        assert cache.wait_for(7, timeout=10) is not None
+        assert len(cache.cached_frames()) == 3 and 7 in cache.cached_frames()
+        # 5 was least recently used (4 and 6 were read), so it went
+        assert 5 not in cache.cached_frames()
+        assert calls[:3] == [4, 5, 6]  # priority order of the request
+        assert cache.stats.evicted == 1
+
+
+def test_get_never_blocks_and_last_ready_frame_stays() -> None:
+    gate = threading.Event()
+
+    def slow_decode(f: int) -> PackedGaussians:
+        if f >= 1:
+            assert gate.wait(timeout=20)
+        return _packed(f)
+
+    with DecodeCache(slow_decode, capacity=4) as cache:
+        feeder = FrameFeeder(cache, lookahead=2)
+        p = Playback(num_frames=5, fps=10.0)
+        cache.wait_for(0, timeout=10)
+        shown, changed = feeder.update(p)
+        assert shown is not None and shown.frame == 0 and changed
+        p.toggle()
+        p.advance(0.1)  # now frame 1 is wanted, but its decoder is stuck
+        for _ in range(3):  # returns immediately with the old frame every time
+            shown, changed = feeder.update(p)
+            assert shown.frame == 0 and not changed
+        deadline = time.monotonic() + 10
+        while cache.busy_frame != 1 and time.monotonic() < deadline:  # the worker picks it up
+            time.sleep(0.005)
+        assert cache.busy_frame == 1
+        assert feeder.update(p)[0].frame == 0  # still the old frame while 1 is being decoded
+        gate.set()
+        cache.wait_for(1, timeout=10)
+        shown, changed = feeder.update(p)
+        assert shown.frame == 1 and changed
+
+
+def test_decode_errors_are_reported_not_fatal() -> None:
+    def bad(f: int) -> PackedGaussians:
+        if f == 2:
+            raise ValueError("boom")
+        return _packed(f)
+
+    with DecodeCache(bad, capacity=2) as cache:
+        with pytest.raises(RuntimeError, match="frame 2.*boom"):
+            cache.wait_for(2, timeout=10)
+        assert cache.wait_for(3, timeout=10).frame == 3  # the worker is still alive
+        assert "boom" in (cache.last_error or "")
+
+
+def test_decode_frame_packs_source_gaussians() -> None:
+    s = SyntheticSource(num_gaussians=50, frames=5)
+    p = decode_frame(s, 2)
+    assert p.frame == 2 and len(p) == 50
+    g = s.gaussians_at_frame(2)
+    np.testing.assert_allclose(p.means, g.means.numpy(), atol=1e-7)
+    assert p.decode_ms >= 0.0
+
+
+def test_pinned_frames_are_served_without_decoding() -> None:
+    calls: list[int] = []
+
+    def decode(f: int) -> PackedGaussians:
+        calls.append(f)
+        return _packed(f)
+
+    pinned = {f: _packed(f) for f in range(3)}
+    with DecodeCache(decode, capacity=2, pinned=pinned) as cache:
+        cache.request([0, 1, 2])
+        assert cache.get(1) is pinned[1] and cache.wait_for(2) is pinned[2]
+        assert cache.wait_for(3, timeout=10).frame == 3
+        assert calls == [3]

@@ -1,0 +1,211 @@
+"""GLSL splatting (headless, OSMesa forced) against an analytic Gaussian and against the
+training rasterizer's torch reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from atgs.cameras import Camera, look_at
+from atgs.gaussians import Gaussians
+from atgs.headless_gl import create_headless_context
+from scipy.spatial.transform import Rotation
+
+from viewer.packing import covariances, pack_gaussians
+from viewer.splat_renderer import RenderSettings, SplatRenderer
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    ctx = create_headless_context("osmesa")
+    r = SplatRenderer(ctx)
+    yield r
+    r.release()
+    ctx.release()
+
+
+def _one_gaussian() -> Gaussians:
+    return Gaussians(
+        means=torch.tensor([[0.05, -0.03, 2.0]]),
+        quats=torch.tensor([[0.9, 0.2, -0.3, 0.1]]),
+        scales=torch.tensor([[0.1, 0.05, 0.02]]),
+        opacities=torch.tensor([0.8]),
+        colors=torch.tensor([[1.0, 0.5, 0.25]]),
+    )
+
+
+def _analytic_alpha(g: Gaussians, cam: Camera) -> np.ndarray:
+    """o exp(-0.5 d^T Sigma2d^-1 d) with Sigma2d = J W Sigma W^T J^T + 0.3 I, cut at 3 sigma
+    and below 1/255, capped at 0.99 (numpy, float64, independent of the shader)."""
+    R, t = cam.R, cam.t
+    m = R @ g.means[0].double().numpy() + t
+    q = g.quats[0].double().numpy()
+    Rg = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()  # scipy is scalar-last
+    Sd = np.diag(g.scales[0].double().numpy() ** 2)
+    S = R @ (Rg @ Sd @ Rg.T) @ R.T
+    x, y, z = m
+    fx, fy, cx, cy = cam.fx, cam.fy, cam.cx, cam.cy
+    J = np.array([[fx / z, 0, -fx * x / z**2], [0, fy / z, -fy * y / z**2]])
+    S2 = J @ S @ J.T + 0.3 * np.eye(2)
+    u = np.array([fx * x / z + cx, fy * y / z + cy])
+    px, py = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    d = np.stack([px - u[0], py - u[1]], -1)
+    sig = 0.5 * np.einsum("hwi,ij,hwj->hw", d, np.linalg.inv(S2), d)
+    a = np.minimum(0.99, float(g.opacities[0]) * np.exp(-sig))
+    a[(a < 1 / 255) | (sig > 4.5)] = 0.0
+    return a
+
+
+def test_single_gaussian_is_the_analytic_ellipse(renderer: SplatRenderer) -> None:
+    K = np.array([[50.0, 0, 30.3], [0, 55.0, 25.1], [0, 0, 1]])
+    cam = Camera("c", 64, 48, K, np.eye(4))
+    g = _one_gaussian()
+    renderer.set_gaussians(pack_gaussians(g))
+    ref = _analytic_alpha(g, cam)
+    alpha = renderer.render_image(cam, RenderSettings(mode="alpha"))
+    assert ref.sum() > 5.0  # the ellipse covers many pixels
+    np.testing.assert_allclose(alpha, ref, atol=1e-5)
+    bg = np.array([0.1, 0.2, 0.3])
+    color = renderer.render_image(cam, RenderSettings(background=tuple(bg)))
+    expect = ref[..., None] * np.array([1.0, 0.5, 0.25]) + (1 - ref[..., None]) * bg
+    np.testing.assert_allclose(color, expect, atol=2e-5)
+    depth = renderer.render_image(cam, RenderSettings(mode="depth"))
+    np.testing.assert_allclose(depth, 2.0 * ref, atol=1e-5)
+
+
+def test_rotated_camera_and_scale_modifier(renderer: SplatRenderer) -> None:
+    # A camera that is not the identity: the shader must apply w2c like the numpy reference.
+    w2c = look_at(np.array([0.7, -0.4, -1.5]), np.array([0.05, -0.03, 2.0]), np.array([0.0, -1.0, 0.2]))
+    K = np.array([[70.0, 0, 40.0], [0, 70.0, 30.0], [0, 0, 1]])
+    cam = Camera("c", 80, 60, K, w2c)
+    g = _one_gaussian()
+    renderer.set_gaussians(pack_gaussians(g))
+    alpha = renderer.render_image(cam, RenderSettings(mode="alpha"))
+    np.testing.assert_allclose(alpha, _analytic_alpha(g, cam), atol=1e-5)
+    # scale modifier m renders exactly the Gaussians with scales * m
+    alpha2 = renderer.render_image(cam, RenderSettings(mode="alpha", scale_modifier=0.5))
+    g_half = Gaussians(g.means, g.quats, g.scales * 0.5, g.opacities, g.colors)
+    np.testing.assert_allclose(alpha2, _analytic_alpha(g_half, cam), atol=1e-5)
+
+
+def test_behind_camera_and_empty_give_background(renderer: SplatRenderer) -> None:
+    cam = Camera("c", 32, 24, np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]]), np.eye(4))
+    g = _one_gaussian()
+    g.means[0, 2] = -2.0
+    renderer.set_gaussians(pack_gaussians(g))
+    img = renderer.render_image(cam, RenderSettings(background=(0.2, 0.4, 0.6)))
+    np.testing.assert_allclose(img, np.broadcast_to([0.2, 0.4, 0.6], img.shape), atol=1e-6)
+    empty = Gaussians(*(t[:0] for t in g.as_tuple()))
+    renderer.set_gaussians(pack_gaussians(empty))
+    assert renderer.render_image(cam, RenderSettings(mode="alpha")).max() == 0.0
+
+
+def _random_scene(n: int, seed: int) -> tuple[Gaussians, Camera]:
+    gen = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=gen) * torch.tensor([2.0, 1.5, 2.0]) - torch.tensor([1.0, 0.75, 1.0])
+    g = Gaussians(
+        means=means,
+        quats=torch.randn(n, 4, generator=gen),
+        scales=torch.exp(torch.rand(n, 3, generator=gen) * 1.5 - 4.0),
+        opacities=torch.rand(n, generator=gen) * 0.9 + 0.05,
+        colors=torch.rand(n, 3, generator=gen),
+    )
+    W, H = 96, 72
+    K = np.array([[80.0, 0, 47.3], [0, 82.0, 35.6], [0, 0, 1]])
+    cam = Camera("c", W, H, K, look_at(np.array([0.4, -0.5, -3.0]), np.zeros(3), np.array([0.0, -1.0, 0.0])))
+    return g, cam
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+    return 10 * math.log10(1.0 / max(mse, 1e-20))
+
+
+@pytest.mark.parametrize("exact_sort", [True, False])
+def test_matches_training_rasterizer(renderer: SplatRenderer, exact_sort: bool) -> None:
+    from atgs.render import rasterize
+
+    g, cam = _random_scene(400, seed=3)
+    bg = (0.3, 0.1, 0.2)
+    out = rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
+                    cam.width, cam.height, background=torch.tensor(bg), backend="torch")
+    renderer.set_gaussians(pack_gaussians(g))
+    color = renderer.render_image(cam, RenderSettings(background=bg, exact_sort=exact_sort))
+    alpha = renderer.render_image(cam, RenderSettings(mode="alpha", exact_sort=exact_sort))
+    depth = renderer.render_image(cam, RenderSettings(mode="depth", exact_sort=exact_sort))
+    ref_img = out.image.detach().numpy()
+    assert float(out.alpha.mean()) > 0.2  # a scene with substance, not a blank comparison
+    p = psnr(color, ref_img)
+    assert p >= 35.0, f"PSNR GLSL vs rasterizer {p:.1f} dB"
+    assert psnr(alpha, out.alpha.detach().numpy()) >= 35.0
+    zmax = float(out.depth.max())
+    assert psnr(depth / zmax, out.depth.detach().numpy() / zmax) >= 35.0
+
+
+def test_matches_rasterizer_through_egl() -> None:
+    from atgs.render import rasterize
+
+    ctx = create_headless_context("egl")
+    r = SplatRenderer(ctx)
+    try:
+        g, cam = _random_scene(300, seed=5)
+        out = rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
+                        cam.width, cam.height, backend="torch")
+        r.set_gaussians(pack_gaussians(g))
+        assert psnr(r.render_image(cam), out.image.detach().numpy()) >= 35.0
+    finally:
+        r.release()
+        ctx.release()
+
+
+def test_constants_agree_with_rasterizer() -> None:
+    import atgs.render.constants as rc
+    import viewer.splat_renderer as vs
+
+    for name in ("NEAR", "DILATION", "CLAMP_MARGIN", "RADIUS_SIGMAS", "ALPHA_MAX", "ALPHA_MIN"):
+        assert getattr(vs, name) == getattr(rc, name), name
+
+
+def test_large_gaussian_count_spans_texture_rows(renderer: SplatRenderer) -> None:
+    # 2500 Gaussians use 3 texture rows (1024 per row): the last ones must still be fetched.
+    n = 2500
+    means = torch.zeros(n, 3)
+    means[:, 2] = 5.0
+    g = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), 1e-3),
+                  torch.zeros(n), torch.zeros(n, 3))
+    g.opacities[-1] = 0.9
+    g.means[-1] = torch.tensor([0.025, 0.025, 2.0])  # projects onto pixel center (16.5, 16.5)
+    g.scales[-1] = 0.2
+    cam = Camera("c", 32, 32, np.array([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]]), np.eye(4))
+    renderer.set_gaussians(pack_gaussians(g))
+    a = renderer.render_image(cam, RenderSettings(mode="alpha"))
+    assert a.max() == pytest.approx(0.9, abs=1e-4)  # the last Gaussian, and only it, is visible
+
+
+def test_packed_covariance_matches_scipy_rotation() -> None:
+    gen = np.random.default_rng(0)
+    q = gen.normal(size=(20, 4)) * 3
+    s = np.exp(gen.normal(size=(20, 3)))
+    got = covariances(q, s)
+    for i in range(20):
+        Rg = Rotation.from_quat(np.r_[q[i, 1:], q[i, 0]]).as_matrix()
+        C = Rg @ np.diag(s[i] ** 2) @ Rg.T
+        np.testing.assert_allclose(got[i], C[[0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]], rtol=1e-5, atol=1e-5 * C.max())
+
+
+def test_radix_sort_agrees_with_exact_sort() -> None:
+    from viewer.sorting import back_to_front, view_depths
+
+    gen = np.random.default_rng(1)
+    means = gen.normal(size=(5000, 3)).astype(np.float32) * 3
+    w2c = look_at(np.array([0.0, -8.0, 1.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    exact = back_to_front(means, w2c, 0.01, exact=True)
+    fast = back_to_front(means, w2c, 0.01)
+    z = view_depths(means, w2c)
+    assert sorted(exact.tolist()) == sorted(fast.tolist()) == np.flatnonzero(z > 0.01).tolist()
+    assert np.all(np.diff(z[exact]) <= 0)  # the reference: strictly far to near
+    quantum = (z[exact].max() - z[exact].min()) / 65535
+    assert np.all(np.diff(z[fast]) <= 1.01 * quantum)  # out of order by at most one 16-bit step

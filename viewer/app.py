@@ -1,0 +1,470 @@
+"""The player window: glfw (OpenGL 3.3 core) + moderngl splatting + imgui-bundle controls.
+
+Keyboard (when the UI does not have focus):
+  Space play/pause   Left/Right step one frame   Home/End first/last frame   L loop
+  -/= speed down/up   1/2/3 color/depth/alpha   [/] scale modifier   C next training camera
+  R reset camera   F fly mode   WASD/QE fly   P or F12 screenshot   H hide UI   Esc quit
+Mouse: left drag orbit (fly mode: look), right/middle drag or shift+left pan, wheel zoom.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from viewer.camera_control import CameraControl
+from viewer.decode_cache import DecodeCache
+from viewer.errors import ViewerError
+from viewer.output import display_rgb, save_image, to_uint8
+from viewer.packing import PackedGaussians
+from viewer.playback import FrameFeeder, Playback
+from viewer.scene_utils import look_center, parse_size
+from viewer.source import GaussianSource, active_anchor_count, decode_frame, scene_up
+from viewer.splat_renderer import MODES, RenderSettings, SplatRenderer
+
+SPEEDS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
+
+
+@dataclass
+class Stats:
+    """Smoothed per-frame timings for the overlay (exponential moving averages, ms)."""
+
+    frame_ms: float = 0.0
+    sort_ms: float = 0.0
+    draw_ms: float = 0.0
+    upload_ms: float = 0.0
+    decode_ms: float = 0.0
+    shown_frames: list[int] = field(default_factory=list)
+
+    def push(self, name: str, value: float, k: float = 0.1) -> None:
+        old = getattr(self, name)
+        setattr(self, name, value if old == 0.0 else (1 - k) * old + k * value)
+
+    @property
+    def fps(self) -> float:
+        return 1000.0 / self.frame_ms if self.frame_ms > 0 else 0.0
+
+
+def _window_size(cam_w: int, cam_h: int, size: str | None) -> tuple[int, int]:
+    parsed = parse_size(size)
+    if parsed is not None:
+        return parsed
+    s = min(1.0, 1280 / cam_w, 800 / cam_h)
+    return max(64, int(cam_w * s)), max(64, int(cam_h * s))
+
+
+class PlayerApp:
+    """One window playing one source. ``step(dt)`` runs a UI frame; ``run()`` loops until closed."""
+
+    def __init__(self, source: GaussianSource, camera_index: int = 0, size: str | None = None,
+                 settings: RenderSettings | None = None, visible: bool = True,
+                 preloaded: dict[int, PackedGaussians] | None = None) -> None:
+        import imgui_bundle  # noqa: F401  (first: makes pyGLFW use imgui-bundle's libglfw)
+        import glfw
+        import moderngl
+        from imgui_bundle import imgui
+
+        from viewer.cli import start_camera
+
+        self.glfw, self.imgui = glfw, imgui
+        self.source = source
+        cam0 = start_camera(source, camera_index)
+        self.cameras = list(source.cameras) or [cam0]
+        self.cam_index = camera_index if source.cameras else 0
+        width, height = _window_size(cam0.width, cam0.height, size)
+
+        if not glfw.init():
+            raise ViewerError("cannot initialise GLFW (no display?); use --headless, or run under xvfb-run -a")
+        glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
+        glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
+        glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
+        glfw.window_hint(glfw.OPENGL_FORWARD_COMPAT, True)
+        glfw.window_hint(glfw.VISIBLE, bool(visible))
+        self.window = glfw.create_window(width, height, "ATGS viewer", None, None)
+        if not self.window:
+            glfw.terminate()
+            raise ViewerError(
+                "cannot open an OpenGL 3.3 core window (no display, or the driver is too old); "
+                "use --headless, or run under xvfb-run -a"
+            )
+        glfw.make_context_current(self.window)
+        glfw.swap_interval(0)
+        try:
+            self.ctx = moderngl.create_context(require=330)
+        except Exception as exc:
+            self._terminate()
+            raise ViewerError(f"OpenGL 3.3 core is required ({str(exc).strip().splitlines()[0]}); update Mesa or the GPU driver") from None
+        self.gl_info = f"{self.ctx.info.get('GL_RENDERER', '?')}, {self.ctx.info.get('GL_VERSION', '?')}"
+
+        imgui.create_context()
+        imgui.get_io().set_ini_filename("")  # no imgui.ini next to the user's files
+        imgui.style_colors_dark()
+        addr = ctypes.cast(self.window, ctypes.c_void_p).value
+        imgui.backends.glfw_init_for_opengl(addr, True)
+        imgui.backends.opengl3_init("#version 330")
+
+        self.renderer = SplatRenderer(self.ctx, target_dtype="f2")  # half floats: half the blend bandwidth
+        self.settings = settings or RenderSettings()
+        self.playback = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0))
+        self.cache = DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=preloaded)
+        self.feeder = FrameFeeder(self.cache, lookahead=4)
+        self.center = look_center(self.cameras)
+        self.control = CameraControl.from_camera(cam0, pivot=self.center, up=scene_up(self.cameras))
+        self.fly_mode = False
+        self.fly_speed = 0.5 * max(self.control.state.distance, 1e-3)  # world units per second
+        self.render_scale = 1.0
+        self.adaptive = False  # adaptive resolution (UI checkbox): lower while playing/moving
+        self.target_ms = 40.0  # 25 FPS
+        self._last_key: tuple | None = None
+        self._last_scale = 1.0
+        self.show_ui = True
+        self.stats = Stats()
+        self.message = ""
+        self.screenshot_dir = Path(".")
+        self._last_time = time.perf_counter()
+        self._anchors = -1
+        self._closed = False
+
+    # --- main loop ---------------------------------------------------------------------------
+    def run(self) -> None:
+        glfw = self.glfw
+        while not glfw.window_should_close(self.window):
+            now = time.perf_counter()
+            dt, self._last_time = now - self._last_time, now
+            self.step(min(dt, 0.25))
+
+    def step(self, dt: float) -> None:
+        """One UI frame: input, playback, decode feed, splat, UI, swap."""
+        glfw, imgui = self.glfw, self.imgui
+        t_start = time.perf_counter()
+        glfw.poll_events()
+        imgui.backends.opengl3_new_frame()
+        imgui.backends.glfw_new_frame()
+        imgui.new_frame()
+        self._handle_input(dt)
+        self.playback.advance(dt)
+        packed, changed = self.feeder.update(self.playback)
+        if changed and packed is not None:
+            self.renderer.set_gaussians(packed)
+            self.stats.push("upload_ms", self.renderer.timings.upload_ms)
+            self.stats.push("decode_ms", packed.decode_ms)
+            self._anchors = packed.num_anchors
+        if packed is not None:
+            self.stats.shown_frames.append(packed.frame)
+        fb_w, fb_h = glfw.get_framebuffer_size(self.window)
+        drew = False
+        if fb_w > 0 and fb_h > 0:
+            drew = self._render_view(fb_w, fb_h)
+            self.ctx.screen.use()
+            self.ctx.viewport = (0, 0, fb_w, fb_h)
+            self.ctx.screen.clear(*self.settings.background, 1.0)
+            self.renderer.present(self.ctx.screen, (0, 0, fb_w, fb_h), self.settings)
+        if self.show_ui:
+            self._draw_ui()
+        imgui.render()
+        imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
+        t_swap = time.perf_counter()
+        glfw.swap_buffers(self.window)  # llvmpipe finishes the frame here, with the GIL released
+        if drew:
+            draw_ms = self.renderer.timings.draw_ms + (time.perf_counter() - t_swap) * 1e3
+            self.stats.push("draw_ms", draw_ms)
+            self._adapt_resolution(draw_ms)
+        self.stats.push("frame_ms", (time.perf_counter() - t_start) * 1e3)
+
+    def _render_view(self, fb_w: int, fb_h: int) -> bool:
+        """Splat the view if anything changed (else the last image is presented again); while
+        nothing changes, one full-resolution pass replaces an adaptive low-resolution one."""
+        s = self.settings
+        cam_full = self.control.camera(fb_w, fb_h)
+        shown = self.feeder.shown
+        key = (cam_full.w2c.tobytes(), cam_full.K.tobytes(), fb_w, fb_h, id(shown), s.mode,
+               s.scale_modifier, tuple(s.background), self.adaptive or self.render_scale)
+        scale = self.render_scale
+        if key == self._last_key:
+            if self._last_scale >= 1.0 or not self.adaptive:
+                return False
+            scale = 1.0  # idle: refine to full resolution once
+        rw, rh = max(1, int(fb_w * scale)), max(1, int(fb_h * scale))
+        cam = self.control.camera(rw, rh)
+        self.renderer.render(cam, s, sync=False)
+        if self.renderer.timings.sorted_again:
+            self.stats.push("sort_ms", self.renderer.timings.sort_ms)
+        self._last_key, self._last_scale = key, scale
+        return True
+
+    def _adapt_resolution(self, draw_ms: float) -> None:
+        """Adaptive resolution: keep splatting near ``target_ms`` while playing or moving."""
+        if not self.adaptive or self._last_scale != self.render_scale:
+            return
+        if draw_ms > 1.2 * self.target_ms:
+            self.render_scale = max(0.25, self.render_scale * 0.85)
+        elif draw_ms < 0.6 * self.target_ms:
+            self.render_scale = min(1.0, self.render_scale * 1.1)
+
+    # --- input -------------------------------------------------------------------------------
+    def _handle_input(self, dt: float) -> None:
+        imgui = self.imgui
+        io = imgui.get_io()
+        K = imgui.Key
+        if not io.want_capture_keyboard:
+            pb = self.playback
+            if imgui.is_key_pressed(K.space, False):
+                pb.toggle()
+            if imgui.is_key_pressed(K.right_arrow):
+                pb.step(1)
+            if imgui.is_key_pressed(K.left_arrow):
+                pb.step(-1)
+            if imgui.is_key_pressed(K.home, False):
+                pb.seek_frame(0)
+            if imgui.is_key_pressed(K.end, False):
+                pb.seek_frame(pb.num_frames - 1)
+            if imgui.is_key_pressed(K.l, False):
+                pb.loop = not pb.loop
+            if imgui.is_key_pressed(K.equal, False):
+                self._change_speed(1)
+            if imgui.is_key_pressed(K.minus, False):
+                self._change_speed(-1)
+            for i, key in enumerate((K._1, K._2, K._3)):
+                if imgui.is_key_pressed(key, False):
+                    self.settings.mode = MODES[i]  # type: ignore[assignment]
+            if imgui.is_key_pressed(K.right_bracket):
+                self.settings.scale_modifier = min(4.0, self.settings.scale_modifier * 1.1)
+            if imgui.is_key_pressed(K.left_bracket):
+                self.settings.scale_modifier = max(0.05, self.settings.scale_modifier / 1.1)
+            if imgui.is_key_pressed(K.c, False):
+                self.snap_to_camera((self.cam_index + 1) % len(self.cameras))
+            if imgui.is_key_pressed(K.r, False):
+                self.control.reset()
+            if imgui.is_key_pressed(K.f, False):
+                self.fly_mode = not self.fly_mode
+            if imgui.is_key_pressed(K.p, False) or imgui.is_key_pressed(K.f12, False):
+                self.screenshot()
+            if imgui.is_key_pressed(K.h, False):
+                self.show_ui = not self.show_ui
+            if imgui.is_key_pressed(K.escape, False):
+                self.glfw.set_window_should_close(self.window, True)
+            if self.fly_mode:
+                step = self.fly_speed * dt
+                mv = lambda a, b: (1.0 if imgui.is_key_down(a) else 0.0) - (1.0 if imgui.is_key_down(b) else 0.0)  # noqa: E731
+                f, r, u = mv(K.w, K.s), mv(K.d, K.a), mv(K.e, K.q)
+                if f or r or u:
+                    self.control.fly(f * step, r * step, u * step)
+        if not io.want_capture_mouse:
+            d = io.mouse_delta
+            _, fb_h = self.glfw.get_framebuffer_size(self.window)
+            shift = io.key_shift
+            if imgui.is_mouse_down(0) and not shift and (d.x or d.y):
+                if self.fly_mode:
+                    self.control.look(-d.x * 0.004, -d.y * 0.004)
+                else:
+                    self.control.orbit(-d.x * 0.008, d.y * 0.008)
+            elif (imgui.is_mouse_down(1) or imgui.is_mouse_down(2) or (shift and imgui.is_mouse_down(0))) and (d.x or d.y):
+                self.control.pan(d.x, d.y, max(fb_h, 1))
+            if io.mouse_wheel:
+                self.control.zoom(io.mouse_wheel)
+
+    def _change_speed(self, direction: int) -> None:
+        sp = abs(self.playback.speed)
+        i = min(range(len(SPEEDS)), key=lambda k: abs(SPEEDS[k] - sp))
+        self.playback.speed = SPEEDS[min(len(SPEEDS) - 1, max(0, i + direction))]
+
+    # --- actions -----------------------------------------------------------------------------
+    def snap_to_camera(self, index: int) -> None:
+        self.cam_index = index
+        self.control.snap(self.cameras[index], pivot=self.center)
+
+    def screenshot(self, path: str | Path | None = None) -> Path:
+        """Save the splatted image (without the UI) at the render resolution."""
+        if path is None:
+            path = self.screenshot_dir / f"atgs_frame{self.playback.frame:06d}_{time.strftime('%Y%m%d-%H%M%S')}.png"
+        fb_w, fb_h = self.glfw.get_framebuffer_size(self.window)
+        self.renderer.render(self.control.camera(max(fb_w, 1), max(fb_h, 1)), self.settings)
+        self._last_key = None  # the target now holds this render; redo the view next frame
+        raw = self.renderer.read()
+        save_image(path, to_uint8(display_rgb(raw, self.settings.mode, self.settings.background)))
+        self.message = f"saved {path}"
+        return Path(path)
+
+    def read_window(self) -> np.ndarray:
+        """The window's back buffer (splats + UI) as (H, W, 3) uint8, top row first."""
+        fb_w, fb_h = self.glfw.get_framebuffer_size(self.window)
+        raw = self.ctx.screen.read(viewport=(0, 0, fb_w, fb_h), components=3)
+        return np.frombuffer(raw, np.uint8).reshape(fb_h, fb_w, 3)[::-1].copy()
+
+    # --- UI ------------------------------------------------------------------------------------
+    def _draw_ui(self) -> None:
+        imgui = self.imgui
+        pb = self.playback
+        imgui.set_next_window_pos((8, 8), imgui.Cond_.first_use_ever)
+        imgui.set_next_window_bg_alpha(0.75)
+        imgui.begin("ATGS", None, imgui.WindowFlags_.always_auto_resize)
+        # time
+        imgui.text(f"frame {pb.frame} / {pb.num_frames - 1}   t = {pb.time:.4f}   {pb.frame / max(pb.fps, 1e-9):.2f} s")
+        changed, t = imgui.slider_float("time", pb.time, 0.0, 1.0, "%.4f")
+        if changed:
+            pb.seek_time(t)
+        changed, f = imgui.slider_int("frame", pb.frame, 0, max(0, pb.num_frames - 1))
+        if changed:
+            pb.seek_frame(f)
+        if imgui.button("Pause" if pb.playing else "Play"):
+            pb.toggle()
+        imgui.same_line()
+        if imgui.button("<"):
+            pb.step(-1)
+        imgui.same_line()
+        if imgui.button(">"):
+            pb.step(1)
+        imgui.same_line()
+        _, pb.loop = imgui.checkbox("loop", pb.loop)
+        labels = [f"{s:g}x" for s in SPEEDS]
+        cur = min(range(len(SPEEDS)), key=lambda k: abs(SPEEDS[k] - abs(pb.speed)))
+        changed, i = imgui.combo("speed", cur, labels)
+        if changed:
+            pb.speed = SPEEDS[i]
+        imgui.separator()
+        # camera
+        names = [c.name for c in self.cameras]
+        changed, i = imgui.combo("camera", self.cam_index, names)
+        if changed:
+            self.snap_to_camera(i)
+        changed, fov = imgui.slider_float("fov", math.degrees(self.control.state.fov_y), 10.0, 120.0, "%.1f deg")
+        if changed:
+            self.control.set_fov(fov)
+        _, self.fly_mode = imgui.checkbox("fly mode (WASD/QE)", self.fly_mode)
+        imgui.same_line()
+        if imgui.button("reset view"):
+            self.control.reset()
+        imgui.separator()
+        # rendering
+        changed, m = imgui.combo("mode", MODES.index(self.settings.mode), list(MODES))
+        if changed:
+            self.settings.mode = MODES[m]  # type: ignore[assignment]
+        _, self.settings.scale_modifier = imgui.slider_float("scale", self.settings.scale_modifier, 0.05, 4.0, "%.2f")
+        _, self.adaptive = imgui.checkbox("adaptive resolution (25 FPS)", self.adaptive)
+        if not self.adaptive:
+            _, self.render_scale = imgui.slider_float("resolution", self.render_scale, 0.25, 1.0, "%.2f")
+        else:
+            imgui.text(f"resolution {self.render_scale:.2f} while moving")
+        if imgui.button("screenshot"):
+            self.screenshot()
+        if self.message:
+            imgui.same_line()
+            imgui.text(self.message)
+        imgui.separator()
+        st = self.stats
+        n = len(self.renderer.gaussians) if self.renderer.gaussians is not None else 0
+        imgui.text(f"{st.fps:5.1f} FPS  frame {st.frame_ms:5.1f} ms")
+        imgui.text(f"decode {st.decode_ms:5.1f}  sort {st.sort_ms:4.1f}  upload {st.upload_ms:4.1f}  draw {st.draw_ms:5.1f} ms")
+        anchors = "?" if self._anchors < 0 else f"{self._anchors}"
+        imgui.text(f"anchors {anchors}   Gaussians {n} ({self.renderer.timings.drawn} drawn)")
+        imgui.text(f"cached frames {len(self.cache.cached_frames())}   {self.gl_info}")
+        if self.cache.last_error:
+            imgui.text(self.cache.last_error)
+        imgui.end()
+
+    # --- teardown ------------------------------------------------------------------------------
+    def _terminate(self) -> None:
+        self.glfw.destroy_window(self.window)
+        self.glfw.terminate()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.cache.close()
+        self.imgui.backends.opengl3_shutdown()
+        self.imgui.backends.glfw_shutdown()
+        self.imgui.destroy_context()
+        self.renderer.release()
+        self._terminate()
+
+
+def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
+    """Scripted session: play ``frames`` UI frames, scrub to t = 0.75, orbit, screenshot.
+
+    Writes ``screenshot`` (the window: splats + UI) and ``<screenshot>.json`` with what happened.
+    """
+    pb = app.playback
+    dt = 1.0 / max(pb.fps, 1e-6)
+    deadline = time.monotonic() + 60.0
+    app.step(0.0)
+    while app.feeder.shown is None and time.monotonic() < deadline:  # startup: first frame decoded
+        app.step(0.0)
+    app.stats.shown_frames.clear()
+    pb.playing = True
+    steps = 0
+    # Play `frames` UI frames; on a loaded machine keep playing until the shown frame moved.
+    while steps < frames or (len(set(app.stats.shown_frames)) < 2 and time.monotonic() < deadline):
+        app.step(dt)
+        steps += 1
+    played = list(app.stats.shown_frames)
+    pb.playing = False
+    pb.seek_time(0.75)
+    target = pb.frame
+    deadline = time.monotonic() + 30.0
+    while (app.feeder.shown is None or app.feeder.shown.frame != target) and time.monotonic() < deadline:
+        app.step(0.0)
+    app.control.orbit(0.3, 0.1)
+    app.step(0.0)
+    img = app.read_window()
+    save_image(screenshot, img)
+    splat = app.screenshot(screenshot.with_name(screenshot.stem + "_splats.png"))
+    report = {
+        "played_frames": played,
+        "play_steps": steps,
+        "distinct_played": len(set(played)),
+        "scrub_target": target,
+        "scrub_shown": None if app.feeder.shown is None else app.feeder.shown.frame,
+        "window_size": list(app.glfw.get_framebuffer_size(app.window)),
+        "gl": app.gl_info,
+        "gaussians": 0 if app.renderer.gaussians is None else len(app.renderer.gaussians),
+        "fps": app.stats.fps,
+        "screenshot": str(screenshot),
+        "splats_screenshot": str(splat),
+    }
+    screenshot.with_suffix(".json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def preload_frames(source: GaussianSource, limit_mb: int) -> dict[int, PackedGaussians]:
+    """Decode all frames up front (tqdm bar); refuses sequences that would exceed ``limit_mb``."""
+    from atgs.progress import progress_bar
+
+    F = source.num_frames
+    first = decode_frame(source, 0)
+    est_mb = F * (first.data.nbytes + first.means.nbytes) / 2**20
+    if est_mb > limit_mb:
+        raise ViewerError(f"--preload needs about {est_mb:.0f} MB for {F} frames; raise --preload-mb or drop --preload")
+    out = {0: first}
+    with progress_bar(F, "decoding frames", unit="frame") as bar:
+        bar.update(1)
+        for f in range(1, F):
+            out[f] = decode_frame(source, f)
+            bar.update(1)
+    return out
+
+
+def run_app(cfg) -> int:
+    """Entry point of the window from :mod:`viewer.cli` (``cfg`` is a ViewConfig)."""
+    from viewer.cli import _settings
+    from viewer.loading import open_source
+
+    settings = _settings(cfg)
+    source = open_source(cfg.checkpoint, cfg.demo_gaussians)
+    preloaded = preload_frames(source, cfg.preload_mb) if cfg.preload else None
+    app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded)
+    try:
+        if cfg.autotest is not None:
+            report = autotest(app, Path(cfg.autotest), cfg.autotest_frames)
+            print(json.dumps(report))
+        else:
+            app.run()
+    finally:
+        app.close()
+    return 0

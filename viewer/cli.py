@@ -1,0 +1,195 @@
+"""`atgs-view` (player window or one headless frame) and `atgs-render` (camera-path video)."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from atgs.headless_gl import HeadlessGLError
+from viewer.errors import ViewerError
+from viewer.loading import open_source
+from viewer.scene_utils import cameras_path, default_camera, orbit_path, parse_size, resized
+from viewer.source import GaussianSource, frame_at
+from viewer.splat_renderer import RenderSettings
+
+
+@dataclass
+class ViewConfig:
+    """Play a trained ATGS volumetric video (window), or render one frame headless."""
+
+    checkpoint: Annotated[str, tyro.conf.Positional]
+    """ckpt.pt written by atgs-train, or 'demo' for the built-in synthetic scene."""
+    headless: bool = False
+    """Render one frame to --out without a window (OSMesa or EGL)."""
+    time: float = 0.0
+    """Normalized time t in [0, 1] (headless; the window opens at t = 0)."""
+    frame: int | None = None
+    """Frame index instead of --time."""
+    camera: int = 0
+    """Training camera index to render from / open on."""
+    out: Path = Path("frame.png")
+    """Headless output image (.png or .jpg)."""
+    gl: Literal["auto", "egl", "osmesa"] = "auto"
+    """Headless OpenGL route: auto tries EGL then OSMesa."""
+    size: str | None = None
+    """WIDTHxHEIGHT of the output (headless) or the window; default: the camera's size (window: <= 1280 wide)."""
+    mode: Literal["color", "depth", "alpha"] = "color"
+    scale_modifier: float = 1.0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    autotest: Path | None = None
+    """Scripted window run (for tests): play, scrub, save a screenshot to this PNG, write a JSON report next to it, exit."""
+    autotest_frames: int = 20
+    """Frames to play in --autotest mode."""
+    demo_gaussians: int = 20000
+    """Gaussians of the built-in 'demo' scene."""
+    preload: bool = False
+    """Decode every frame before opening the window (smooth playback when decoding is slower than the video)."""
+    preload_mb: int = 2048
+    """Memory limit of --preload; longer sequences are refused with a message."""
+
+
+@dataclass
+class RenderConfig:
+    """Render a video of a trained ATGS model along a camera path."""
+
+    checkpoint: Annotated[str, tyro.conf.Positional]
+    """ckpt.pt written by atgs-train, or 'demo'."""
+    out: Path = Path("video.mp4")
+    path: Literal["cameras", "orbit"] = "orbit"
+    """cameras: move through the training cameras in order; orbit: one revolution around the scene."""
+    fps: float | None = None
+    """Video frame rate (default: the sequence's fps)."""
+    frames: int | None = None
+    """Number of video frames (default: one per sequence frame); time is resampled to fit."""
+    size: str | None = None
+    """WIDTHxHEIGHT (default: the first training camera's size, rounded to even)."""
+    gl: Literal["auto", "egl", "osmesa"] = "auto"
+    mode: Literal["color", "depth", "alpha"] = "color"
+    scale_modifier: float = 1.0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+def _settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
+    if not cfg.scale_modifier > 0:
+        raise ViewerError(f"--scale-modifier {cfg.scale_modifier}: must be > 0")
+    return RenderSettings(mode=cfg.mode, scale_modifier=cfg.scale_modifier, background=tuple(cfg.background))
+
+
+def start_camera(source: GaussianSource, index: int):
+    cams = list(source.cameras)
+    if not cams:
+        from viewer.source import decode_frame
+
+        return default_camera(decode_frame(source, 0).means)
+    if not 0 <= index < len(cams):
+        raise ViewerError(f"--camera {index}: the checkpoint has cameras 0..{len(cams) - 1}")
+    return cams[index]
+
+
+def run_headless(cfg: ViewConfig) -> Path:
+    from viewer.headless import HeadlessRenderer
+    from viewer.output import save_image
+
+    settings = _settings(cfg)
+    size = parse_size(cfg.size)
+    source = open_source(cfg.checkpoint, cfg.demo_gaussians)
+    n = source.num_frames
+    if cfg.frame is not None:
+        if not 0 <= cfg.frame < n:
+            raise ViewerError(f"--frame {cfg.frame}: the sequence has frames 0..{n - 1}")
+        frame = cfg.frame
+    else:
+        if not 0.0 <= cfg.time <= 1.0:
+            raise ViewerError(f"--time {cfg.time}: normalized time must be within [0, 1]")
+        frame = frame_at(cfg.time, n)
+    cam = resized(start_camera(source, cfg.camera), size)
+    hr = HeadlessRenderer(source, cfg.gl)
+    try:
+        img = hr.frame_rgb8(frame, cam, settings)
+    finally:
+        hr.close()
+    save_image(cfg.out, img)
+    return cfg.out
+
+
+def run(cfg: ViewConfig) -> int:
+    if cfg.headless:
+        out = run_headless(cfg)
+        print(f"atgs-view: wrote {out}")
+        return 0
+    from viewer.app import run_app
+
+    return run_app(cfg)
+
+
+def _fail(prog: str, exc: BaseException) -> int:
+    print(f"{prog}: error: {exc}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    cfg = tyro.cli(ViewConfig, args=argv, prog="atgs-view")
+    try:
+        return run(cfg)
+    except (ViewerError, HeadlessGLError) as exc:
+        return _fail("atgs-view", exc)
+    except KeyboardInterrupt:
+        return 130
+
+
+def render_video(cfg: RenderConfig) -> Path:
+    from viewer.headless import HeadlessRenderer, render_sequence
+    from viewer.output import VideoWriter
+    from atgs.progress import progress_bar
+
+    settings = _settings(cfg)
+    source = open_source(cfg.checkpoint)
+    F = source.num_frames
+    n = cfg.frames if cfg.frames is not None else F
+    if n < 1:
+        raise ViewerError(f"--frames {n}: must be >= 1")
+    fps = cfg.fps if cfg.fps is not None else float(source.fps or 30.0)
+    if not fps > 0:
+        raise ViewerError(f"--fps {fps}: must be > 0")
+    cams = list(source.cameras) or [start_camera(source, 0)]
+    size = parse_size(cfg.size)
+    if size is None:
+        size = (cams[0].width - cams[0].width % 2, cams[0].height - cams[0].height % 2)
+    path = orbit_path(cams, n) if cfg.path == "orbit" else cameras_path(cams, n)
+    path = [resized(c, size) for c in path]
+    frames = [frame_at(0.0 if n == 1 else i / (n - 1), F) for i in range(n)]
+    writer = VideoWriter(cfg.out, size[0], size[1], fps)
+    hr = None
+    ok = False
+    try:
+        hr = HeadlessRenderer(source, cfg.gl)
+        with progress_bar(n, "atgs-render", unit="frame") as bar:
+            render_sequence(hr, frames, path, settings, lambda i, img: writer.write(img), progress=bar)
+        writer.close()
+        ok = True
+    finally:
+        if hr is not None:
+            hr.close()
+        if not ok:
+            writer.abort()
+    return cfg.out
+
+
+def render_main(argv: list[str] | None = None) -> int:
+    cfg = tyro.cli(RenderConfig, args=argv, prog="atgs-render")
+    try:
+        out = render_video(cfg)
+    except (ViewerError, HeadlessGLError) as exc:
+        return _fail("atgs-render", exc)
+    except KeyboardInterrupt:
+        return 130
+    print(f"atgs-render: wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,153 @@
+"""Background decoding of upcoming frames into a small LRU cache.
+
+The UI thread calls :meth:`DecodeCache.request` with the frames it wants (most urgent first)
+and :meth:`DecodeCache.get`, which never blocks: a frame that is not decoded yet is simply
+``None`` and the player keeps showing the last ready frame.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from viewer.packing import PackedGaussians
+
+
+@dataclass
+class CacheStats:
+    hits: int = 0
+    misses: int = 0
+    decoded: int = 0
+    evicted: int = 0
+
+
+class DecodeCache:
+    """One worker thread decoding ``decode(frame)`` into at most ``capacity`` cached frames."""
+
+    def __init__(self, decode: Callable[[int], PackedGaussians], capacity: int = 6,
+                 pinned: dict[int, PackedGaussians] | None = None) -> None:
+        """``pinned``: frames decoded up front (``--preload``); never evicted, never decoded again."""
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self._decode = decode
+        self.capacity = capacity
+        self._cond = threading.Condition()
+        self._pinned = dict(pinned or {})
+        self._cache: OrderedDict[int, PackedGaussians] = OrderedDict()
+        self._wanted: list[int] = []
+        self._failed: dict[int, str] = {}
+        self._busy: int | None = None
+        self._stop = False
+        self.stats = CacheStats()
+        self.last_error: str | None = None
+        self._thread = threading.Thread(target=self._run, name="atgs-decode", daemon=True)
+        self._thread.start()
+
+    # --- UI thread (never blocks on decoding) ------------------------------------------------
+    def request(self, frames: Sequence[int]) -> None:
+        """Frames wanted soon, most urgent first; replaces the previous request."""
+        wanted = list(dict.fromkeys(int(f) for f in frames))[: self.capacity]
+        with self._cond:
+            self._wanted = wanted
+            self._cond.notify()
+
+    def get(self, frame: int) -> PackedGaussians | None:
+        with self._cond:
+            p = self._pinned.get(frame)
+            if p is not None:
+                self.stats.hits += 1
+                return p
+            p = self._cache.get(frame)
+            if p is None:
+                self.stats.misses += 1
+                return None
+            self._cache.move_to_end(frame)
+            self.stats.hits += 1
+            return p
+
+    def snapshot(self) -> dict[int, PackedGaussians]:
+        """The decoded frames right now (a copy of the index; the frames are shared)."""
+        with self._cond:
+            return {**self._cache, **self._pinned}
+
+    def cached_frames(self) -> list[int]:
+        with self._cond:
+            return list(self._cache) + [f for f in self._pinned if f not in self._cache]
+
+    @property
+    def busy_frame(self) -> int | None:
+        return self._busy
+
+    # --- blocking helpers for headless rendering and tests ----------------------------------------
+    def wait_for(self, frame: int, timeout: float | None = None) -> PackedGaussians | None:
+        """Request ``frame`` (keeping the other wanted frames) and wait until it is decoded."""
+        with self._cond:
+            if frame in self._pinned:
+                return self._pinned[frame]
+            if frame not in self._wanted:
+                self._wanted = [frame] + self._wanted[: self.capacity - 1]
+                self._cond.notify_all()
+            ok = self._cond.wait_for(
+                lambda: frame in self._cache or frame in self._failed or self._stop, timeout=timeout
+            )
+            if ok and frame in self._failed:
+                raise RuntimeError(self._failed[frame])
+            if frame in self._cache:
+                self._cache.move_to_end(frame)
+            return self._cache.get(frame)
+
+    def close(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join(timeout=10.0)
+
+    def __enter__(self) -> "DecodeCache":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- worker ----------------------------------------------------------------------------
+    def _next_job(self) -> int | None:
+        for f in self._wanted:
+            if f not in self._cache and f not in self._failed and f not in self._pinned:
+                return f
+        return None
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._stop or self._next_job() is not None)
+                if self._stop:
+                    return
+                frame = self._next_job()
+                self._busy = frame
+            assert frame is not None
+            try:
+                packed = self._decode(frame)
+                error = None
+            except Exception as exc:  # reported to the UI, never kills the worker
+                packed, error = None, f"decoding frame {frame} failed: {type(exc).__name__}: {exc}"
+            with self._cond:
+                self._busy = None
+                if packed is None:
+                    self._failed[frame] = error or "unknown error"
+                    self.last_error = error
+                else:
+                    self._cache[frame] = packed
+                    self._cache.move_to_end(frame)
+                    self.stats.decoded += 1
+                    self._evict()
+                self._cond.notify_all()
+
+    def _evict(self) -> None:
+        keep = set(self._wanted)
+        while len(self._cache) > self.capacity:
+            victim = next((f for f in self._cache if f not in keep), None)
+            if victim is None:
+                victim = next(iter(self._cache))
+            del self._cache[victim]
+            self.stats.evicted += 1

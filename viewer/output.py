@@ -1,0 +1,111 @@
+"""Images and videos on disk: display mapping of render modes, atomic PNG and MP4 writers."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from viewer.errors import ViewerError
+
+
+def colormap(x: np.ndarray) -> np.ndarray:
+    """The same blue -> cyan -> yellow -> red ramp as shaders/present.frag (x in [0, 1])."""
+    x = np.clip(x, 0.0, 1.0)[..., None]
+    centers = np.array([3.0, 2.0, 1.0])
+    return np.clip(1.5 - np.abs(4.0 * x - centers), 0.0, 1.0)
+
+
+def display_rgb(raw: np.ndarray, mode: str, background: tuple[float, float, float]) -> np.ndarray:
+    """(H,W,4) float target (premultiplied rgb or z*alpha, alpha) -> (H,W,3) float in [0,1] for
+    viewing: color as is; depth normalized over the covered pixels and colormapped (near = red);
+    alpha as gray."""
+    if mode == "color":
+        return np.clip(raw[..., :3], 0.0, 1.0)
+    a = raw[..., 3]
+    if mode == "alpha":
+        return np.repeat(np.clip(a, 0.0, 1.0)[..., None], 3, axis=2)
+    covered = a > 1e-4
+    z = np.where(covered, raw[..., 0] / np.maximum(a, 1e-4), 0.0)
+    lo, hi = (float(z[covered].min()), float(z[covered].max())) if covered.any() else (0.0, 1.0)
+    x = (z - lo) / max(hi - lo, 1e-6)
+    rgb = colormap(1.0 - x)
+    bg = np.asarray(background, dtype=np.float64)
+    return np.clip(a[..., None] * rgb + (1 - a[..., None]) * bg, 0.0, 1.0)
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _check_parent(path: Path, what: str) -> None:
+    if path.exists() and path.is_dir():
+        raise ViewerError(f"--out {path}: is a directory; give a {what} file name")
+    parent = path.parent if str(path.parent) else Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+
+
+def save_image(path: str | Path, rgb8: np.ndarray) -> None:
+    """Write atomically (temp file + rename): an existing file is replaced only when complete."""
+    path = Path(path)
+    _check_parent(path, "PNG/JPEG")
+    fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(path.suffix.lower())
+    if fmt is None:
+        raise ViewerError(f"--out {path}: unsupported image type {path.suffix!r}; use .png or .jpg")
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".tmp-", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            Image.fromarray(rgb8).save(fh, format=fmt)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+class VideoWriter:
+    """H.264 MP4 through PyAV, written to a temp file renamed into place by :meth:`close`."""
+
+    def __init__(self, path: str | Path, width: int, height: int, fps: float, crf: int = 18) -> None:
+        import av
+        from fractions import Fraction
+
+        self.path = Path(path)
+        _check_parent(self.path, "video (.mp4)")
+        if self.path.suffix.lower() not in (".mp4", ".mkv", ".mov"):
+            raise ViewerError(f"--out {self.path}: use a .mp4, .mkv or .mov file name")
+        if width % 2 or height % 2:
+            raise ViewerError(f"--size {width}x{height}: H.264 needs an even width and height")
+        fd, self._tmp = tempfile.mkstemp(prefix=self.path.name + ".tmp-", suffix=self.path.suffix, dir=self.path.parent)
+        os.close(fd)
+        self._container = av.open(self._tmp, mode="w")
+        rate = Fraction(fps).limit_denominator(1001)
+        self._stream = self._container.add_stream("libx264", rate=rate)
+        self._stream.width, self._stream.height = width, height
+        self._stream.pix_fmt = "yuv420p"
+        self._stream.options = {"crf": str(crf), "preset": "veryfast"}
+        self._done = False
+
+    def write(self, rgb8: np.ndarray) -> None:
+        import av
+
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb8), format="rgb24")
+        for packet in self._stream.encode(frame):
+            self._container.mux(packet)
+
+    def close(self) -> None:
+        for packet in self._stream.encode():
+            self._container.mux(packet)
+        self._container.close()
+        os.replace(self._tmp, self.path)
+        self._done = True
+
+    def abort(self) -> None:
+        try:
+            self._container.close()
+        finally:
+            if os.path.exists(self._tmp):
+                os.unlink(self._tmp)

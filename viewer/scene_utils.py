@@ -1,0 +1,134 @@
+"""Camera helpers for the player and the video renderer: scene center, output sizes, paths."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from atgs.cameras import Camera, look_at
+from viewer.errors import ViewerError
+from viewer.source import scene_up
+
+
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """'WxH' -> (W, H)."""
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ViewerError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise ViewerError(f"--size {text!r}: width and height must be within 1..16384")
+    return w, h
+
+
+def resized(cam: Camera, size: tuple[int, int] | None) -> Camera:
+    """The camera for an output of ``size`` (intrinsics scaled per axis; pixel-center convention)."""
+    if size is None or size == (cam.width, cam.height):
+        return cam
+    w, h = size
+    sx, sy = w / cam.width, h / cam.height
+    K = cam.K.copy()
+    K[0] *= sx
+    K[1] *= sy
+    return Camera(cam.name, w, h, K, cam.w2c.copy())
+
+
+def look_center(cameras: list[Camera], fallback: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares point nearest to all optical axes (where a camera rig looks)."""
+    if len(cameras) >= 2:
+        A = np.zeros((3, 3))
+        b = np.zeros(3)
+        for c in cameras:
+            d = c.forward / np.linalg.norm(c.forward)
+            P = np.eye(3) - np.outer(d, d)
+            A += P
+            b += P @ c.center
+        if np.linalg.cond(A) < 1e8:
+            return np.linalg.solve(A, b)
+    if fallback is not None:
+        return np.asarray(fallback, dtype=np.float64)
+    if cameras:
+        return cameras[0].center + cameras[0].forward
+    return np.zeros(3)
+
+
+def default_camera(means: np.ndarray, size: tuple[int, int] = (640, 480)) -> Camera:
+    """A camera that frames a point cloud (for sources without training cameras)."""
+    lo, hi = (np.percentile(means, [2, 98], axis=0) if len(means) else (-np.ones(3), np.ones(3)))
+    center = 0.5 * (lo + hi)
+    radius = max(float(np.linalg.norm(hi - lo)) * 0.5, 1e-3)
+    W, H = size
+    f = 0.5 * H / math.tan(math.radians(25))
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    eye = center + radius * 2.5 * np.array([0.0, -1.0, 0.4]) / np.linalg.norm([0.0, -1.0, 0.4])
+    return Camera("default", W, H, K, look_at(eye, center, np.array([0, 0, 1.0])))
+
+
+def orbit_path(cameras: list[Camera], n: int, center: np.ndarray | None = None) -> list[Camera]:
+    """n cameras on one revolution around the rig's look center, at the rig's mean radius and
+    height, with the first training camera's intrinsics."""
+    if not cameras:
+        raise ViewerError("orbit path needs at least one camera in the checkpoint")
+    c0 = cameras[0]
+    ctr = look_center(cameras) if center is None else np.asarray(center, dtype=np.float64)
+    up = scene_up(cameras)
+    offs = np.stack([c.center - ctr for c in cameras])
+    height = float(np.mean(offs @ up))
+    radial = offs - np.outer(offs @ up, up)
+    radius = max(float(np.mean(np.linalg.norm(radial, axis=1))), 1e-3)
+    e1 = radial[0] / max(np.linalg.norm(radial[0]), 1e-12)
+    if np.linalg.norm(radial[0]) < 1e-9:
+        e1 = np.cross(up, [1.0, 0, 0]) if abs(up[0]) < 0.9 else np.cross(up, [0, 1.0, 0])
+        e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    out = []
+    for i in range(n):
+        a = 2 * math.pi * i / max(n, 1)
+        eye = ctr + radius * (math.cos(a) * e1 + math.sin(a) * e2) + height * up
+        out.append(Camera(f"orbit{i:05d}", c0.width, c0.height, c0.K.copy(), look_at(eye, ctr, up)))
+    return out
+
+
+def _slerp_rot(R0: np.ndarray, R1: np.ndarray, s: float) -> np.ndarray:
+    """Rotation-matrix geodesic interpolation via the quaternion of R0^T R1."""
+    D = R0.T @ R1
+    cos = np.clip((np.trace(D) - 1) / 2, -1.0, 1.0)
+    ang = math.acos(cos)
+    if ang < 1e-9:
+        return R0.copy()
+    w = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
+    nrm = np.linalg.norm(w)
+    if nrm < 1e-9:  # 180 degrees: axis from the symmetric part
+        vals, vecs = np.linalg.eigh((D + D.T) / 2)
+        axis = vecs[:, np.argmax(vals)]
+    else:
+        axis = w / nrm
+    from viewer.camera_control import rotation
+
+    return R0 @ rotation(axis, s * ang)
+
+
+def cameras_path(cameras: list[Camera], n: int) -> list[Camera]:
+    """n cameras moving through the training cameras in order (position lerp, rotation slerp)."""
+    if not cameras:
+        raise ViewerError("camera path needs at least one camera in the checkpoint")
+    if len(cameras) == 1 or n == 1:
+        return [cameras[0]] * n
+    out = []
+    segs = len(cameras) - 1
+    for i in range(n):
+        u = i / (n - 1) * segs
+        k = min(int(u), segs - 1)
+        s = u - k
+        a, b = cameras[k], cameras[k + 1]
+        R = _slerp_rot(a.R.T, b.R.T, s).T  # interpolate camera-to-world rotations
+        eye = (1 - s) * a.center + s * b.center
+        K = (1 - s) * a.K + s * b.K
+        w2c = np.eye(4)
+        w2c[:3, :3] = R
+        w2c[:3, 3] = -R @ eye
+        out.append(Camera(f"path{i:05d}", a.width, a.height, K, w2c))
+    return out

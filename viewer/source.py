@@ -1,0 +1,174 @@
+"""What the player plays: anything that gives Gaussians per frame (a trained model, or a
+synthetic scene for tests and demos)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from atgs.cameras import Camera, look_at
+from atgs.gaussians import Gaussians
+from viewer.packing import PackedGaussians, pack_gaussians
+
+
+@runtime_checkable
+class GaussianSource(Protocol):
+    """The subset of the model API (docs/ARCHITECTURE.md) that the viewer uses."""
+
+    @property
+    def num_frames(self) -> int: ...
+
+    @property
+    def fps(self) -> float: ...
+
+    @property
+    def cameras(self) -> list[Camera]: ...
+
+    @property
+    def num_keyframes(self) -> int: ...
+
+    def gaussians_at(self, t: float) -> Gaussians: ...
+
+    def gaussians_at_frame(self, f: int) -> Gaussians: ...
+
+    def window_at(self, t: float) -> tuple[int, int]: ...
+
+
+def time_of_frame(f: int, num_frames: int) -> float:
+    """Frame f of F sits at t = f / (F - 1) (t = 0 when F = 1), as in atgs.model.timeline."""
+    return 0.0 if num_frames <= 1 else min(max(f, 0), num_frames - 1) / (num_frames - 1)
+
+
+def frame_at(t: float, num_frames: int) -> int:
+    """Nearest frame of normalized time t (clamped to [0, 1]); halves round up like the model."""
+    if math.isnan(t):
+        raise ValueError("time t is NaN")
+    t = min(1.0, max(0.0, float(t)))
+    return int(math.floor(t * (num_frames - 1) + 0.5))
+
+
+def active_anchor_count(source: GaussianSource, frame: int) -> int:
+    """Number of anchors decoded for a frame, or -1 if the source does not say."""
+    fn = getattr(source, "active_anchors", None)
+    if fn is None:
+        return -1
+    try:
+        mask = fn(frame)
+    except Exception:  # an optional statistic must never break playback
+        return -1
+    return int(mask.sum()) if hasattr(mask, "sum") else int(mask)
+
+
+def decode_frame(source: GaussianSource, frame: int) -> PackedGaussians:
+    """Decode and pack one frame (runs in the decode thread)."""
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        g = source.gaussians_at_frame(frame)
+    packed = pack_gaussians(g, frame=frame, num_anchors=active_anchor_count(source, frame))
+    packed.decode_ms = (time.perf_counter() - t0) * 1e3
+    return packed
+
+
+def scene_up(cameras: list[Camera]) -> np.ndarray:
+    """World direction that is 'up' in the cameras' images on average (OpenCV: -y)."""
+    if not cameras:
+        return np.array([0.0, 0.0, 1.0])
+    ups = np.stack([-c.R[1] for c in cameras])
+    u = ups.mean(0)
+    n = np.linalg.norm(u)
+    return u / n if n > 1e-9 else -cameras[0].R[1]
+
+
+@dataclass
+class SyntheticSource:
+    """Moving Gaussians in memory: a ring of colored blobs orbiting the origin and a static
+    floor, seen by a ring of cameras. Deterministic for a given seed."""
+
+    num_gaussians: int = 2000
+    frames: int = 30
+    frame_rate: float = 30.0
+    keyframes: int = 4
+    window: int = 3
+    num_cameras: int = 4
+    image_size: tuple[int, int] = (320, 240)
+    seed: int = 0
+    decode_delay_s: float = 0.0  # simulate a slow decoder (tests of the decode cache)
+
+    def __post_init__(self) -> None:
+        rng = np.random.default_rng(self.seed)
+        n = self.num_gaussians
+        n_floor = n // 4
+        n_ring = n - n_floor
+        ang = rng.uniform(0, 2 * np.pi, n_ring)
+        rad = rng.uniform(0.5, 1.0, n_ring)
+        self._ring = np.stack([rad * np.cos(ang), rad * np.sin(ang), rng.uniform(-0.3, 0.3, n_ring)], 1)
+        floor = np.stack([rng.uniform(-1.5, 1.5, n_floor), rng.uniform(-1.5, 1.5, n_floor), np.full(n_floor, -0.5)], 1)
+        self._floor = floor
+        self._quats = rng.normal(size=(n, 4))
+        base = 0.6 / max(1.0, n ** (1 / 3))
+        self._scales = base * rng.uniform(0.5, 1.5, (n, 3))
+        self._scales[n_ring:, 2] *= 0.2
+        self._opac = rng.uniform(0.5, 1.0, n)
+        hue = np.concatenate([ang / (2 * np.pi), np.full(n_floor, 0.1)])
+        self._colors = np.stack(
+            [0.5 + 0.5 * np.cos(2 * np.pi * (hue + k / 3)) for k in range(3)], 1
+        ) * np.concatenate([np.ones(n_ring), np.full(n_floor, 0.6)])[:, None]
+        W, H = self.image_size
+        f = 0.9 * W
+        K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+        cams = []
+        for i in range(self.num_cameras):
+            a = 2 * np.pi * i / self.num_cameras
+            eye = np.array([3.5 * np.cos(a), 3.5 * np.sin(a), 1.2])
+            cams.append(Camera(f"cam{i:02d}", W, H, K, look_at(eye, np.zeros(3), np.array([0, 0, 1.0]))))
+        self._cameras = cams
+
+    @property
+    def num_frames(self) -> int:
+        return self.frames
+
+    @property
+    def fps(self) -> float:
+        return self.frame_rate
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return self._cameras
+
+    @property
+    def num_keyframes(self) -> int:
+        return self.keyframes
+
+    def window_at(self, t: float) -> tuple[int, int]:
+        # The paper's rule, 0-based: kbar = nearest keyframe of t, window of half-width W // 2.
+        K = self.keyframes
+        f = frame_at(t, self.frames)
+        kbar = 0 if K == 1 or self.frames == 1 else (2 * f * (K - 1) + (self.frames - 1) - 1) // (2 * (self.frames - 1))
+        h = self.window // 2
+        return max(0, kbar - h), min(K - 1, kbar + h)
+
+    def gaussians_at(self, t: float) -> Gaussians:
+        return self.gaussians_at_frame(frame_at(t, self.frames))
+
+    def gaussians_at_frame(self, f: int) -> Gaussians:
+        if not 0 <= f < self.frames:
+            raise ValueError(f"frame {f} out of range 0..{self.frames - 1}")
+        if self.decode_delay_s:
+            time.sleep(self.decode_delay_s)
+        t = time_of_frame(f, self.frames)
+        a = 2 * np.pi * t
+        c, s = np.cos(a), np.sin(a)
+        ring = self._ring @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]])
+        means = np.concatenate([ring, self._floor])
+        return Gaussians(
+            means=torch.from_numpy(means).float(),
+            quats=torch.from_numpy(self._quats).float(),
+            scales=torch.from_numpy(self._scales).float(),
+            opacities=torch.from_numpy(self._opac).float(),
+            colors=torch.from_numpy(self._colors).float(),
+        )

@@ -1,0 +1,290 @@
+"""GLSL Gaussian splatting with the training rasterizer's conventions (moderngl, GL 3.3 core).
+
+One instanced 4-vertex quad per Gaussian; the instance attribute is the Gaussian's index in
+back-to-front order (CPU radix sort of view depths, redone only when the camera or the
+Gaussians change) and the Gaussians themselves live in an RGBA32UI texture uploaded once per
+frame. Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``, into a float
+target cleared to the background, which yields ``C + T bg`` and ``alpha = 1 - T`` like
+:func:`atgs.render.rasterize`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from importlib.resources import files
+from typing import Literal
+
+import moderngl
+import numpy as np
+
+from atgs.cameras import Camera
+from viewer.packing import WORDS_PER_GAUSSIAN, PackedGaussians
+from viewer.sorting import back_to_front
+
+RenderMode = Literal["color", "depth", "alpha"]
+MODES: tuple[str, ...] = ("color", "depth", "alpha")
+
+# Same numbers as atgs.render.constants (kept literal here so the viewer imports no torch code
+# path it does not need; tests check they agree).
+NEAR = 0.01
+DILATION = 0.3
+CLAMP_MARGIN = 0.3
+RADIUS_SIGMAS = 3.0
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+GAUSSIANS_PER_ROW = 1024  # texture row = 1024 Gaussians = 3072 texels
+
+
+def load_shader(name: str) -> str:
+    return files("shaders").joinpath(name).read_text(encoding="utf-8")
+
+
+def clamp_limits(K: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
+    """gsplat's Jacobian clamp (x/z in [-lxn, lxp], y/z in [-lyn, lyp]), as in atgs.render."""
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    return (
+        cx / fx + CLAMP_MARGIN * tan_x,
+        (width - cx) / fx + CLAMP_MARGIN * tan_x,
+        cy / fy + CLAMP_MARGIN * tan_y,
+        (height - cy) / fy + CLAMP_MARGIN * tan_y,
+    )
+
+
+@dataclass
+class RenderSettings:
+    mode: RenderMode = "color"
+    scale_modifier: float = 1.0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    exact_sort: bool = False  # float argsort instead of the 16-bit radix sort
+
+
+@dataclass
+class FrameTimings:
+    """Milliseconds of the last frame's stages (0 when a stage was skipped)."""
+
+    sort_ms: float = 0.0
+    upload_ms: float = 0.0
+    draw_ms: float = 0.0
+    drawn: int = 0  # Gaussians in front of the near plane (instances drawn)
+    sorted_again: bool = False
+
+
+@dataclass
+class _SortKey:
+    w2c: bytes = b""
+    version: int = -1
+    exact: bool = False
+
+
+@dataclass
+class _Target:
+    size: tuple[int, int]
+    dtype: str
+    texture: moderngl.Texture
+    fbo: moderngl.Framebuffer
+
+
+class SplatRenderer:
+    """Draws :class:`PackedGaussians` for a :class:`Camera` into an offscreen float target.
+
+    Use from the thread that owns ``ctx``. ``set_gaussians`` uploads; ``render`` sorts (if the
+    camera or the data changed), draws, and returns nothing; ``read`` returns numpy images.
+    """
+
+    def __init__(self, ctx: moderngl.Context, target_dtype: str = "f4") -> None:
+        self.ctx = ctx
+        self.target_dtype = target_dtype  # "f4" exact; "f2" halves blend bandwidth for display
+        self.prog = ctx.program(vertex_shader=load_shader("splat.vert"), fragment_shader=load_shader("splat.frag"))
+        self.present_prog = ctx.program(
+            vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("present.frag")
+        )
+        self.present_vao = ctx.vertex_array(self.present_prog, [])
+        self._data_tex: moderngl.Texture | None = None
+        self._index_buf: moderngl.Buffer | None = None
+        self._vao: moderngl.VertexArray | None = None
+        self._count = 0
+        self._means = np.zeros((0, 3), np.float32)
+        self._version = 0
+        self._sort_key = _SortKey()
+        self._drawn = 0
+        self._target: _Target | None = None
+        self.timings = FrameTimings()
+        self.gaussians: PackedGaussians | None = None
+        self.depth_range = (0.0, 1.0)
+
+    # --- data -----------------------------------------------------------------------------
+    def set_gaussians(self, packed: PackedGaussians) -> float:
+        """Upload a frame's Gaussians; returns the upload time in ms."""
+        t0 = time.perf_counter()
+        n = len(packed)
+        rows = max(1, -(-n // GAUSSIANS_PER_ROW))
+        width = GAUSSIANS_PER_ROW * 3
+        if self._data_tex is None or self._data_tex.height < rows:
+            if self._data_tex is not None:
+                self._data_tex.release()
+            cap_rows = 1 << max(0, (rows - 1).bit_length())  # grow in powers of two
+            self._data_tex = self.ctx.texture((width, cap_rows), 4, dtype="u4")
+            self._data_tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        if n:
+            full_rows = n // GAUSSIANS_PER_ROW
+            if full_rows:
+                self._data_tex.write(
+                    packed.data[: full_rows * GAUSSIANS_PER_ROW].tobytes(), viewport=(0, 0, width, full_rows)
+                )
+            rest = n - full_rows * GAUSSIANS_PER_ROW
+            if rest:
+                self._data_tex.write(
+                    packed.data[full_rows * GAUSSIANS_PER_ROW :].tobytes(), viewport=(0, full_rows, rest * 3, 1)
+                )
+        self._count = n
+        self._means = packed.means
+        self.gaussians = packed
+        self._version += 1
+        ms = (time.perf_counter() - t0) * 1e3
+        self.timings.upload_ms = ms
+        return ms
+
+    # --- targets --------------------------------------------------------------------------
+    def _ensure_target(self, width: int, height: int) -> _Target:
+        t = self._target
+        if t is None or t.size != (width, height) or t.dtype != self.target_dtype:
+            if t is not None:
+                t.fbo.release()
+                t.texture.release()
+            tex = self.ctx.texture((width, height), 4, dtype=self.target_dtype)
+            tex.filter = (moderngl.LINEAR, moderngl.LINEAR)  # for presenting a reduced resolution
+            self._target = t = _Target((width, height), self.target_dtype, tex, self.ctx.framebuffer([tex]))
+        return t
+
+    @property
+    def target_texture(self) -> moderngl.Texture | None:
+        return None if self._target is None else self._target.texture
+
+    # --- sorting --------------------------------------------------------------------------
+    def _sort(self, camera: Camera, exact: bool) -> None:
+        key = camera.w2c.astype(np.float32).tobytes()
+        sk = self._sort_key
+        if sk.w2c == key and sk.version == self._version and sk.exact == exact:
+            self.timings.sort_ms = 0.0
+            self.timings.sorted_again = False
+            return
+        t0 = time.perf_counter()
+        order = back_to_front(self._means, camera.w2c, NEAR, exact=exact)
+        self._drawn = int(order.size)
+        if order.size:
+            nbytes = order.nbytes
+            if self._index_buf is None or self._index_buf.size < nbytes:
+                if self._vao is not None:
+                    self._vao.release()
+                if self._index_buf is not None:
+                    self._index_buf.release()
+                self._index_buf = self.ctx.buffer(reserve=max(nbytes, 4 * 1024), dynamic=True)
+                self._vao = self.ctx.vertex_array(self.prog, [(self._index_buf, "1u4/i", "a_index")])
+            self._index_buf.write(order.tobytes())
+            z = self._means[order[[0, -1]]] @ camera.w2c[2, :3].astype(np.float32) + np.float32(camera.w2c[2, 3])
+            self.depth_range = (float(z[1]), float(z[0]))
+        self._sort_key = _SortKey(key, self._version, exact)
+        self.timings.sort_ms = (time.perf_counter() - t0) * 1e3
+        self.timings.sorted_again = True
+
+    # --- drawing --------------------------------------------------------------------------
+    def render(self, camera: Camera, settings: RenderSettings | None = None, sync: bool = True) -> moderngl.Framebuffer:
+        """Splat into the offscreen target of the camera's size; returns that framebuffer.
+
+        ``sync`` waits for the GL (so ``timings.draw_ms`` is the draw); the window passes False
+        because glFinish holds Python's GIL and would starve the decode thread, while the wait
+        inside glfw.swap_buffers (a ctypes call) releases it."""
+        s = settings or RenderSettings()
+        if s.mode not in MODES:
+            raise ValueError(f"unknown render mode {s.mode!r}; use one of {', '.join(MODES)}")
+        W, H = camera.width, camera.height
+        target = self._ensure_target(W, H)
+        self._sort(camera, s.exact_sort)
+        t0 = time.perf_counter()
+        fbo = target.fbo
+        fbo.use()
+        self.ctx.viewport = (0, 0, W, H)
+        bg = (0.0, 0.0, 0.0) if s.mode == "depth" else tuple(float(c) for c in s.background)
+        fbo.clear(bg[0], bg[1], bg[2], 0.0)
+        if self._count and self._drawn and self._vao is not None:
+            p = self.prog
+            p["u_data"].value = 0
+            p["u_per_row"].value = GAUSSIANS_PER_ROW
+            p["u_w2c"].write(np.ascontiguousarray(camera.w2c.T, dtype=np.float32).tobytes())
+            p["u_intr"].value = (camera.fx, camera.fy, camera.cx, camera.cy)
+            p["u_size"].value = (float(W), float(H))
+            p["u_lim"].value = clamp_limits(camera.K, W, H)
+            p["u_near"].value = NEAR
+            p["u_dilation"].value = DILATION
+            p["u_scale2"].value = float(s.scale_modifier) ** 2
+            p["u_extent"].value = RADIUS_SIGMAS
+            p["u_alpha_min"].value = ALPHA_MIN
+            p["u_alpha_max"].value = ALPHA_MAX
+            p["u_sigma_cut"].value = 0.5 * RADIUS_SIGMAS**2
+            p["u_mode"].value = 1 if s.mode == "depth" else 0
+            assert self._data_tex is not None
+            self._data_tex.use(0)
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+            self.ctx.enable(moderngl.BLEND)
+            self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
+            self.ctx.blend_equation = moderngl.FUNC_ADD
+            self._vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=self._drawn)
+            self.ctx.disable(moderngl.BLEND)
+        if sync:
+            self.ctx.finish()  # so that draw_ms measures the draw, not the next readback
+        self.timings.draw_ms = (time.perf_counter() - t0) * 1e3
+        self.timings.drawn = self._drawn if self._count else 0
+        return fbo
+
+    def read(self) -> np.ndarray:
+        """The target as (H, W, 4) float32, top row first: premultiplied rgb (or z*alpha) and alpha."""
+        if self._target is None:
+            raise RuntimeError("nothing rendered yet")
+        W, H = self._target.size
+        raw = self._target.fbo.read(components=4, dtype="f4")
+        return np.frombuffer(raw, dtype=np.float32).reshape(H, W, 4)[::-1].copy()
+
+    def render_image(self, camera: Camera, settings: RenderSettings | None = None) -> np.ndarray:
+        """Render and read back (float32), the same quantities as :func:`atgs.render.rasterize`:
+        color (H,W,3) = C + T bg, depth (H,W) = sum_i z_i alpha_i T_i, alpha (H,W) = 1 - T."""
+        s = settings or RenderSettings()
+        self.render(camera, s)
+        img = self.read()
+        if s.mode == "color":
+            return img[..., :3]
+        if s.mode == "alpha":
+            return img[..., 3]
+        return img[..., 0]
+
+    def present(
+        self, fbo: moderngl.Framebuffer, viewport: tuple[int, int, int, int], settings: RenderSettings
+    ) -> None:
+        """Draw the offscreen target into ``fbo`` (e.g. the window) with the display mapping."""
+        if self._target is None:
+            return
+        fbo.use()
+        self.ctx.viewport = viewport
+        p = self.present_prog
+        p["u_image"].value = 0
+        p["u_mode"].value = MODES.index(settings.mode)
+        p["u_range"].value = self.depth_range
+        p["u_background"].value = tuple(float(c) for c in settings.background)
+        self._target.texture.use(0)
+        self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
+        self.present_vao.render(moderngl.TRIANGLES, vertices=3)
+
+    def release(self) -> None:
+        for obj in (self._vao, self._index_buf, self._data_tex, self.present_vao, self.prog, self.present_prog):
+            if obj is not None:
+                obj.release()
+        if self._target is not None:
+            self._target.fbo.release()
+            self._target.texture.release()
+            self._target = None
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """float image in [0,1] -> uint8 (rounded)."""
+    return np.clip(np.rint(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
