@@ -28,7 +28,7 @@ import os
 import platform
 import statistics
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +57,8 @@ class BenchConfig:
     """A trained ckpt.pt for the playback part (default: an untrained 'cpu'-preset model)."""
     gl: str = "egl"
     out: Path = Path("bench/results/viewer.json")
-    target_dtypes: tuple[str, ...] = ("f4", "f2")
+    target_dtypes: tuple[str, ...] = ("f4", "f1")
+    """Render targets: f4 = float32 (headless/tests), f1 = RGBA8 (the player window, color mode)."""
     docs: Path | None = Path("docs/viewer.md")
     """Replace the table between the bench markers in this file (None: leave the docs alone)."""
 
@@ -120,7 +121,7 @@ def bench_counts(cfg: BenchConfig, renderer: SplatRenderer, dtype: str) -> list[
     return rows
 
 
-def untrained_model(num_points: int = 6_000, frames: int = 60) -> GaussianSource:
+def untrained_model(num_points: int = 6_000, frames: int = 24) -> GaussianSource:
     """An initialised (untrained) ATGS model with the 'cpu' preset over a synthetic point set."""
     from atgs.model.atgs_model import ATGSModel
     from atgs.model.config import preset
@@ -145,7 +146,7 @@ def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer
     K = base.K.copy()
     K[0] *= sx
     K[1] *= sy
-    renderer.target_dtype = "f2"
+    renderer.target_dtype = "f1"  # what the player window uses in color mode
     decode_ms = [decode_frame(source, f).decode_ms for f in (0, 1)]
     n_gauss = len(decode_frame(source, 0))
     pb = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0), playing=True)

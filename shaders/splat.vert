@@ -1,7 +1,9 @@
 #version 330 core
-// One instanced quad per Gaussian (4-vertex triangle strip). The instance attribute is the
-// Gaussian's index in back-to-front order; its data lives in an integer texture, 3 texels per
-// Gaussian: (mean.xyz, opacity) | (cov00, cov01, cov02, cov11) | (cov12, cov22, rg16, b16).
+// One quad (two triangles) per Gaussian, drawn from an element buffer without vertex
+// attributes: element 4 g + c is corner c of Gaussian g, and the elements are listed in
+// back-to-front order. (One indexed draw is about twice as fast on llvmpipe as instancing,
+// whose per-instance overhead dominates for small splats.) The Gaussians live in an integer
+// texture, 3 texels each: (mean.xyz, opacity) | (cov00, cov01, cov02, cov11) | (cov12, cov22, rg16, b16).
 // Conventions follow atgs.render (OpenCV camera, pixel centers at +0.5, EWA with 0.3 px^2
 // dilation, gsplat's Jacobian clamp, near plane, 3-sigma support).
 
@@ -17,8 +19,6 @@ uniform float u_scale2;         // scale modifier squared (covariance scales wit
 uniform float u_extent;         // quad half-extent in standard deviations (3)
 uniform float u_alpha_min;
 
-layout(location = 0) in uint a_index;
-
 // Position in the Gaussian's whitened frame (units of standard deviations along the
 // eigen-axes); affine over the quad, so screen-linear interpolation gives every pixel center
 // its exact Mahalanobis coordinates: sigma = 0.5 |v_white|^2 = 0.5 d^T Sigma2d^-1 d.
@@ -31,7 +31,7 @@ void cull() {
 }
 
 void main() {
-    int i = int(a_index);
+    int i = gl_VertexID >> 2;
     ivec2 base = ivec2((i % u_per_row) * 3, i / u_per_row);
     uvec4 t0 = texelFetch(u_data, base, 0);
     uvec4 t1 = texelFetch(u_data, base + ivec2(1, 0), 0);
@@ -84,7 +84,8 @@ void main() {
     // Half a pixel of slack so that pixel centers on the ellipse's edge are not lost.
     float h1 = k * sqrt(l1) + 0.5, h2 = k * sqrt(l2) + 0.5;
 
-    vec2 corner = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1)) * 2.0 - 1.0;
+    int c_id = gl_VertexID & 3;
+    vec2 corner = vec2(float(c_id & 1), float(c_id >> 1)) * 2.0 - 1.0;
     vec2 pix = center + corner.x * h1 * e1 + corner.y * h2 * e2;
     vec2 ndc = vec2(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y);
     gl_Position = vec4(ndc, 0.0, 1.0);

@@ -77,9 +77,10 @@ def test_keyframe_points_lie_on_true_surfaces(synth) -> None:
     for j, f in enumerate(s.keyframes):
         pts = s.points[s.point_keyframes == j]
         assert len(pts) > 100
-        d = distance_to_surfaces(synth["scene"], f, pts)
+        d = distance_to_surfaces(synth["scene"], f, pts[:: max(1, len(pts) // 300)])  # subsample: exact distances are slow
         assert np.median(d) < 0.01 * size, (j, np.median(d))
-    assert np.all(s.bounds[0] < s.points.min(0) + 1.0) and np.all(s.bounds[1] > s.points.max(0) - 1.0)
+    inside = np.all((s.points >= s.bounds[0]) & (s.points <= s.bounds[1]), axis=1)
+    assert inside.mean() > 0.97  # bounds are robust (percentiles): far outliers may fall outside
 
 
 def test_frame_range_downscale_and_test_cams(synth, tmp_path) -> None:
@@ -192,8 +193,6 @@ def test_bad_inputs_give_one_line_errors_naming_the_file(tmp_path) -> None:
     # nothing already written was destroyed, and no temp dirs are left
     assert (out / "keep.txt").read_text() == "precious"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b", "c", "empty", "odd", "out"]
-    for e in [str(e) for e in ()]:
-        assert "\n" not in e
 
 
 def test_trim_mismatch_and_overwrite_rules(tmp_path, capsys) -> None:
@@ -233,3 +232,44 @@ def test_cli_prints_one_line_and_exits_2(tmp_path, capsys) -> None:
     assert code == 2 and err.count("\n") == 0 and err.startswith("error: ") and "empty" in err
     assert "Traceback" not in err and (out / "keep.txt").is_file()
     shutil.rmtree(tmp_path / "empty")
+
+
+def test_ensure_default_scene_is_cached(tmp_path) -> None:
+    from atgs.data.synth import ensure_default_scene
+
+    cfg = SynthConfig(frames=2, cameras=4, width=96, height=72, texture_size=128)
+    p1 = ensure_default_scene(tmp_path, cfg, keyframes=1, progress=False)
+    stamp = (p1 / "scene.json").stat().st_mtime_ns
+    p2 = ensure_default_scene(tmp_path, cfg, keyframes=1, progress=False)
+    assert p1 == p2 and (p2 / "scene.json").stat().st_mtime_ns == stamp
+    s = PreparedScene.load(p2)
+    assert s.num_frames == 2 and len(s.cameras) == 4 and s.image(1, 1).shape == (72, 96, 3)
+    other = ensure_default_scene(tmp_path, SynthConfig(frames=2, cameras=4, width=96, height=72, texture_size=128,
+                                                       seed=5), keyframes=1, progress=False)
+    assert other != p1
+
+
+def test_easyvolcap_missing_files_are_named(synth, tmp_path) -> None:
+    src = write_easyvolcap_layout(tmp_path / "ev", synth["cams"][:3], _gt_frame(synth), 1)
+    (src / "extri.yml").unlink()
+    with pytest.raises(DataError, match=r"extri.yml: not found"):
+        _prep(src, tmp_path / "out")
+    src = write_easyvolcap_layout(tmp_path / "ev2", synth["cams"][:3], _gt_frame(synth), 1)
+    shutil.rmtree(src / "images" / "cam01")
+    with pytest.raises(DataError, match=r"images/cam01: image folder missing for camera cam01"):
+        _prep(src, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_synth_cli(tmp_path, capsys) -> None:
+    from atgs.cli.synth import main as synth_main
+
+    out = tmp_path / "raw"
+    args = [str(out), "--frames", "2", "--cameras", "3", "--width", "48", "--height", "32", "--preset", "small-motion"]
+    assert synth_main(args) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["cam00.mp4", "cam01.mp4", "cam02.mp4", "poses_bounds.npy", "synth.json"]
+    assert np.load(out / "poses_bounds.npy").shape == (3, 17)
+    capsys.readouterr()
+    assert synth_main(args) == 2  # refuses to overwrite
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "already exists" in err and err.count("\n") == 0

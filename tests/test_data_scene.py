@@ -111,3 +111,10 @@ def test_bad_metadata_and_missing_frame(tmp_path) -> None:
     (out / "scene.json").write_text(json.dumps(meta))
     with pytest.raises(DataError, match="keyframe index out of range"):
         PreparedScene.load(out)
+
+
+def test_jpg_frames(tmp_path) -> None:
+    out, *_ = _write(tmp_path / "s", image_ext=".jpg")
+    s = PreparedScene.load(out)
+    assert s.image_ext == ".jpg" and (out / "images" / "cam00" / "000000.jpg").is_file()
+    assert np.abs(s.image(1, 2) * 255 - _frame(1, 2)).mean() < 3.0

@@ -96,7 +96,8 @@ class FakeScene:
 
     def image(self, cam_index: int, frame: int) -> np.ndarray:
         if (cam_index, frame) in self.missing:
-            raise DataError(f"images/{self.cameras[cam_index].name}/{frame:06d}.png: frame file missing; re-run atgs-prepare")
+            name = self.cameras[cam_index].name
+            raise DataError(f"images/{name}/{frame:06d}.png: frame file missing; re-run atgs-prepare")
         return render(moving(self.truth, frame), self.cameras[cam_index], self.background).numpy()
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -110,6 +111,9 @@ def test_cli_errors_are_one_line_exit_2(trained: tuple[Path, Path], tmp_path: Pa
     shifted = [replace(c, w2c=c.w2c.copy()) for c in cams]
     shifted[2].w2c[0, 3] += 0.5  # one test camera moved: the scene is not the one trained on
     other = write_scene(tmp_path / "other", shifted)
+    holes = tmp_path / "holes"
+    shutil.copytree(data, holes)
+    (holes / "images" / "cam02" / "000001.png").unlink()
     cases = [
         ([str(tmp_path / "nope.pt")], "checkpoint not found"),
         ([str(data / "scene.json")], "not a readable ATGS checkpoint"),
@@ -117,6 +121,7 @@ def test_cli_errors_are_one_line_exit_2(trained: tuple[Path, Path], tmp_path: Pa
         ([str(ckpt), "--data", str(tmp_path / "missing")], "not a directory"),
         ([str(ckpt), "--data", str(other)], "camera 'cam02' differs between the checkpoint and the scene"),
         ([str(ckpt), "--data", str(data), "--frames", "9"], r"--frames: [9] out of range [0, 4)"),
+        ([str(ckpt), "--data", str(holes)], "cam02/000001.png: frame file missing"),
     ]
     for argv, message in cases:
         out = tmp_path / "out"

@@ -40,3 +40,15 @@ def test_window_plays_scrubs_and_screenshots(tmp_path: Path) -> None:
     assert window.shape == (240, 320, 3) and window.std() > 5.0  # UI + splats, not a blank window
     splats = np.asarray(Image.open(report["splats_screenshot"]), dtype=np.float64)
     assert (splats.max(axis=2) > 10).mean() > 0.02  # the splats cover part of the view
+
+
+def test_window_without_display_is_a_clear_error(tmp_path: Path) -> None:
+    import os
+
+    ckpt = write_tiny_checkpoint(tmp_path / "ckpt.pt")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-m", "viewer.cli", str(ckpt)], capture_output=True, text=True,
+                          timeout=120, env=env)
+    assert proc.returncode == 2
+    err = proc.stderr.strip()
+    assert err.count("\n") == 0 and "xvfb-run" in err and "Traceback" not in err, err

@@ -25,7 +25,7 @@ from viewer.output import display_rgb, save_image, to_uint8
 from viewer.packing import PackedGaussians
 from viewer.playback import FrameFeeder, Playback
 from viewer.scene_utils import look_center, parse_size
-from viewer.source import GaussianSource, active_anchor_count, decode_frame, scene_up
+from viewer.source import GaussianSource, decode_frame, scene_up
 from viewer.splat_renderer import MODES, RenderSettings, SplatRenderer
 
 SPEEDS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
@@ -49,6 +49,13 @@ class Stats:
     @property
     def fps(self) -> float:
         return 1000.0 / self.frame_ms if self.frame_ms > 0 else 0.0
+
+
+def _glfw_error(glfw) -> str:
+    code, desc = glfw.get_error()
+    if not code:
+        return "no display?"
+    return desc.decode(errors="replace") if isinstance(desc, bytes) else str(desc)
 
 
 def _window_size(cam_w: int, cam_h: int, size: str | None) -> tuple[int, int]:
@@ -79,8 +86,11 @@ class PlayerApp:
         self.cam_index = camera_index if source.cameras else 0
         width, height = _window_size(cam0.width, cam0.height, size)
 
+        glfw.ERROR_REPORTING = "ignore"  # failures become one ViewerError line, not warnings
         if not glfw.init():
-            raise ViewerError("cannot initialise GLFW (no display?); use --headless, or run under xvfb-run -a")
+            raise ViewerError(
+                f"cannot initialise GLFW ({_glfw_error(glfw)}); use --headless, or run under xvfb-run -a"
+            )
         glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
         glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
         glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
@@ -90,8 +100,8 @@ class PlayerApp:
         if not self.window:
             glfw.terminate()
             raise ViewerError(
-                "cannot open an OpenGL 3.3 core window (no display, or the driver is too old); "
-                "use --headless, or run under xvfb-run -a"
+                f"cannot open an OpenGL 3.3 core window ({_glfw_error(glfw)}); "
+                "use --headless, or run under xvfb-run -a, or update Mesa / the GPU driver"
             )
         glfw.make_context_current(self.window)
         glfw.swap_interval(0)
@@ -109,7 +119,7 @@ class PlayerApp:
         imgui.backends.glfw_init_for_opengl(addr, True)
         imgui.backends.opengl3_init("#version 330")
 
-        self.renderer = SplatRenderer(self.ctx, target_dtype="f2")  # half floats: half the blend bandwidth
+        self.renderer = SplatRenderer(self.ctx)
         self.settings = settings or RenderSettings()
         self.playback = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0))
         self.cache = DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=preloaded)
@@ -192,6 +202,9 @@ class PlayerApp:
             scale = 1.0  # idle: refine to full resolution once
         rw, rh = max(1, int(fb_w * scale)), max(1, int(fb_h * scale))
         cam = self.control.camera(rw, rh)
+        # 8-bit blending is llvmpipe's fast path (~20% faster than float) and the screen is 8 bit;
+        # depth needs a float target (z * alpha is not in [0, 1]).
+        self.renderer.target_dtype = "f2" if s.mode == "depth" else "f1"
         self.renderer.render(cam, s, sync=False)
         if self.renderer.timings.sorted_again:
             self.stats.push("sort_ms", self.renderer.timings.sort_ms)

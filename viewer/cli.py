@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -21,7 +21,7 @@ from viewer.splat_renderer import RenderSettings
 class ViewConfig:
     """Play a trained ATGS volumetric video (window), or render one frame headless."""
 
-    checkpoint: Annotated[str, tyro.conf.Positional]
+    checkpoint: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
     """ckpt.pt written by atgs-train, or 'demo' for the built-in synthetic scene."""
     headless: bool = False
     """Render one frame to --out without a window (OSMesa or EGL)."""
@@ -56,7 +56,7 @@ class ViewConfig:
 class RenderConfig:
     """Render a video of a trained ATGS model along a camera path."""
 
-    checkpoint: Annotated[str, tyro.conf.Positional]
+    checkpoint: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
     """ckpt.pt written by atgs-train, or 'demo'."""
     out: Path = Path("video.mp4")
     path: Literal["cameras", "orbit"] = "orbit"

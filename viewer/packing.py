@@ -35,26 +35,21 @@ class PackedGaussians:
 
 def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
     """(N,4) wxyz quaternions (any norm) and (N,3) standard deviations -> (N,6) float32 upper
-    triangle (00, 01, 02, 11, 12, 22) of R S S^T R^T. Plain numpy in float32: linear in N."""
+    triangle (00, 01, 02, 11, 12, 22) of R S S^T R^T. Plain 1-D numpy in float32: linear in N."""
     q = np.asarray(quats, dtype=np.float32)
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), np.float32(QUAT_EPS))
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    w, x, y, z = (np.ascontiguousarray(q[:, k]) for k in range(4))
     s = np.asarray(scales, dtype=np.float32)
-    # Columns of M = R S (each rotation column scaled by its standard deviation).
-    m = np.empty((q.shape[0], 3, 3), dtype=np.float32)
-    m[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    m[:, 0, 1] = 2 * (x * y - w * z)
-    m[:, 0, 2] = 2 * (x * z + w * y)
-    m[:, 1, 0] = 2 * (x * y + w * z)
-    m[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    m[:, 1, 2] = 2 * (y * z - w * x)
-    m[:, 2, 0] = 2 * (x * z - w * y)
-    m[:, 2, 1] = 2 * (y * z + w * x)
-    m[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    m *= s[:, None, :]
+    s0, s1, s2 = (np.ascontiguousarray(s[:, k]) for k in range(3))
+    # Rows of M = R S: M[a][j] = R[a][j] * s_j.
+    M = (
+        ((1 - 2 * (y * y + z * z)) * s0, 2 * (x * y - w * z) * s1, 2 * (x * z + w * y) * s2),
+        (2 * (x * y + w * z) * s0, (1 - 2 * (x * x + z * z)) * s1, 2 * (y * z - w * x) * s2),
+        (2 * (x * z - w * y) * s0, 2 * (y * z + w * x) * s1, (1 - 2 * (x * x + y * y)) * s2),
+    )
     out = np.empty((q.shape[0], 6), dtype=np.float32)
     for k, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
-        out[:, k] = np.einsum("nk,nk->n", m[:, i], m[:, j])
+        out[:, k] = M[i][0] * M[j][0] + M[i][1] * M[j][1] + M[i][2] * M[j][2]
     return out
 
 

@@ -1,6 +1,6 @@
 """GLSL Gaussian splatting with the training rasterizer's conventions (moderngl, GL 3.3 core).
 
-One instanced 4-vertex quad per Gaussian; the instance attribute is the Gaussian's index in
+One quad per Gaussian from a single indexed draw: the element buffer lists the quads in
 back-to-front order (CPU radix sort of view depths, redone only when the camera or the
 Gaussians change) and the Gaussians themselves live in an RGBA32UI texture uploaded once per
 frame. Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``, into a float
@@ -11,7 +11,7 @@ target cleared to the background, which yields ``C + T bg`` and ``alpha = 1 - T`
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib.resources import files
 from typing import Literal
 
@@ -19,7 +19,7 @@ import moderngl
 import numpy as np
 
 from atgs.cameras import Camera
-from viewer.packing import WORDS_PER_GAUSSIAN, PackedGaussians
+from viewer.packing import PackedGaussians
 from viewer.sorting import back_to_front
 
 RenderMode = Literal["color", "depth", "alpha"]
@@ -34,6 +34,16 @@ RADIUS_SIGMAS = 3.0
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 GAUSSIANS_PER_ROW = 1024  # texture row = 1024 Gaussians = 3072 texels
+# Two triangles per quad; corner c of Gaussian g is vertex 4 g + c (see shaders/splat.vert).
+QUAD_ELEMENTS = np.array([0, 1, 2, 2, 1, 3], dtype=np.uint32)
+
+
+def quad_elements(order: np.ndarray) -> np.ndarray:
+    """Element buffer (6 uint32 per Gaussian) drawing the Gaussians in ``order``."""
+    el = np.empty((order.size, 6), dtype=np.uint32)
+    el[:] = (order.astype(np.uint32) * np.uint32(4))[:, None]
+    el += QUAD_ELEMENTS
+    return el.reshape(-1)
 
 
 def load_shader(name: str) -> str:
@@ -67,7 +77,7 @@ class FrameTimings:
     sort_ms: float = 0.0
     upload_ms: float = 0.0
     draw_ms: float = 0.0
-    drawn: int = 0  # Gaussians in front of the near plane (instances drawn)
+    drawn: int = 0  # Gaussians in front of the near plane (quads drawn)
     sorted_again: bool = False
 
 
@@ -151,8 +161,7 @@ class SplatRenderer:
         t = self._target
         if t is None or t.size != (width, height) or t.dtype != self.target_dtype:
             if t is not None:
-                t.fbo.release()
-                t.texture.release()
+                self._release_target(t)
             tex = self.ctx.texture((width, height), 4, dtype=self.target_dtype)
             tex.filter = (moderngl.LINEAR, moderngl.LINEAR)  # for presenting a reduced resolution
             self._target = t = _Target((width, height), self.target_dtype, tex, self.ctx.framebuffer([tex]))
@@ -174,17 +183,18 @@ class SplatRenderer:
         order = back_to_front(self._means, camera.w2c, NEAR, exact=exact)
         self._drawn = int(order.size)
         if order.size:
-            nbytes = order.nbytes
+            elements = quad_elements(order)
+            nbytes = elements.nbytes
             if self._index_buf is None or self._index_buf.size < nbytes:
                 if self._vao is not None:
                     self._vao.release()
                 if self._index_buf is not None:
                     self._index_buf.release()
                 self._index_buf = self.ctx.buffer(reserve=max(nbytes, 4 * 1024), dynamic=True)
-                self._vao = self.ctx.vertex_array(self.prog, [(self._index_buf, "1u4/i", "a_index")])
-            self._index_buf.write(order.tobytes())
+                self._vao = self.ctx.vertex_array(self.prog, [], index_buffer=self._index_buf, index_element_size=4)
             z = self._means[order[[0, -1]]] @ camera.w2c[2, :3].astype(np.float32) + np.float32(camera.w2c[2, 3])
             self.depth_range = (float(z[1]), float(z[0]))
+            self._index_buf.write(elements)
         self._sort_key = _SortKey(key, self._version, exact)
         self.timings.sort_ms = (time.perf_counter() - t0) * 1e3
         self.timings.sorted_again = True
@@ -209,28 +219,34 @@ class SplatRenderer:
         bg = (0.0, 0.0, 0.0) if s.mode == "depth" else tuple(float(c) for c in s.background)
         fbo.clear(bg[0], bg[1], bg[2], 0.0)
         if self._count and self._drawn and self._vao is not None:
+            uniforms = {
+                "u_data": 0,
+                "u_per_row": GAUSSIANS_PER_ROW,
+                "u_intr": (camera.fx, camera.fy, camera.cx, camera.cy),
+                "u_size": (float(W), float(H)),
+                "u_lim": clamp_limits(camera.K, W, H),
+                "u_near": NEAR,
+                "u_dilation": DILATION,
+                "u_scale2": float(s.scale_modifier) ** 2,
+                "u_extent": RADIUS_SIGMAS,
+                "u_alpha_min": ALPHA_MIN,
+                "u_alpha_max": ALPHA_MAX,
+                "u_sigma_cut": 0.5 * RADIUS_SIGMAS**2,
+                "u_mode": 1 if s.mode == "depth" else 0,
+            }
             p = self.prog
-            p["u_data"].value = 0
-            p["u_per_row"].value = GAUSSIANS_PER_ROW
             p["u_w2c"].write(np.ascontiguousarray(camera.w2c.T, dtype=np.float32).tobytes())
-            p["u_intr"].value = (camera.fx, camera.fy, camera.cx, camera.cy)
-            p["u_size"].value = (float(W), float(H))
-            p["u_lim"].value = clamp_limits(camera.K, W, H)
-            p["u_near"].value = NEAR
-            p["u_dilation"].value = DILATION
-            p["u_scale2"].value = float(s.scale_modifier) ** 2
-            p["u_extent"].value = RADIUS_SIGMAS
-            p["u_alpha_min"].value = ALPHA_MIN
-            p["u_alpha_max"].value = ALPHA_MAX
-            p["u_sigma_cut"].value = 0.5 * RADIUS_SIGMAS**2
-            p["u_mode"].value = 1 if s.mode == "depth" else 0
+            for name, value in uniforms.items():
+                member = p.get(name, None)
+                if member is not None:  # a uniform the compiler removed is not an error
+                    member.value = value
             assert self._data_tex is not None
             self._data_tex.use(0)
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
             self.ctx.enable(moderngl.BLEND)
-            self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
             self.ctx.blend_equation = moderngl.FUNC_ADD
-            self._vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=self._drawn)
+            self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
+            self._vao.render(moderngl.TRIANGLES, vertices=6 * self._drawn)
             self.ctx.disable(moderngl.BLEND)
         if sync:
             self.ctx.finish()  # so that draw_ms measures the draw, not the next readback
@@ -275,16 +291,16 @@ class SplatRenderer:
         self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
         self.present_vao.render(moderngl.TRIANGLES, vertices=3)
 
+    @staticmethod
+    def _release_target(t: _Target) -> None:
+        for obj in (t.fbo, t.texture):
+            obj.release()
+
     def release(self) -> None:
         for obj in (self._vao, self._index_buf, self._data_tex, self.present_vao, self.prog, self.present_prog):
             if obj is not None:
                 obj.release()
         if self._target is not None:
-            self._target.fbo.release()
-            self._target.texture.release()
+            self._release_target(self._target)
             self._target = None
 
-
-def to_uint8(image: np.ndarray) -> np.ndarray:
-    """float image in [0,1] -> uint8 (rounded)."""
-    return np.clip(np.rint(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)

@@ -24,16 +24,27 @@ class SynthArgs:
     preset: Preset = "large-motion"
     """'small-motion' (N3DV-like) or 'large-motion' (VRU-like: fast, large motion)."""
     frames: int = 120
+    """Number of frames per camera."""
     cameras: int = 12
+    """Number of cameras (ring around the scene, alternating two heights)."""
     width: int = 256
+    """Frame width in pixels."""
     height: int = 192
+    """Frame height in pixels."""
     fps: float = 30.0
+    """Frame rate (object speeds are in m/s, so higher fps = smaller motion per frame)."""
     seed: int = 0
+    """Seed of textures, colors and motion phases."""
+    arc_deg: float = 360.0
+    """Spread the cameras over this arc (360 = all around; e.g. 90 = front-facing rig)."""
     codec: str = "libx264rgb"
     """Video codec: libx264rgb with crf 0 is lossless; libx264 gives ordinary YUV files."""
     crf: int = 0
+    """Constant rate factor of libx264 (0 = lossless with libx264rgb)."""
     pix_fmt: str | None = None
+    """Pixel format (default: rgb24 for libx264rgb, yuv444p for libx264)."""
     overwrite: bool = False
+    """Replace an existing output directory."""
     prepare: Path | None = None
     """Also run atgs-prepare into this directory."""
     keyframes: int = 6
@@ -43,7 +54,7 @@ class SynthArgs:
 def main(argv: list[str] | None = None) -> int:
     a = tyro.cli(SynthArgs, args=argv, description=__doc__)
     cfg = SynthConfig(frames=a.frames, cameras=a.cameras, width=a.width, height=a.height, seed=a.seed,
-                      preset=a.preset, fps=a.fps)
+                      preset=a.preset, fps=a.fps, arc_deg=a.arc_deg)
     try:
         t = time.perf_counter()
         synthesize(a.out, cfg, EncodeConfig(a.codec, a.crf, a.pix_fmt), overwrite=a.overwrite)

@@ -28,18 +28,26 @@ class ColmapOptions:
     min_track_length: int = 2
     max_reproj_error: float = 2.0  # px; triangulated points above this are dropped
     min_tri_angle: float = 1.5  # degrees
+    two_view_tracks: bool = True  # also keep points seen by only two cameras: ~2x points, same median error
+    sift_peak_threshold: float = 0.004  # COLMAP default 0.0067; lower finds more (weaker) features in small frames
     num_threads: int = -1
 
 
 @contextlib.contextmanager
-def _quiet_glog():
-    """COLMAP logs through glog to stderr; keep the console for our progress bars."""
+def _quiet_glog(where: Path | None = None):
+    """COLMAP logs through glog to stderr; keep the console for our progress bars. pycolmap
+    failures (check failures surface as ValueError/RuntimeError) become one-line DataErrors."""
     import pycolmap
 
     old = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2
     try:
         yield
+    except (ValueError, RuntimeError) as e:
+        if isinstance(e, DataError):
+            raise
+        first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+        raise DataError(f"{where}: pycolmap failed ({first})") from None
     finally:
         pycolmap.logging.minloglevel = old
 
@@ -59,6 +67,7 @@ def _extract_and_match(db: Path, image_root: Path, names: Sequence[str], opts: C
     ext.max_image_size = opts.max_image_size
     ext.num_threads = opts.num_threads
     ext.sift.max_num_features = opts.max_num_features
+    ext.sift.peak_threshold = opts.sift_peak_threshold
     pycolmap.extract_features(db, image_root, image_names=list(names), camera_mode=mode,
                               reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
     matching = pycolmap.FeatureMatchingOptions()
@@ -80,7 +89,7 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
     db_path = work_dir / "database.db"
     if db_path.exists():
         db_path.unlink()
-    with _quiet_glog():
+    with _quiet_glog(image_root):
         _extract_and_match(db_path, image_root, image_names, opts)
         db = pycolmap.Database.open(db_path)
         try:
@@ -99,6 +108,7 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
             rec.add_image_with_trivial_frame(img, rigid3d_of(cam))
         popts = pycolmap.IncrementalPipelineOptions()
         popts.triangulation.min_angle = opts.min_tri_angle
+        popts.triangulation.ignore_two_view_tracks = not opts.two_view_tracks
         popts.num_threads = opts.num_threads
         out_dir = work_dir / "model"
         out_dir.mkdir(exist_ok=True)
@@ -132,7 +142,7 @@ def sfm_static_cameras(image_root: Path, image_names: Sequence[str], camera_name
     db_path = work_dir / "database.db"
     if db_path.exists():
         db_path.unlink()
-    with _quiet_glog():
+    with _quiet_glog(image_root):
         _extract_and_match(db_path, image_root, image_names, opts, camera_model, shared_intrinsics)
         popts = pycolmap.IncrementalPipelineOptions()
         popts.num_threads = opts.num_threads

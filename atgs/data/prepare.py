@@ -17,9 +17,10 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
+import tyro
 from PIL import Image
 
 from atgs.cameras import Camera
@@ -35,7 +36,7 @@ from atgs.data.undistort import apply_undistort_map, build_undistort_map
 class PrepareConfig:
     """Turn a multi-view video dataset into a prepared ATGS scene."""
 
-    src: Path
+    src: Annotated[Path, tyro.conf.Positional]
     """Dataset directory (N3DV, COLMAP frame folders, EasyVolcap, plain videos or image folders)."""
     out: Path
     """Output directory; written atomically, never half-written."""
@@ -65,6 +66,8 @@ class PrepareConfig:
     """COLMAP camera model estimated by SfM when the source has no poses."""
     sfm_shared_intrinsics: bool = True
     """SfM: one intrinsic model for all cameras (identical cameras); else one per camera."""
+    fps: float | None = None
+    """Frame rate of the source (default: from the videos; 30 for image folders)."""
     name: str | None = None
     """Scene name (default: the output directory name)."""
     progress: bool = True
@@ -152,6 +155,8 @@ def prepare(cfg: PrepareConfig) -> Path:
         raise DataError(f"--downscale {cfg.downscale}: must be >= 1 (2 halves the resolution)")
     if cfg.keyframes < 1:
         raise DataError(f"--keyframes {cfg.keyframes}: must be >= 1")
+    if cfg.fps is not None and cfg.fps <= 0:
+        raise DataError(f"--fps {cfg.fps}: must be positive")
     src = open_source(Path(cfg.src), cfg.format)
     n_src = check_frame_counts(src, cfg.trim_mismatch)
     sel = parse_frame_range(cfg.frames, cfg.start, cfg.end, n_src)
@@ -193,7 +198,7 @@ def prepare(cfg: PrepareConfig) -> Path:
         pts, cols, pkf = _keyframe_points(tmp, out_cams, test, kfs, ext, work, colmap_opts, cfg.progress)
         timings["points"] = time.perf_counter() - t
         shutil.rmtree(work, ignore_errors=True)
-        fps = src.fps / sel.step
+        fps = (cfg.fps or src.fps) / sel.step
         source = {"path": str(Path(cfg.src).resolve()), "format": src.kind, "frames": [sel.start, sel.stop, sel.step],
                   "downscale": cfg.downscale, "source_frames": n_src, **{k: v for k, v in src.extra.items()
                                                                           if k not in ("missing",)}}
@@ -244,10 +249,27 @@ def _keyframe_points(root: Path, cams: list[Camera], test: list[str], kfs: list[
         C.append(rgb)
         Kf.append(np.full(len(xyz), j, np.int64))
     pts = np.concatenate(P) if P else np.zeros((0, 3))
+    cols = np.concatenate(C) if C else np.zeros((0, 3), np.uint8)
+    kf = np.concatenate(Kf) if Kf else np.zeros(0, np.int64)
+    keep = gross_outlier_mask(pts)
+    pts, cols, kf = pts[keep], cols[keep], kf[keep]
     if len(pts) == 0:
         print("warning: no keyframe points could be triangulated (textureless or too few overlapping views); "
               "the trainer will start from random points", file=sys.stderr)
-    return pts, np.concatenate(C) if C else np.zeros((0, 3), np.uint8), np.concatenate(Kf) if Kf else np.zeros(0, np.int64)
+    return pts, cols, kf
+
+
+def gross_outlier_mask(pts: np.ndarray, margin: float = 0.5) -> np.ndarray:
+    """Keep points inside the 1-99 percentile box grown by ``margin`` of its size on each side.
+
+    Sparse triangulation leaves a few points far along poorly conditioned rays (e.g. metres
+    below the ground); they would become floaters when used as anchors.
+    """
+    if len(pts) < 50:
+        return np.ones(len(pts), bool)
+    lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+    ext = (hi - lo) * margin
+    return np.all((pts >= lo - ext) & (pts <= hi + ext), axis=1)
 
 
 def load_source_summary(path: Path) -> dict:

@@ -21,7 +21,7 @@ from atgs.data.camera_formats import cameras_to_poses_bounds
 from atgs.data.synth_scene import SynthConfig, SynthScene, sample_surface
 
 SIDECAR = "synth.json"
-SYNTH_VERSION = 1  # bump when the scene content changes, to invalidate caches
+SYNTH_VERSION = 2  # bump when the scene content changes, to invalidate caches
 
 
 @dataclass(frozen=True)

@@ -186,12 +186,15 @@ def make_texture(rng: np.random.Generator, size: tuple[int, int], base: np.ndarr
     from PIL import ImageDraw
 
     h, w = size
-    img = np.zeros((h, w, 3), np.float32)
+    # smooth noise lives well below full resolution: build it at 1/4 size, upsample once
+    hs, ws = max(4, h // 4), max(4, w // 4)
+    img = np.zeros((hs, ws, 3), np.float32)
     for cells, wt in ((3, 0.45), (10, 0.3), (32, 0.25), (96, 0.2)):
         small = rng.random((max(2, cells * h // max(h, w)), max(2, cells * w // max(h, w)), 3))
-        up = Image.fromarray((small * 255).astype(np.uint8)).resize((w, h), Image.BICUBIC)
+        up = Image.fromarray((small * 255).astype(np.uint8)).resize((ws, hs), Image.BICUBIC)
         img += wt * (np.asarray(up, np.float32) / 255 - 0.5)
-    out = Image.fromarray((np.clip(base[None, None, :] + contrast * img, 0.02, 0.98) * 255).astype(np.uint8))
+    base_img = (np.clip(base[None, None, :] + contrast * img, 0.02, 0.98) * 255).astype(np.uint8)
+    out = Image.fromarray(base_img).resize((w, h), Image.BICUBIC)
     draw = ImageDraw.Draw(out)
     n = int(shapes_per_mpx * h * w / 1e6)
     for _ in range(n):
@@ -209,10 +212,10 @@ def make_texture(rng: np.random.Generator, size: tuple[int, int], base: np.ndarr
             a = rng.uniform(0, np.pi)
             draw.line([cx - r * np.cos(a), cy - r * np.sin(a), cx + r * np.cos(a), cy + r * np.sin(a)],
                       fill=col, width=max(1, int(r * 0.15)))
-    arr = np.asarray(out, np.float32)
-    fine = rng.normal(0, 10, (h // 4, w // 4, 3)).astype(np.float32)
-    fine = np.asarray(Image.fromarray(np.clip(fine + 128, 0, 255).astype(np.uint8)).resize((w, h), Image.BILINEAR), np.float32) - 128
-    return np.clip(arr + fine, 0, 255).astype(np.uint8)
+    fine = np.clip(rng.normal(128, 10, (hs, ws, 3)), 0, 255).astype(np.uint8)
+    fine = Image.fromarray(fine).resize((w, h), Image.BILINEAR)
+    arr = np.asarray(out, np.int16) + np.asarray(fine, np.int16) - 128
+    return np.clip(arr, 0, 255).astype(np.uint8)
 
 
 # --- the scene --------------------------------------------------------------------------------

@@ -103,12 +103,19 @@ class ATGSModel:
     @classmethod
     def from_points(cls, cfg: ModelConfig, points: torch.Tensor, point_keyframes: torch.Tensor,
                     scene_keyframes: list[int], num_frames: int, fps: float, cameras: list[Camera],
-                    train_cameras: list[Camera] | None = None, seed: int = 0) -> "ATGSModel":
+                    train_cameras: list[Camera] | None = None, seed: int = 0,
+                    bounds: torch.Tensor | None = None) -> "ATGSModel":
         K = cfg.num_keyframes if cfg.num_keyframes > 0 else len(scene_keyframes)
         tl = Timeline(num_frames, K, cfg.window, num_segments_for(cfg, num_frames))
         keep, kf = select_keyframe_points(scene_keyframes, point_keyframes.long(), tl)
         gen = torch.Generator().manual_seed(seed)
-        anchors = init_anchors(points[keep], kf[keep], cfg.voxel_size, cfg.max_anchors_per_keyframe, gen)
+        points, kf = points[keep].float(), kf[keep]
+        if cfg.random_anchors > 0:
+            box = bounds.float() if bounds is not None else torch.stack([points.min(0).values, points.max(0).values])
+            extra = box[0] + torch.rand(cfg.random_anchors, 3, generator=gen) * (box[1] - box[0])
+            points = torch.cat([points, extra])
+            kf = torch.cat([kf, torch.zeros(cfg.random_anchors, dtype=torch.int64)])
+        anchors = init_anchors(points, kf, cfg.voxel_size, cfg.max_anchors_per_keyframe, gen)
         lo, hi = anchors.mu.min(0).values, anchors.mu.max(0).values
         size = (hi - lo).clamp_min(1e-3)
         pad = cfg.bbox_padding * size

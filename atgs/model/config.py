@@ -49,6 +49,9 @@ class ModelConfig:
     # Anchors.
     voxel_size: float = 0.0  # anchor voxel downsampling; 0 = automatic from point spacing
     max_anchors_per_keyframe: int = 0  # 0 = no cap; random subsample above it
+    # Extra static anchors sampled uniformly in the scene bounds: sparse CPU point clouds can miss
+    # whole surfaces (floors, moving objects); pruning removes the ones that stay transparent.
+    random_anchors: int = 0
     opacity_threshold: float = 0.0  # Gaussians below are dropped (Scaffold-GS); code used 0
     frustum_cull: bool = True  # decode only anchors that project near the image
 
@@ -123,6 +126,7 @@ def _cpu_model(**kw) -> ModelConfig:
                             growth=1.5, max_time_resolution=16, mlp_hidden=64),
         hidden_opacity=64, hidden_cov=64, hidden_color=64, hidden_offset=128,
         opacity_threshold=0.005,
+        random_anchors=3000,
     )
     base.update(kw)
     return ModelConfig(**base)
@@ -177,7 +181,8 @@ def _preset(name: str) -> tuple[ModelConfig, TrainConfig]:
                            hash=HashGridConfig(levels=2, features_per_level=2, log2_table_size=10,
                                                base_resolution=4, growth=2.0, max_time_resolution=4,
                                                mlp_hidden=16),
-                           hidden_opacity=16, hidden_cov=16, hidden_color=16, hidden_offset=16),
+                           hidden_opacity=16, hidden_cov=16, hidden_color=16, hidden_offset=16,
+                           random_anchors=0),
                 _cpu_train(40, eval_every=0, save_every=0, threads=1))
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESET_NAMES)}")
 

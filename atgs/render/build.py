@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib.util
 import os
 import platform
 import sys
@@ -57,9 +58,15 @@ def load_extension() -> ModuleType:
 
     name = f"atgs_raster_{build_key()}"
     build_dir = cache_root() / name
+    built = build_dir / f"{name}.so"
+    if built.exists():  # the name is a hash of sources and flags: import without re-checking
+        spec = importlib.util.spec_from_file_location(name, built)
+        if spec is not None and spec.loader is not None:
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            return module
     build_dir.mkdir(parents=True, exist_ok=True)
-    if not (build_dir / f"{name}.so").exists():
-        print(f"compiling the ATGS CPU rasterizer (first use, ~1 min), cached in {build_dir}", flush=True)
+    print(f"compiling the ATGS CPU rasterizer (first use, ~1 min), cached in {build_dir}", flush=True)
     return load(
         name=name,
         sources=[str(CSRC / s) for s in SOURCES],

@@ -11,7 +11,7 @@ from atgs.render.constants import (
 from atgs.render.projection import Projected
 from atgs.render.types import RasterOutput
 
-__all__ = ["cpu_backend_error", "project_cpu", "rasterize_cpu", "rasterize_2d_cpu"]
+__all__ = ["cpu_backend_error", "pair_counts", "project_cpu", "rasterize_cpu", "rasterize_2d_cpu"]
 
 TILE = 16
 PROJECT_CONSTS = [NEAR, DILATION, CLAMP_MARGIN, RADIUS_SIGMAS, QUAT_EPS, float(MAX_RADIUS)]
@@ -60,49 +60,45 @@ def project_cpu(
 
 
 class _Rasterize2D(torch.autograd.Function):
-    """(means2d, conics, opacities, feats, background) -> (out (H,W,C), alpha (H,W))."""
+    """(means2d, conics, opacities, colors, depths, background) -> (image, alpha, depth)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, background, radii, width, height):  # type: ignore[override]
-        ext = load_extension()
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):  # type: ignore[override]
         threads = torch.get_num_threads()
-        depth_key = feats[:, -1].contiguous()  # sort key: view depth (last feature channel)
-        out, t_final, last, offsets, ids = ext.forward(
-            means2d, conics, opacities, feats, depth_key, radii, background,
+        image, alpha, depth, t_final, last, offsets, ids, _stats = load_extension().forward(
+            means2d, conics, opacities, colors, depths, radii, background,
             width, height, TILE, threads, ALPHA_MAX, ALPHA_MIN, T_MIN, SIGMA_CUTOFF,
         )  # fmt: skip
-        ctx.save_for_backward(means2d, conics, opacities, feats, radii, background, t_final, last, offsets, ids)
+        ctx.save_for_backward(means2d, conics, opacities, colors, depths, radii, background, t_final, last, offsets, ids)
         ctx.size = (width, height, threads)
-        ctx.mark_non_differentiable(t_final)
-        return out, 1 - t_final
+        return image, alpha, depth
 
     @staticmethod
-    def backward(ctx, grad_out, grad_alpha):  # type: ignore[override]
-        means2d, conics, opacities, feats, radii, background, t_final, last, offsets, ids = ctx.saved_tensors
+    def backward(ctx, grad_image, grad_alpha, grad_depth):  # type: ignore[override]
+        saved = ctx.saved_tensors
         width, height, threads = ctx.size
-        ext = load_extension()
-        g_m2, g_con, g_op, g_ft, g_bg = ext.backward(
-            means2d, conics, opacities, feats, radii, background, t_final, last, offsets, ids,
-            grad_out.contiguous(), grad_alpha.contiguous(),
+        grads = load_extension().backward(
+            *saved, grad_image, grad_alpha, grad_depth,
             width, height, TILE, threads, ALPHA_MAX, ALPHA_MIN, T_MIN, SIGMA_CUTOFF,
         )  # fmt: skip
-        return g_m2, g_con, g_op, g_ft, g_bg, None, None, None
+        return (*grads, None, None, None)
 
 
 def rasterize_2d_cpu(
     means2d: torch.Tensor,
     conics: torch.Tensor,
     opacities: torch.Tensor,
-    feats: torch.Tensor,
+    colors: torch.Tensor,
+    depths: torch.Tensor,
     background: torch.Tensor,
     radii: torch.Tensor,
     width: int,
     height: int,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite projected Gaussians; ``feats`` (N,C<=4) must end with the view depth (sort key)."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Composite projected Gaussians front to back (sorted by ``depths``): image, alpha, depth."""
     return _Rasterize2D.apply(
-        means2d.contiguous(), conics.contiguous(), opacities.contiguous(), feats.contiguous(),
-        background.contiguous(), radii.to(torch.int32).contiguous(), width, height,
+        means2d.contiguous(), conics.contiguous(), opacities.contiguous(), colors.contiguous(),
+        depths.contiguous(), background.contiguous(), radii.to(torch.int32).contiguous(), width, height,
     )  # fmt: skip
 
 
@@ -127,7 +123,29 @@ def rasterize_cpu(
     f32 = [t.float() for t in (means, quats, scales, opacities, colors, viewmat, K, background)]
     means, quats, scales, opacities, colors, viewmat, K, background = f32
     proj = project_cpu(means, quats, scales, viewmat, K, width, height)
-    feats = torch.cat([colors, proj.depths[:, None]], dim=1)
-    bg4 = torch.cat([background, background.new_zeros(1)])
-    out, alpha = rasterize_2d_cpu(proj.means2d, proj.conics, opacities, feats, bg4, proj.radii, width, height)
-    return RasterOutput(out[..., :3], alpha, out[..., 3], proj.means2d, proj.radii, backend="cpu")
+    image, alpha, depth = rasterize_2d_cpu(
+        proj.means2d, proj.conics, opacities, colors, proj.depths, background, proj.radii, width, height
+    )
+    return RasterOutput(image, alpha, depth, proj.means2d, proj.radii, backend="cpu")
+
+
+@torch.no_grad()
+def pair_counts(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+) -> dict[str, int]:
+    """Work statistics of one render (for benchmarks): pixel-Gaussian pairs actually composited
+    and (tile, Gaussian) list entries."""
+    proj = project_cpu(means, quats, scales, viewmat, K, width, height)
+    stats = load_extension().forward(
+        proj.means2d.contiguous(), proj.conics.contiguous(), opacities.float().contiguous(),
+        torch.zeros_like(means).float(), proj.depths.contiguous(), proj.radii, torch.zeros(3), width, height,
+        TILE, torch.get_num_threads(), ALPHA_MAX, ALPHA_MIN, T_MIN, SIGMA_CUTOFF,
+    )[7]  # fmt: skip
+    return {"blended_pairs": int(stats[0]), "tile_pairs": int(stats[1]), "visible": int((proj.radii > 0).sum())}

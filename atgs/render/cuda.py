@@ -56,14 +56,19 @@ def rasterize_cuda(
         viewmat.float()[None], K.float()[None], width, height,
         near_plane=NEAR, backgrounds=bg[None], packed=False, absgrad=False,
     )  # fmt: skip
-    means2d = meta["means2d"]  # (1, N, 2), an autograd node in gsplat
+    base = meta["means2d"]  # (1, N, 2), an autograd node inside gsplat
     radii = meta["radii"].reshape(n, -1)
     radii = radii.max(dim=-1).values if radii.shape[-1] > 1 else radii[:, 0]
+    means2d = base[0]
+    if base.requires_grad:
+        # gsplat consumes its own (1, N, 2) tensor, so a gradient never reaches our (N, 2) view;
+        # copy it over when it passes, so out.means2d.grad works as on the CPU backends.
+        base.register_hook(lambda g: setattr(means2d, "grad", g[0].detach()))
     return RasterOutput(
         image=render[0, :, :, :3],
         alpha=alpha[0, :, :, 0],
         depth=render[0, :, :, 3],
-        means2d=means2d[0] if means2d.requires_grad is False else means2d.select(0, 0),
+        means2d=means2d,
         radii=radii.to(torch.int32),
         backend="cuda",
     )

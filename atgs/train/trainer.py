@@ -49,6 +49,11 @@ class SceneData(Protocol):
     def image_uint8(self, cam_index: int, frame: int) -> np.ndarray: ...
 
 
+def _bounds(scene: SceneData) -> torch.Tensor | None:
+    b = getattr(scene, "bounds", None)
+    return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32)).reshape(2, 3)
+
+
 class NonFiniteError(RuntimeError):
     pass
 
@@ -77,7 +82,7 @@ class Trainer:
                 model_cfg, torch.from_numpy(np.asarray(scene.points, dtype=np.float32)),
                 torch.from_numpy(np.asarray(scene.point_keyframes, dtype=np.int64)), list(scene.keyframes),
                 scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in self.train_idx],
-                seed=cfg.seed)
+                seed=cfg.seed, bounds=_bounds(scene))
         self.model = model
         self.model.test_camera_names = list(scene.test_cameras)
         self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
@@ -276,6 +281,7 @@ class Trainer:
             "num_frames": m.num_frames, "fps": m.fps,
             "time_range": [0.0, (m.num_frames - 1) / m.fps if m.fps > 0 else 0.0],
             "keyframes": m.timeline.keyframe_frames(), "step": self.step, "model": m.state_dict(),
+            "data_dir": str(getattr(self.scene, "root", "") or ""),
             "trainer": {
                 "sparse_opt": self.sparse_opt.state_dict(), "dense_opt": self.dense_opt.state_dict(),
                 "densify": self.stats.state_dict(), "sampler": self.sampler.state_dict(),

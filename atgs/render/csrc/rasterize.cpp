@@ -30,6 +30,7 @@ namespace {
 constexpr int kChannels = 4;  // RGB + view depth
 constexpr int kTile = 16;  // tile edge in pixels; rows are processed as whole SIMD vectors
 constexpr int kTilePix = kTile * kTile;
+constexpr int64_t kParallelProjectMin = 65536;  // smaller inputs: a fork-join costs more than it saves
 constexpr int kGradStride = 6 + kChannels;  // mean(2) conic(3) opacity(1) features(4)
 
 // 8-lane vectors (GCC/Clang vector extensions): AVX2 when compiled with -mavx2, two SSE
@@ -162,34 +163,44 @@ void check_input(const torch::Tensor& t, const char* name, torch::ScalarType typ
 
 }  // namespace
 
-// Returns out (H,W,C), T_final (H,W), last (H,W) int32 (per-pixel count of list entries used),
-// tile offsets (n_tiles+1) int64, tile ids (pairs) int32.
+// Returns image (H,W,3), alpha (H,W), depth (H,W), T_final (H,W), last (H,W) int32 (per-pixel
+// count of list entries used), tile offsets (n_tiles+1) int64, tile ids (pairs) int32, stats
+// int64 (blended pixel-Gaussian pairs, tile-Gaussian pairs). Depth is the 4th blended channel
+// (background 0) and also the sort key. All outputs are written here, serially per tile, so no
+// extra torch ops (each a fork-join on a busy machine) are needed around the kernel.
 std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
-                                   torch::Tensor feats, torch::Tensor depths, torch::Tensor radii,
+                                   torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
                                    torch::Tensor background, int64_t width, int64_t height,
                                    int64_t tile, int64_t threads, double alpha_max, double alpha_min,
                                    double t_min, double sigma_cutoff) {
   for (auto& [t, name] : {std::pair{means2d, "means2d"}, {conics, "conics"}, {opacities, "opacities"},
-                          {feats, "feats"}, {depths, "depths"}, {background, "background"}})
+                          {colors, "colors"}, {depths, "depths"}, {background, "background"}})
     check_input(t, name, torch::kFloat32);
   check_input(radii, "radii", torch::kInt32);
+  TORCH_CHECK(colors.size(1) == 3 && background.numel() == 3, "expected RGB colors and background");
   const int64_t n = means2d.size(0);
-  const int C = int(feats.size(1));
-  const Params p = make_params(width, height, tile, C, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
+  const Params p = make_params(width, height, tile, kChannels, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
   const float* m2 = means2d.data_ptr<float>();
   const float* con = conics.data_ptr<float>();
   const float* op = opacities.data_ptr<float>();
-  const float* ft = feats.data_ptr<float>();
-  const float* bg = background.data_ptr<float>();
-  Binning bins = bin_gaussians(m2, con, op, depths.data_ptr<float>(), radii.data_ptr<int32_t>(), n, p);
+  const float* col = colors.data_ptr<float>();
+  const float* dep = depths.data_ptr<float>();
+  const float bg[kChannels] = {background.data_ptr<float>()[0], background.data_ptr<float>()[1],
+                               background.data_ptr<float>()[2], 0.f};
+  Binning bins = bin_gaussians(m2, con, op, dep, radii.data_ptr<int32_t>(), n, p);
 
-  auto out = torch::empty({height, width, C}, means2d.options());
+  auto image = torch::empty({height, width, 3}, means2d.options());
+  auto alpha_out = torch::empty({height, width}, means2d.options());
+  auto depth_out = torch::empty({height, width}, means2d.options());
   auto t_final = torch::empty({height, width}, means2d.options());
   auto last = torch::empty({height, width}, radii.options());
-  float* out_p = out.data_ptr<float>();
+  float* img_p = image.data_ptr<float>();
+  float* al_p = alpha_out.data_ptr<float>();
+  float* dp_p = depth_out.data_ptr<float>();
   float* tf_p = t_final.data_ptr<float>();
   int32_t* last_p = last.data_ptr<int32_t>();
   const int tx = p.tiles_x(), n_tiles = p.tiles_x() * p.tiles_y();
+  std::vector<int64_t> tile_blended(n_tiles, 0);
 
   const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
   const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
@@ -208,12 +219,13 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
       for (int ch = 0; ch < kChannels; ++ch) acc[ch][r] = splat(0.f);
     }
     int n_done = 0;
+    int64_t blended = 0;  // (Gaussian, pixel) pairs composited in this tile, for benchmarks
     const int n_pix = pw * ph;
     for (int64_t k = begin; k < end && n_done < n_pix; ++k) {
       const int32_t g = bins.ids[k];
       const Box& b = bins.boxes[g];
       const float ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2], o = op[g];
-      const float f[kChannels] = {ft[4 * g], ft[4 * g + 1], ft[4 * g + 2], ft[4 * g + 3]};
+      const float f[kChannels] = {col[3 * g], col[3 * g + 1], col[3 * g + 2], dep[g]};
       const int x0 = std::max(b.x0, px0) - px0, x1 = std::min(b.x1, px0 + pw - 1) - px0;
       const int y0 = std::max(b.y0, py0) - py0, y1 = std::min(b.y1, py0 + ph - 1) - py0;
       const int32_t idx = int32_t(k - begin);
@@ -237,6 +249,7 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
             for (int l = 0; l < 8; ++l) n_done += halt[l] ? 1 : 0;
           }
           const v8f w = select(use, alpha * T[r], splat(0.f));
+          for (int l = 0; l < 8; ++l) blended += use[l] ? 1 : 0;
           for (int ch = 0; ch < kChannels; ++ch) acc[ch][r] += f[ch] * w;
           T[r] = select(use, next_T, T[r]);
         }
@@ -246,45 +259,65 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
       for (int x = 0; x < pw; ++x) {
         const int r = 2 * y + x / 8, l = x % 8;
         const int64_t pix = int64_t(py0 + y) * p.width + (px0 + x);
-        for (int ch = 0; ch < kChannels; ++ch) out_p[pix * kChannels + ch] = acc[ch][r][l] + T[r][l] * bg[ch];
+        for (int ch = 0; ch < 3; ++ch) img_p[pix * 3 + ch] = acc[ch][r][l] + T[r][l] * bg[ch];
+        dp_p[pix] = acc[3][r][l];
+        al_p[pix] = 1.f - T[r][l];
         tf_p[pix] = T[r][l];
         last_p[pix] = stop[r][l];
       }
+    tile_blended[t] = blended;
   }
-  auto offsets = torch::from_blob(bins.offsets.data(), {int64_t(bins.offsets.size())}, torch::kInt64).clone();
-  auto ids = torch::from_blob(bins.ids.data(), {int64_t(bins.ids.size())}, torch::kInt32).clone();
-  return {out, t_final, last, offsets, ids};
+  auto offsets = torch::empty({int64_t(bins.offsets.size())}, torch::kInt64);
+  auto ids = torch::empty({int64_t(bins.ids.size())}, torch::kInt32);
+  std::copy(bins.offsets.begin(), bins.offsets.end(), offsets.data_ptr<int64_t>());
+  std::copy(bins.ids.begin(), bins.ids.end(), ids.data_ptr<int32_t>());
+  const int64_t total_blended = std::accumulate(tile_blended.begin(), tile_blended.end(), int64_t(0));
+  auto stats = torch::tensor({total_blended, int64_t(bins.ids.size())}, torch::kInt64);
+  return {image, alpha_out, depth_out, t_final, last, offsets, ids, stats};
 }
 
-// Gradients w.r.t. means2d (N,2), conics (N,3), opacities (N,), feats (N,C), background (C,).
+// Gradients w.r.t. means2d (N,2), conics (N,3), opacities (N,), colors (N,3), depths (N,),
+// background (3,).
 std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
-                                    torch::Tensor feats, torch::Tensor radii, torch::Tensor background,
-                                    torch::Tensor t_final, torch::Tensor last, torch::Tensor offsets,
-                                    torch::Tensor ids, torch::Tensor grad_out, torch::Tensor grad_alpha,
+                                    torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
+                                    torch::Tensor background, torch::Tensor t_final, torch::Tensor last,
+                                    torch::Tensor offsets, torch::Tensor ids, torch::Tensor grad_image,
+                                    torch::Tensor grad_alpha, torch::Tensor grad_depth,
                                     int64_t width, int64_t height, int64_t tile, int64_t threads,
                                     double alpha_max, double alpha_min, double t_min, double sigma_cutoff) {
   for (auto& [t, name] : {std::pair{means2d, "means2d"}, {conics, "conics"}, {opacities, "opacities"},
-                          {feats, "feats"}, {background, "background"}, {t_final, "t_final"},
-                          {grad_out, "grad_out"}, {grad_alpha, "grad_alpha"}})
+                          {colors, "colors"}, {depths, "depths"}, {background, "background"},
+                          {t_final, "t_final"}})
     check_input(t, name, torch::kFloat32);
+  // Upstream gradients may be strided (e.g. expanded by sum()): read them through their strides
+  // instead of paying for a contiguous copy.
+  for (auto& [t, name] : {std::pair{grad_image, "grad_image"}, {grad_alpha, "grad_alpha"}, {grad_depth, "grad_depth"}}) {
+    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == torch::kFloat32, name, " must be a CPU float32 tensor");
+    TORCH_CHECK(t.size(0) == height && t.size(1) == width, name, " has the wrong shape");
+  }
   check_input(radii, "radii", torch::kInt32);
   check_input(last, "last", torch::kInt32);
   check_input(offsets, "offsets", torch::kInt64);
   check_input(ids, "ids", torch::kInt32);
   const int64_t n = means2d.size(0);
-  const int C = int(feats.size(1));
-  const Params p = make_params(width, height, tile, C, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
+  const Params p = make_params(width, height, tile, kChannels, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
   const float* m2 = means2d.data_ptr<float>();
   const float* con = conics.data_ptr<float>();
   const float* op = opacities.data_ptr<float>();
-  const float* ft = feats.data_ptr<float>();
-  const float* bg = background.data_ptr<float>();
+  const float* col = colors.data_ptr<float>();
+  const float* dep = depths.data_ptr<float>();
+  const float bg[kChannels] = {background.data_ptr<float>()[0], background.data_ptr<float>()[1],
+                               background.data_ptr<float>()[2], 0.f};
   const float* tf_p = t_final.data_ptr<float>();
   const int32_t* last_p = last.data_ptr<int32_t>();
   const int64_t* off = offsets.data_ptr<int64_t>();
   const int32_t* id_p = ids.data_ptr<int32_t>();
-  const float* go = grad_out.data_ptr<float>();
+  const float* gi = grad_image.data_ptr<float>();
   const float* ga = grad_alpha.data_ptr<float>();
+  const float* gd = grad_depth.data_ptr<float>();
+  const int64_t si_y = grad_image.stride(0), si_x = grad_image.stride(1), si_c = grad_image.stride(2);
+  const int64_t sa_y = grad_alpha.stride(0), sa_x = grad_alpha.stride(1);
+  const int64_t sd_y = grad_depth.stride(0), sd_x = grad_depth.stride(1);
   const int64_t n_pairs = ids.size(0);
   const int tx = p.tiles_x(), n_tiles = p.tiles_x() * p.tiles_y();
   TORCH_CHECK(offsets.size(0) == n_tiles + 1, "offsets do not match the image size");
@@ -295,7 +328,7 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
     boxes[i] = radii.data_ptr<int32_t>()[i] > 0 ? gaussian_box(m2 + 2 * i, con + 3 * i, op[i], p)
                                                  : Box{1, 0, 1, 0};
   std::vector<float> pair_grads(n_pairs * kGradStride, 0.f);
-  std::vector<double> tile_bg(int64_t(n_tiles) * C, 0.0);
+  std::vector<double> tile_bg(int64_t(n_tiles) * kChannels, 0.0);
 
   const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
   const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
@@ -321,9 +354,10 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
         T[r][l] = Tf[r][l] = tf;
         stop[r][l] = last_p[pix];
         // d loss / d T_final = bg . g - g_alpha  (alpha_out = 1 - T_final)
-        float s = -ga[pix];
+        const int64_t py = py0 + y, px = px0 + x;
+        float s = -ga[py * sa_y + px * sa_x];
         for (int ch = 0; ch < kChannels; ++ch) {
-          const float gch = go[pix * kChannels + ch];
+          const float gch = ch < 3 ? gi[py * si_y + px * si_x + ch * si_c] : gd[py * sd_y + px * sd_x];
           G[ch][r][l] = gch;
           s += bg[ch] * gch;
           tile_bg[int64_t(t) * kChannels + ch] += double(tf) * gch;
@@ -334,7 +368,7 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
       const int32_t g = id_p[k];
       const Box& b = boxes[g];
       const float ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2], o = op[g];
-      const float f[kChannels] = {ft[4 * g], ft[4 * g + 1], ft[4 * g + 2], ft[4 * g + 3]};
+      const float f[kChannels] = {col[3 * g], col[3 * g + 1], col[3 * g + 2], dep[g]};
       const int x0 = std::max(b.x0, px0) - px0, x1 = std::min(b.x1, px0 + pw - 1) - px0;
       const int y0 = std::max(b.y0, py0) - py0, y1 = std::min(b.y1, py0 + ph - 1) - py0;
       const int32_t idx = int32_t(k - begin);
@@ -382,27 +416,35 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
     }
   }
 
-  auto g_m2 = torch::zeros({n, 2}, means2d.options());
-  auto g_con = torch::zeros({n, 3}, means2d.options());
-  auto g_op = torch::zeros({n}, means2d.options());
-  auto g_ft = torch::zeros({n, C}, means2d.options());
-  auto g_bg = torch::zeros({C}, means2d.options());
+  // Outputs are zero-filled here (serially) rather than with torch::zeros: see forward().
+  auto g_m2 = torch::empty({n, 2}, means2d.options());
+  auto g_con = torch::empty({n, 3}, means2d.options());
+  auto g_op = torch::empty({n}, means2d.options());
+  auto g_col = torch::empty({n, 3}, means2d.options());
+  auto g_dep = torch::empty({n}, means2d.options());
+  auto g_bg = torch::empty({3}, means2d.options());
   float *pm = g_m2.data_ptr<float>(), *pc = g_con.data_ptr<float>(), *po = g_op.data_ptr<float>(),
-        *pf = g_ft.data_ptr<float>();
+        *pf = g_col.data_ptr<float>(), *pd = g_dep.data_ptr<float>();
+  std::fill(pm, pm + 2 * n, 0.f);
+  std::fill(pc, pc + 3 * n, 0.f);
+  std::fill(po, po + n, 0.f);
+  std::fill(pf, pf + 3 * n, 0.f);
+  std::fill(pd, pd + n, 0.f);
   for (int64_t k = 0; k < n_pairs; ++k) {  // serial reduction: deterministic
     const int64_t g = id_p[k];
     const float* r = pair_grads.data() + k * kGradStride;
     pm[2 * g] += r[0]; pm[2 * g + 1] += r[1];
     pc[3 * g] += r[2]; pc[3 * g + 1] += r[3]; pc[3 * g + 2] += r[4];
     po[g] += r[5];
-    for (int ch = 0; ch < C; ++ch) pf[g * C + ch] += r[6 + ch];
+    pf[3 * g] += r[6]; pf[3 * g + 1] += r[7]; pf[3 * g + 2] += r[8];
+    pd[g] += r[9];
   }
-  for (int ch = 0; ch < C; ++ch) {
+  for (int ch = 0; ch < 3; ++ch) {
     double s = 0.0;
-    for (int t = 0; t < n_tiles; ++t) s += tile_bg[int64_t(t) * C + ch];
+    for (int t = 0; t < n_tiles; ++t) s += tile_bg[int64_t(t) * kChannels + ch];
     g_bg.data_ptr<float>()[ch] = float(s);
   }
-  return {g_m2, g_con, g_op, g_ft, g_bg};
+  return {g_m2, g_con, g_op, g_col, g_dep, g_bg};
 }
 
 namespace {
@@ -457,7 +499,7 @@ std::vector<torch::Tensor> project_fwd(torch::Tensor means, torch::Tensor quats,
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   float *o_m2 = m2.data_ptr<float>(), *o_con = con.data_ptr<float>(), *o_dep = dep.data_ptr<float>();
   int32_t* o_rad = rad.data_ptr<int32_t>();
-#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > 4096)
+#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > kParallelProjectMin)
   for (int64_t i = 0; i < n; ++i)
     atgs::project_forward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, o_m2 + 2 * i, o_con + 3 * i, o_dep + i,
                           o_rad + i);
@@ -481,7 +523,7 @@ std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats,
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   const float *vm = v_means2d.data_ptr<float>(), *vc = v_conics.data_ptr<float>(), *vd = v_depths.data_ptr<float>();
   float *gm = g_means.data_ptr<float>(), *gq = g_quats.data_ptr<float>(), *gs = g_scales.data_ptr<float>();
-#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > 4096)
+#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > kParallelProjectMin)
   for (int64_t i = 0; i < n; ++i)
     atgs::project_backward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, vm + 2 * i, vc + 3 * i, vd[i],
                            gm + 3 * i, gq + 4 * i, gs + 3 * i);

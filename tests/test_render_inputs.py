@@ -1,0 +1,73 @@
+"""Bad rasterize() input raises one clear error that names the argument."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from atgs.render import RasterInputError, rasterize
+
+
+def good() -> dict:
+    n = 3
+    return dict(
+        means=torch.tensor([[0.0, 0.0, 2.0]] * n), quats=torch.tensor([[1.0, 0, 0, 0]] * n),
+        scales=torch.full((n, 3), 0.1), opacities=torch.full((n,), 0.5), colors=torch.rand(n, 3),
+        viewmat=torch.eye(4), K=torch.tensor([[10.0, 0, 8], [0, 10, 8], [0, 0, 1]]), width=16, height=16,
+    )  # fmt: skip
+
+
+CASES = [
+    ("means", torch.zeros(3, 2), "means"),
+    ("quats", torch.zeros(3, 3), "quats"),
+    ("scales", torch.zeros(2, 3), "scales"),
+    ("opacities", torch.full((3, 1), 0.5), "opacities"),
+    ("colors", torch.zeros(3, 4), "colors"),
+    ("viewmat", torch.eye(3), "viewmat"),
+    ("K", torch.eye(4), "K"),
+    ("width", 0, "width"),
+    ("height", 2.5, "height"),
+    ("means", torch.zeros(3, 3, dtype=torch.int64), "means"),
+    ("colors", torch.zeros(3, 3, dtype=torch.float64), "colors"),
+    ("opacities", torch.tensor([0.5, float("nan"), 0.5]), "opacities"),
+    ("means", torch.tensor([[0.0, 0.0, float("inf")]] * 3), "means"),
+    ("viewmat", torch.full((4, 4), float("nan")), "viewmat"),
+    ("opacities", torch.tensor([0.5, 1.5, 0.5]), "opacities"),
+    ("scales", torch.full((3, 3), -0.1), "scales"),
+    ("K", torch.tensor([[0.0, 0, 8], [0, 10, 8], [0, 0, 1]]), "K"),
+    ("background", torch.zeros(4), "background"),
+    ("backend", "vulkan", "backend"),
+    ("colors", torch.zeros(3, 3, device="meta"), "colors"),
+    ("quats", [[1, 0, 0, 0]] * 3, "quats"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "named"), CASES, ids=[f"{c[0]}-{i}" for i, c in enumerate(CASES)])
+def test_bad_input_names_the_argument(field: str, value: object, named: str) -> None:
+    args = good()
+    args[field] = value
+    backend = args.pop("backend", "torch")
+    with pytest.raises(RasterInputError, match=f"argument '{named}'"):
+        rasterize(**args, backend=backend)
+
+
+def test_numpy_camera_is_accepted() -> None:
+    args = good()
+    args["viewmat"], args["K"] = np.eye(4), args["K"].numpy().astype(np.float64)
+    out = rasterize(**args, background=np.array([0.1, 0.2, 0.3]), backend="torch")
+    assert out.image.dtype == torch.float32
+
+
+def test_cpu_backend_refuses_camera_gradients() -> None:
+    args = good()
+    args["viewmat"] = torch.eye(4, requires_grad=True)
+    with pytest.raises(ValueError, match="camera"):
+        rasterize(**args, backend="cpu")
+
+
+def test_torch_backend_differentiates_the_camera() -> None:
+    args = good()
+    args["viewmat"] = torch.eye(4, requires_grad=True)
+    rasterize(**args, backend="torch").image.sum().backward()
+    assert args["viewmat"].grad is not None and args["viewmat"].grad.abs().sum() > 0
