@@ -137,15 +137,16 @@ def main() -> None:
         print(json.dumps(run_one(spec, Path(sys.argv[3]), Path(sys.argv[4]))))
         return
     args = tyro.cli(BenchArgs)
-    results: dict = {"machine": {"cpus": os.cpu_count()}, "started": time.strftime("%Y-%m-%d %H:%M:%S")}
-    if args.out.is_file():
-        results = {**json.loads(args.out.read_text()), **results}
+    results: dict = {"machine": {"cpus": os.cpu_count()}}
     base = dict(keyframes=args.keyframes, test_cameras=args.test_cameras, threads=args.threads)
 
-    def save() -> None:
+    def save() -> None:  # merge with what other bench processes wrote meanwhile
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_suffix(".tmp")
-        tmp.write_text(json.dumps(results, indent=1))
+        merged = json.loads(args.out.read_text()) if args.out.is_file() else {}
+        merged.update({k: v for k, v in results.items() if k in ("main", "ablations", "memory")})
+        merged.setdefault("machine", results["machine"])
+        tmp = args.out.with_suffix(f".tmp{os.getpid()}")
+        tmp.write_text(json.dumps(merged, indent=1))
         os.replace(tmp, args.out)
 
     if "main" in args.only:
@@ -174,6 +175,7 @@ def main() -> None:
             save()
         results["memory"] = mem
         save()
+    results = json.loads(args.out.read_text())
     rows = ([results["main"]] if "main" in results else []) + results.get("ablations", []) + results.get("memory", [])
     print(table(rows))
 

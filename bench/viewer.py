@@ -241,7 +241,10 @@ def main(cfg: BenchConfig) -> None:
     if cfg.checkpoint is not None:
         import atgs
 
-        playback.append(bench_playback(atgs.load(cfg.checkpoint), str(cfg.checkpoint), cfg, renderer))
+        model = atgs.load(cfg.checkpoint)
+        name = f"{cfg.checkpoint} ({model.num_frames} frames)"
+        playback.append(bench_playback(model, name, cfg, renderer))
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True))
     else:
         model = untrained_model()
         name = "untrained ATGS model, cpu preset"

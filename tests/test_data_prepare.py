@@ -273,3 +273,16 @@ def test_synth_cli(tmp_path, capsys) -> None:
     assert synth_main(args) == 2  # refuses to overwrite
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "already exists" in err and err.count("\n") == 0
+
+
+def test_calibration_at_other_resolution_is_rescaled_or_refused(synth, tmp_path) -> None:
+    from dataclasses import replace as dc_replace
+
+    half = lambda ci, f: np.asarray(Image.fromarray(_gt_frame(synth)(ci, f)).resize((128, 96), Image.BOX))  # noqa: E731
+    src = write_easyvolcap_layout(tmp_path / "ev", synth["cams"][:4], half, 1)
+    s = PreparedScene.load(_prep(src, tmp_path / "p"))
+    np.testing.assert_allclose(s.cameras[1].K, synth["cams"][1].scaled(0.5).K)
+    squashed = [dc_replace(c, width=256, height=100) for c in synth["cams"][:4]]
+    src = write_easyvolcap_layout(tmp_path / "ev2", squashed, half, 1)
+    with pytest.raises(DataError, match="different aspect ratio"):
+        _prep(src, tmp_path / "p2")

@@ -71,3 +71,15 @@ def test_torch_backend_differentiates_the_camera() -> None:
     args["viewmat"] = torch.eye(4, requires_grad=True)
     rasterize(**args, backend="torch").image.sum().backward()
     assert args["viewmat"].grad is not None and args["viewmat"].grad.abs().sum() > 0
+
+
+def test_rasterize_gaussians_with_a_camera() -> None:
+    from atgs.cameras import Camera, look_at
+    from atgs.gaussians import Gaussians
+    from atgs.render import rasterize_gaussians
+
+    args = good()
+    cam = Camera("c", 16, 12, K=[[10.0, 0, 8], [0, 10, 6], [0, 0, 1]], w2c=look_at([0, 0, -2.0], [0, 0, 0], [0, -1, 0]))
+    g = Gaussians(args["means"] - torch.tensor([0, 0, 2.0]), args["quats"], args["scales"], args["opacities"], args["colors"])
+    out = rasterize_gaussians(g, cam, backend="torch")
+    assert out.image.shape == (12, 16, 3) and float(out.alpha.max()) > 0.3

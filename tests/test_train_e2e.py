@@ -67,3 +67,13 @@ def test_nonfinite_gradients_are_zeroed(scene, tmp_path):
     assert torch.isfinite(head.weight).all()
     assert torch.equal(head.weight, w0), "a NaN gradient is zeroed, so Adam does not move the weight"
     assert all(torch.isfinite(v).all() for v in tr.model.sparse_tensors().values())
+
+
+def test_view_without_gaussians_is_harmless(scene, tmp_path):
+    m, t = preset("tiny")
+    tr = Trainer(scene, m, t, tmp_path)
+    tr.model.anchor_mu += 100.0  # every anchor far outside every camera frustum
+    before = tr.model.anchor_feature.clone()
+    r = tr.train_step()
+    assert not r.skipped and r.gaussians == 0
+    assert torch.equal(tr.model.anchor_feature, before)

@@ -12,7 +12,7 @@ from PIL import Image
 
 from atgs.headless_gl import HeadlessGLError
 from viewer.cli import main, render_main
-from viewer_fixtures import write_tiny_checkpoint
+from test_viewer_fixtures import write_tiny_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -122,7 +122,7 @@ def test_render_video(ckpt: Path, tmp_path: Path, path: str) -> None:
 
 def test_cameras_path_passes_through_training_cameras() -> None:
     from viewer.scene_utils import cameras_path, orbit_path
-    from viewer_fixtures import tiny_cameras
+    from test_viewer_fixtures import tiny_cameras
 
     cams = tiny_cameras(3)
     path = cameras_path(cams, 5)  # 2 segments: samples 0, 2, 4 are the cameras

@@ -209,3 +209,36 @@ def test_radix_sort_agrees_with_exact_sort() -> None:
     assert np.all(np.diff(z[exact]) <= 0)  # the reference: strictly far to near
     quantum = (z[exact].max() - z[exact].min()) / 65535
     assert np.all(np.diff(z[fast]) <= 1.01 * quantum)  # out of order by at most one 16-bit step
+
+
+def test_frustum_cull_is_conservative_and_culls(renderer: SplatRenderer) -> None:
+    # Gaussians all around the camera, many off-screen or behind, some large and elongated,
+    # some just outside the borders: culled drawing must equal drawing everything.
+    from viewer.sorting import FrustumCull, back_to_front
+    from viewer.splat_renderer import clamp_limits
+
+    gen = torch.Generator().manual_seed(7)
+    n = 3000
+    g = Gaussians(
+        means=(torch.rand(n, 3, generator=gen) * 2 - 1) * torch.tensor([6.0, 6.0, 4.0]) + torch.tensor([0, 0, 3.0]),
+        quats=torch.randn(n, 4, generator=gen),
+        scales=torch.exp(torch.randn(n, 3, generator=gen) * 1.2 - 2.5),
+        opacities=torch.rand(n, generator=gen) * 0.9 + 0.1,
+        colors=torch.rand(n, 3, generator=gen),
+    )
+    K = np.array([[60.0, 0, 31.0], [0, 60.0, 25.0], [0, 0, 1]])
+    cam = Camera("c", 64, 48, K, np.eye(4))
+    packed = pack_gaussians(g)
+    cull = FrustumCull(K, 64, 48, clamp_limits(K, 64, 48))
+    kept = back_to_front(packed.means, cam.w2c, 0.01, extent=packed.extent, cull=cull)
+    front = back_to_front(packed.means, cam.w2c, 0.01)
+    assert len(kept) < 0.6 * len(front)  # the cull does remove work
+    renderer.set_gaussians(packed)
+    culled = renderer.render_image(cam, RenderSettings(background=(0.1, 0.2, 0.3), exact_sort=True))
+    # reference: the same draw with the cull disabled (every Gaussian in front of the camera)
+    packed_nocull = pack_gaussians(g)
+    packed_nocull.extent = np.full(n, 1e9, np.float32)  # huge bound: nothing can be culled
+    renderer.set_gaussians(packed_nocull)
+    full = renderer.render_image(cam, RenderSettings(background=(0.1, 0.2, 0.3), exact_sort=True))
+    assert renderer.timings.drawn == len(front)
+    np.testing.assert_allclose(culled, full, atol=1e-6)

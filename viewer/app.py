@@ -129,7 +129,7 @@ class PlayerApp:
         self.fly_mode = False
         self.fly_speed = 0.5 * max(self.control.state.distance, 1e-3)  # world units per second
         self.render_scale = 1.0
-        self.adaptive = False  # adaptive resolution (UI checkbox): lower while playing/moving
+        self.adaptive = True  # adaptive resolution (UI checkbox): lower while playing/moving, full when still
         self.target_ms = 40.0  # 25 FPS
         self._last_key: tuple | None = None
         self._last_scale = 1.0
@@ -398,6 +398,80 @@ class PlayerApp:
         self._terminate()
 
 
+def exercise_inputs(app: PlayerApp) -> dict:
+    """Feed keyboard and mouse events through imgui's input queue (as the glfw backend does) and
+    record what each did; used by the Xvfb test to check the shortcuts and mouse controls."""
+    io = app.imgui.get_io()
+    K = app.imgui.Key
+    pb, ctl = app.playback, app.control
+
+    def press(key) -> None:
+        io.add_key_event(key, True)
+        app.step(0.0)
+        io.add_key_event(key, False)
+        app.step(0.0)
+
+    out: dict = {}
+    f0 = pb.frame
+    press(K.right_arrow)
+    out["right_arrow_step"] = (pb.frame - f0) % pb.num_frames
+    press(K.left_arrow)
+    out["left_arrow_back"] = pb.frame == f0
+    press(K.space)
+    out["space_plays"] = pb.playing
+    press(K.space)
+    out["space_pauses"] = not pb.playing
+    press(K._2)
+    out["key2_mode"] = app.settings.mode
+    press(K._3)
+    out["key3_mode"] = app.settings.mode
+    press(K._1)
+    press(K.equal)
+    out["speed_after_equal"] = pb.speed
+    press(K.minus)
+    press(K.c)
+    out["camera_after_c"] = app.cam_index
+    press(K.r)
+    out["reset_restores_home"] = bool(np.allclose(ctl.state.eye, ctl.home.eye) and np.allclose(ctl.state.R, ctl.home.R))  # type: ignore[union-attr]
+    press(K.f)
+    out["fly_mode"] = app.fly_mode
+    eye, fwd = ctl.state.eye.copy(), ctl.forward
+    io.add_key_event(K.w, True)
+    for _ in range(3):
+        app.step(0.1)
+    io.add_key_event(K.w, False)
+    app.step(0.0)
+    out["w_moves_forward"] = float((ctl.state.eye - eye) @ fwd)
+    press(K.f)
+    press(K.r)
+    press(K.h)  # hide the panel so the mouse reaches the view
+    out["ui_hidden"] = not app.show_ui
+    w, h = app.glfw.get_window_size(app.window)
+    eye = ctl.state.eye.copy()
+    pivot = ctl.pivot.copy()
+    # The glfw backend polls the real cursor of a focused window every frame, so move that one.
+    app.glfw.set_cursor_pos(app.window, w / 2, h / 2)
+    io.add_mouse_pos_event(w / 2, h / 2)
+    app.step(0.0)
+    io.add_mouse_button_event(0, True)
+    app.step(0.0)
+    app.glfw.set_cursor_pos(app.window, w / 2 + 40, h / 2)
+    io.add_mouse_pos_event(w / 2 + 40, h / 2)
+    app.step(0.0)
+    io.add_mouse_button_event(0, False)
+    app.step(0.0)
+    out["drag_orbit_moved_eye"] = float(np.linalg.norm(ctl.state.eye - eye))
+    out["drag_orbit_kept_pivot"] = float(np.linalg.norm(ctl.pivot - pivot))
+    d0 = ctl.state.distance
+    io.add_mouse_wheel_event(0.0, 1.0)
+    app.step(0.0)
+    out["wheel_zoom_ratio"] = ctl.state.distance / d0
+    press(K.h)
+    out["ui_shown_again"] = app.show_ui
+    press(K.r)
+    return out
+
+
 def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
     """Scripted session: play ``frames`` UI frames, scrub to t = 0.75, orbit, screenshot.
 
@@ -413,8 +487,10 @@ def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
     pb.playing = True
     steps = 0
     # Play `frames` UI frames; on a loaded machine keep playing until the shown frame moved.
+    playhead: list[int] = [pb.frame]  # where the playhead was before each step, then after the last
     while steps < frames or (len(set(app.stats.shown_frames)) < 2 and time.monotonic() < deadline):
         app.step(dt)
+        playhead.append(pb.frame)  # step() advanced the playhead and then picked a frame to show
         steps += 1
     played = list(app.stats.shown_frames)
     pb.playing = False
@@ -423,6 +499,7 @@ def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
     deadline = time.monotonic() + 30.0
     while (app.feeder.shown is None or app.feeder.shown.frame != target) and time.monotonic() < deadline:
         app.step(0.0)
+    inputs = exercise_inputs(app)
     app.control.orbit(0.3, 0.1)
     app.step(0.0)
     img = app.read_window()
@@ -431,6 +508,7 @@ def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
     report = {
         "played_frames": played,
         "play_steps": steps,
+        "playhead_frames": playhead,
         "distinct_played": len(set(played)),
         "scrub_target": target,
         "scrub_shown": None if app.feeder.shown is None else app.feeder.shown.frame,
@@ -440,6 +518,7 @@ def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
         "fps": app.stats.fps,
         "screenshot": str(screenshot),
         "splats_screenshot": str(splat),
+        "inputs": inputs,
     }
     screenshot.with_suffix(".json").write_text(json.dumps(report, indent=2))
     return report

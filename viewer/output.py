@@ -41,6 +41,14 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
 
 
+def _publish(tmp: str, path: Path) -> None:
+    """Rename a finished temp file into place with ordinary permissions (mkstemp makes 0600)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, path)
+
+
 def _check_parent(path: Path, what: str) -> None:
     if path.exists() and path.is_dir():
         raise ViewerError(f"--out {path}: is a directory; give a {what} file name")
@@ -59,7 +67,7 @@ def save_image(path: str | Path, rgb8: np.ndarray) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             Image.fromarray(rgb8).save(fh, format=fmt)
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -100,7 +108,7 @@ class VideoWriter:
         for packet in self._stream.encode():
             self._container.mux(packet)
         self._container.close()
-        os.replace(self._tmp, self.path)
+        _publish(self._tmp, self.path)
         self._done = True
 
     def abort(self) -> None:

@@ -28,6 +28,12 @@ class PackedGaussians:
     frame: int = -1  # frame index the data belongs to (-1: not from a timeline)
     num_anchors: int = -1  # active anchors that produced it (-1: unknown)
     decode_ms: float = 0.0  # time spent decoding + packing (background thread)
+    extent: np.ndarray | None = None  # (N,) sqrt(trace Sigma3d) >= largest std dev (for culling)
+
+    def __post_init__(self) -> None:
+        if self.extent is None:
+            cov = self.data[:, 4:10].view(np.float32)
+            self.extent = np.sqrt(np.maximum(cov[:, 0] + cov[:, 3] + cov[:, 5], 0.0)).astype(np.float32)
 
     def __len__(self) -> int:
         return int(self.data.shape[0])

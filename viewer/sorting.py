@@ -7,6 +7,8 @@ argsort reference.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -16,10 +18,49 @@ def view_depths(means: np.ndarray, w2c: np.ndarray) -> np.ndarray:
     return means @ r[:3] + r[3]
 
 
-def back_to_front(means: np.ndarray, w2c: np.ndarray, near: float, exact: bool = False) -> np.ndarray:
-    """uint32 indices of the Gaussians in front of the near plane, farthest first."""
+@dataclass(frozen=True)
+class FrustumCull:
+    """Image and camera for the conservative screen-space cull of :func:`back_to_front`.
+
+    A Gaussian is dropped only if its 3-sigma footprint surely misses the image: the bound uses
+    ||J||_F (with the same Jacobian clamp as the shader) times sqrt(trace Sigma3d), plus the
+    0.3 px^2 dilation and the quad's half-pixel slack.
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    lim: tuple[float, float, float, float]  # Jacobian clamp limits (x neg, x pos, y neg, y pos)
+    scale_modifier: float = 1.0
+    sigmas: float = 3.0
+    dilation: float = 0.3
+
+
+def _on_screen(means: np.ndarray, extent: np.ndarray, w2c: np.ndarray, z: np.ndarray, cull: FrustumCull) -> np.ndarray:
+    w = np.asarray(w2c, dtype=np.float32)
+    x = means @ w[0, :3] + w[0, 3]
+    y = means @ w[1, :3] + w[1, 3]
+    fx, fy, cx, cy = (np.float32(v) for v in (cull.K[0, 0], cull.K[1, 1], cull.K[0, 2], cull.K[1, 2]))
+    inv_z = np.float32(1.0) / z
+    u = fx * x * inv_z + cx
+    v = fy * y * inv_z + cy
+    lx, ly = max(cull.lim[0], cull.lim[1]), max(cull.lim[2], cull.lim[3])
+    jf = np.float32(np.sqrt(float(fx) ** 2 * (1 + lx * lx) + float(fy) ** 2 * (1 + ly * ly)))
+    r = np.float32(cull.sigmas) * (jf * np.float32(cull.scale_modifier) * extent * inv_z
+                                   + np.float32(np.sqrt(cull.dilation))) + np.float32(1.0)
+    return (u + r > 0) & (u - r < cull.width) & (v + r > 0) & (v - r < cull.height)
+
+
+def back_to_front(means: np.ndarray, w2c: np.ndarray, near: float, exact: bool = False,
+                  extent: np.ndarray | None = None, cull: FrustumCull | None = None) -> np.ndarray:
+    """uint32 indices of the Gaussians in front of the near plane (and, with ``cull`` and
+    ``extent``, whose footprint may touch the image), farthest first."""
     z = view_depths(means, w2c)
-    keep = np.flatnonzero(z > near).astype(np.uint32)
+    front = z > near
+    if cull is not None and extent is not None:
+        zs = np.where(front, z, np.float32(1.0))
+        front &= _on_screen(means, extent, w2c, zs, cull)
+    keep = np.flatnonzero(front).astype(np.uint32)
     if keep.size == 0:
         return keep
     zk = z[keep]

@@ -20,7 +20,7 @@ import numpy as np
 
 from atgs.cameras import Camera
 from viewer.packing import PackedGaussians
-from viewer.sorting import back_to_front
+from viewer.sorting import FrustumCull, back_to_front
 
 RenderMode = Literal["color", "depth", "alpha"]
 MODES: tuple[str, ...] = ("color", "depth", "alpha")
@@ -77,7 +77,7 @@ class FrameTimings:
     sort_ms: float = 0.0
     upload_ms: float = 0.0
     draw_ms: float = 0.0
-    drawn: int = 0  # Gaussians in front of the near plane (quads drawn)
+    drawn: int = 0  # Gaussians that may touch the image (quads drawn)
     sorted_again: bool = False
 
 
@@ -86,6 +86,7 @@ class _SortKey:
     w2c: bytes = b""
     version: int = -1
     exact: bool = False
+    view: tuple = ()  # intrinsics, size and scale modifier (they change the cull)
 
 
 @dataclass
@@ -116,6 +117,7 @@ class SplatRenderer:
         self._vao: moderngl.VertexArray | None = None
         self._count = 0
         self._means = np.zeros((0, 3), np.float32)
+        self._extent: np.ndarray | None = None
         self._version = 0
         self._sort_key = _SortKey()
         self._drawn = 0
@@ -150,6 +152,7 @@ class SplatRenderer:
                 )
         self._count = n
         self._means = packed.means
+        self._extent = packed.extent
         self.gaussians = packed
         self._version += 1
         ms = (time.perf_counter() - t0) * 1e3
@@ -172,15 +175,19 @@ class SplatRenderer:
         return None if self._target is None else self._target.texture
 
     # --- sorting --------------------------------------------------------------------------
-    def _sort(self, camera: Camera, exact: bool) -> None:
+    def _sort(self, camera: Camera, exact: bool, scale_modifier: float = 1.0) -> None:
         key = camera.w2c.astype(np.float32).tobytes()
+        view = (camera.K.tobytes(), camera.width, camera.height, float(scale_modifier))
         sk = self._sort_key
-        if sk.w2c == key and sk.version == self._version and sk.exact == exact:
+        if sk.w2c == key and sk.version == self._version and sk.exact == exact and sk.view == view:
             self.timings.sort_ms = 0.0
             self.timings.sorted_again = False
             return
         t0 = time.perf_counter()
-        order = back_to_front(self._means, camera.w2c, NEAR, exact=exact)
+        # Off-screen Gaussians are dropped here (conservatively), so they cost no vertex work.
+        cull = FrustumCull(camera.K, camera.width, camera.height, clamp_limits(camera.K, camera.width, camera.height),
+                           scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
+        order = back_to_front(self._means, camera.w2c, NEAR, exact=exact, extent=self._extent, cull=cull)
         self._drawn = int(order.size)
         if order.size:
             elements = quad_elements(order)
@@ -195,7 +202,7 @@ class SplatRenderer:
             z = self._means[order[[0, -1]]] @ camera.w2c[2, :3].astype(np.float32) + np.float32(camera.w2c[2, 3])
             self.depth_range = (float(z[1]), float(z[0]))
             self._index_buf.write(elements)
-        self._sort_key = _SortKey(key, self._version, exact)
+        self._sort_key = _SortKey(key, self._version, exact, view)
         self.timings.sort_ms = (time.perf_counter() - t0) * 1e3
         self.timings.sorted_again = True
 
@@ -211,7 +218,7 @@ class SplatRenderer:
             raise ValueError(f"unknown render mode {s.mode!r}; use one of {', '.join(MODES)}")
         W, H = camera.width, camera.height
         target = self._ensure_target(W, H)
-        self._sort(camera, s.exact_sort)
+        self._sort(camera, s.exact_sort, s.scale_modifier)
         t0 = time.perf_counter()
         fbo = target.fbo
         fbo.use()

@@ -171,10 +171,7 @@ def prepare(cfg: PrepareConfig) -> Path:
             t = time.perf_counter()
             cams = _sfm_cameras(src, sel[0], work / "sfm", cfg, colmap_opts)
             timings["sfm"] = time.perf_counter() - t
-        for c, (w, h) in zip(cams, src.sizes):
-            if (c.width, c.height) != (w, h):
-                raise DataError(f"{src.file_of(src.camera_names.index(c.name))}: frames are {w}x{h} but the "
-                                f"camera model says {c.width}x{c.height}")
+        cams = [_match_frame_size(c, wh, src.file_of(i)) for i, (c, wh) in enumerate(zip(cams, src.sizes))]
         out_cams = [_output_camera(c, cfg.downscale) for c in cams]
         t = time.perf_counter()
         ext = "." + cfg.image_format
@@ -211,6 +208,23 @@ def prepare(cfg: PrepareConfig) -> Path:
         write_scene_metadata(tmp, out_cams, num_frames, pts, cols, pkf, fps=fps, keyframes=kfs, test_cameras=test,
                              name=cfg.name or out.name, source=source)
     return out
+
+
+def _match_frame_size(cam: Camera, size: tuple[int, int], where: Path) -> Camera:
+    """Calibrations are often made at full resolution and the frames stored smaller: rescale the
+    intrinsics when the aspect ratio agrees, refuse otherwise."""
+    w, h = size
+    if (cam.width, cam.height) == (w, h):
+        return cam
+    if abs(w / h - cam.width / cam.height) > 0.01 * (w / h):
+        raise DataError(f"{where}: frames are {w}x{h} but the camera model says {cam.width}x{cam.height} "
+                        "(different aspect ratio); check that the calibration belongs to these frames")
+    print(f"warning: {where}: frames are {w}x{h}, calibration is {cam.width}x{cam.height}; rescaling the "
+          "intrinsics", file=sys.stderr)
+    K = cam.K.copy()
+    K[0] *= w / cam.width
+    K[1] *= h / cam.height
+    return replace(cam, width=w, height=h, K=K)
 
 
 def _output_camera(cam: Camera, downscale: float) -> Camera:

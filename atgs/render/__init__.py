@@ -4,8 +4,8 @@ Backends: "cpu" (compiled C++/OpenMP, tile-based, hand-written backward), "torch
 reference used by the tests), "cuda" (thin gsplat wrapper, untested in CI). See docs/rasterizer.md.
 """
 
-from atgs.render.api import BACKENDS, rasterize
+from atgs.render.api import BACKENDS, rasterize, rasterize_gaussians
 from atgs.render.types import RasterOutput
 from atgs.render.validate import RasterInputError
 
-__all__ = ["BACKENDS", "RasterInputError", "RasterOutput", "rasterize"]
+__all__ = ["BACKENDS", "RasterInputError", "RasterOutput", "rasterize", "rasterize_gaussians"]

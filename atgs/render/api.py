@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -11,6 +12,10 @@ from atgs.render.projection import project
 from atgs.render.reference import rasterize_reference
 from atgs.render.types import RasterOutput
 from atgs.render.validate import RasterInputError, as_tensor, check_inputs
+
+if TYPE_CHECKING:
+    from atgs.cameras import Camera
+    from atgs.gaussians import Gaussians
 
 BACKENDS = ("auto", "cpu", "torch", "cuda")
 
@@ -63,6 +68,20 @@ def rasterize(
     from atgs.render.cuda import rasterize_cuda
 
     return rasterize_cuda(**tensors, width=width, height=height)
+
+
+def rasterize_gaussians(
+    gaussians: "Gaussians",
+    camera: "Camera",
+    background: torch.Tensor | np.ndarray | None = None,
+    backend: str = "auto",
+) -> RasterOutput:
+    """Convenience wrapper: render an :class:`atgs.gaussians.Gaussians` through an
+    :class:`atgs.cameras.Camera` (pinhole part only; prepared scenes are undistorted)."""
+    return rasterize(
+        *gaussians.as_tuple(), camera.w2c, camera.K, camera.width, camera.height,
+        background=background, backend=backend,
+    )  # fmt: skip
 
 
 def _choose_backend(backend: str, means: torch.Tensor) -> str:

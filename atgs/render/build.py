@@ -1,4 +1,4 @@
-"""Compile-at-first-use of the C++/OpenMP rasterizer, cached by source hash."""
+"""Compile-at-first-use of the C++ rasterizer extension, cached by source hash."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ import torch
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("rasterize.cpp",)
 HEADERS = ("projection.h",)
-BASE_CFLAGS = ("-O3", "-fopenmp", "-std=c++17")
-LDFLAGS = ("-fopenmp",)
+BASE_CFLAGS = ("-O3", "-pthread", "-std=c++17")
+LDFLAGS = ("-pthread",)
 
 
 def cpu_flags() -> tuple[str, ...]:
@@ -54,8 +54,6 @@ def build_key() -> str:
 @functools.lru_cache(maxsize=1)
 def load_extension() -> ModuleType:
     """Import the compiled extension, compiling it first if this source version is new."""
-    from torch.utils.cpp_extension import load
-
     name = f"atgs_raster_{build_key()}"
     build_dir = cache_root() / name
     built = build_dir / f"{name}.so"
@@ -65,8 +63,11 @@ def load_extension() -> ModuleType:
             module = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(module)
             return module
+    from torch.utils.cpp_extension import load
+
     build_dir.mkdir(parents=True, exist_ok=True)
-    print(f"compiling the ATGS CPU rasterizer (first use, ~1 min), cached in {build_dir}", flush=True)
+    # stderr: stays visible when stdout is piped or captured
+    print(f"compiling the ATGS CPU rasterizer (first use, ~1 min), cached in {build_dir}", file=sys.stderr, flush=True)
     return load(
         name=name,
         sources=[str(CSRC / s) for s in SOURCES],

@@ -1,4 +1,4 @@
-"""The "cpu" backend: torch projection + compiled tile rasterizer with a hand-written backward."""
+"""The "cpu" backend: C++ projection + compiled tile rasterizer, both with hand-written backward passes."""
 
 from __future__ import annotations
 

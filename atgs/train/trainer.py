@@ -173,6 +173,8 @@ class Trainer:
             if not all(bool(torch.isfinite(x).all()) for x in dec.gaussians.as_tuple()):
                 bad = True
                 break
+            if len(dec.gaussians) == 0:  # nothing of the model in this view: nothing to learn
+                continue
             bg = self._background()
             out = self.render(dec, cam, bg)
             out.means2d.retain_grad()
@@ -205,7 +207,9 @@ class Trainer:
         self._apply_dense()
         self.step += 1
         self._maybe_densify()
-        return StepResult(float(np.mean(losses)), float(np.mean(psnrs)), n_gauss // max(1, len(losses)), False)
+        if not losses:
+            return StepResult(float("nan"), float("nan"), 0, False)
+        return StepResult(float(np.mean(losses)), float(np.mean(psnrs)), n_gauss // len(losses), False)
 
     def _apply_sparse(self, grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]]) -> None:
         tables = self.model.sparse_tensors()
@@ -345,7 +349,7 @@ class Trainer:
         try:
             while self.step < end:
                 r = self.train_step()
-                if not r.skipped:
+                if not r.skipped and math.isfinite(r.loss):
                     ema_loss = r.loss if ema_loss is None else 0.9 * ema_loss + 0.1 * r.loss
                     ema_psnr = r.psnr if ema_psnr is None else 0.9 * ema_psnr + 0.1 * r.psnr
                 row = {"step": self.step, "loss": f"{r.loss:.6f}", "psnr": f"{r.psnr:.3f}",

@@ -9,19 +9,28 @@
 // Every pixel sees the same Gaussians in the same order whatever the tile size, because the
 // cut-off is a per-pixel test; tiles and per-Gaussian boxes only skip work.
 //
-// Parallelism: OpenMP over tiles. Within a tile the loop runs Gaussian-outer / pixel-inner
+// Parallelism: std::threads over tiles (see parallel_for). Within a tile the loop runs
+// Gaussian-outer / pixel-inner
 // over the box where the Gaussian can be non-negligible, keeping per-pixel state in local
 // arrays; the per-pixel order is still front to back. The backward pass writes one gradient
 // record per (tile, Gaussian) pair and reduces them serially, so results are deterministic.
-#include <torch/extension.h>
+// Narrow includes (not <torch/extension.h>): they cut the first-use compile time by more than half.
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <torch/csrc/utils/pybind.h>
 
 #include "projection.h"
 
-#include <omp.h>
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
 
 #include <algorithm>
+#include <atomic>
+#include <thread>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <numeric>
 #include <vector>
 
@@ -31,6 +40,7 @@ constexpr int kChannels = 4;  // RGB + view depth
 constexpr int kTile = 16;  // tile edge in pixels; rows are processed as whole SIMD vectors
 constexpr int kTilePix = kTile * kTile;
 constexpr int64_t kParallelProjectMin = 65536;  // smaller inputs: a fork-join costs more than it saves
+constexpr int64_t kProjectChunk = 8192;
 constexpr int kGradStride = 6 + kChannels;  // mean(2) conic(3) opacity(1) features(4)
 
 // 8-lane vectors (GCC/Clang vector extensions): AVX2 when compiled with -mavx2, two SSE
@@ -43,15 +53,30 @@ inline v8i splati(int32_t x) { return v8i{x, x, x, x, x, x, x, x}; }
 inline v8f vmin(v8f a, v8f b) { return a < b ? a : b; }
 inline v8f vmax(v8f a, v8f b) { return a > b ? a : b; }
 inline v8f select(v8i m, v8f a, v8f b) { return m ? a : b; }
-inline bool any(v8i m) {
-  int32_t r = 0;
-  for (int l = 0; l < 8; ++l) r |= m[l];
-  return r != 0;
+// Lane mask as bits (lane l -> bit l); one instruction with AVX, a lane loop otherwise.
+inline int movemask(v8i m) {
+#if defined(__AVX__)
+  return _mm256_movemask_ps(reinterpret_cast<__m256>(m));
+#else
+  int r = 0;
+  for (int l = 0; l < 8; ++l) r |= (m[l] != 0) << l;
+  return r;
+#endif
 }
+inline bool any(v8i m) { return movemask(m) != 0; }
+inline int count(v8i m) { return __builtin_popcount(unsigned(movemask(m))); }
 inline float hsum(v8f a) {
+#if defined(__AVX__)
+  const __m256 v = reinterpret_cast<__m256>(a);
+  __m128 x = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+  x = _mm_add_ps(x, _mm_movehl_ps(x, x));
+  x = _mm_add_ss(x, _mm_shuffle_ps(x, x, 1));
+  return _mm_cvtss_f32(x);
+#else
   float r = 0.f;
   for (int l = 0; l < 8; ++l) r += a[l];
   return r;
+#endif
 }
 
 // exp(-s) for s in [0, 4.5] on 8 lanes, branch-free: exp(-s) = 2^-n exp(y), n = round(s / ln 2),
@@ -69,6 +94,30 @@ inline v8f exp_neg(v8f s) {
   q = q * y + 1.f;
   const v8i bits = (127 - n) << 23;
   return q * reinterpret_cast<const v8f&>(bits);
+}
+
+// Runs body(0 .. n-1) on `threads` threads (the caller included) that pull indices from a
+// shared counter (dynamic scheduling: tiles differ a lot in cost). Plain std::threads rather than
+// OpenMP: an OpenMP team spin-waits after each region, and the autograd engine runs backward on
+// its own thread with its own team, so on a 2-core machine the idle team's spinning competed with
+// the working one (measured: twice the CPU time on a busy machine). Thread start-up (~50 us) is
+// negligible next to a render.
+template <class F>
+void parallel_for(int n, int threads, F&& body) {
+  const int extra = std::max(0, std::min(threads, n) - 1);
+  if (extra == 0) {
+    for (int i = 0; i < n; ++i) body(i);
+    return;
+  }
+  std::atomic<int> next{0};
+  auto worker = [&]() {
+    for (int i = next.fetch_add(1); i < n; i = next.fetch_add(1)) body(i);
+  };
+  std::vector<std::thread> pool;
+  pool.reserve(extra);
+  for (int i = 0; i < extra; ++i) pool.emplace_back(worker);
+  worker();
+  for (auto& th : pool) th.join();
 }
 
 struct Params {
@@ -118,31 +167,34 @@ Binning bin_gaussians(const float* means2d, const float* conics, const float* op
                       const float* depths, const int32_t* radii, int64_t n, const Params& p) {
   Binning bins;
   bins.boxes.resize(n);
-  std::vector<int32_t> order;
-  order.reserve(n);
+  // Sort keys: depth bits (depths of visible Gaussians are > 0, so their IEEE bits order like the
+  // floats) above the index. Unique keys sort exactly like a stable sort by depth.
+  std::vector<uint64_t> keys;
+  keys.reserve(n);
   for (int64_t i = 0; i < n; ++i) {
     bins.boxes[i] = radii[i] > 0 ? gaussian_box(means2d + 2 * i, conics + 3 * i, opac[i], p)
                                  : Box{1, 0, 1, 0};
-    if (!bins.boxes[i].empty()) order.push_back(int32_t(i));
+    if (bins.boxes[i].empty()) continue;
+    uint32_t bits;
+    std::memcpy(&bits, depths + i, sizeof(bits));
+    keys.push_back((uint64_t(bits) << 32) | uint64_t(i));
   }
-  // Same order as the reference: stable sort of ascending ids by depth.
-  std::stable_sort(order.begin(), order.end(),
-                   [depths](int32_t i, int32_t j) { return depths[i] < depths[j]; });
-  const int tx = p.tiles_x(), ty = p.tiles_y();
-  bins.offsets.assign(int64_t(tx) * ty + 1, 0);
-  for (int32_t g : order) {
-    const Box& b = bins.boxes[g];
+  std::sort(keys.begin(), keys.end());
+  std::vector<Box> sorted(keys.size());  // boxes in depth order: sequential access below
+  for (size_t j = 0; j < keys.size(); ++j) sorted[j] = bins.boxes[uint32_t(keys[j])];
+  const int tx = p.tiles_x();
+  bins.offsets.assign(int64_t(tx) * p.tiles_y() + 1, 0);
+  for (const Box& b : sorted)
     for (int y = b.y0 / kTile; y <= b.y1 / kTile; ++y)
       for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x) bins.offsets[int64_t(y) * tx + x + 1]++;
-  }
   std::partial_sum(bins.offsets.begin(), bins.offsets.end(), bins.offsets.begin());
   bins.ids.resize(bins.offsets.back());
   std::vector<int64_t> cursor(bins.offsets.begin(), bins.offsets.end() - 1);
-  for (int32_t g : order) {
-    const Box& b = bins.boxes[g];
+  for (size_t j = 0; j < keys.size(); ++j) {
+    const Box& b = sorted[j];
+    const int32_t g = int32_t(uint32_t(keys[j]));
     for (int y = b.y0 / kTile; y <= b.y1 / kTile; ++y)
-      for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x)
-        bins.ids[cursor[int64_t(y) * tx + x]++] = g;
+      for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x) bins.ids[cursor[int64_t(y) * tx + x]++] = g;
   }
   return bins;
 }
@@ -155,7 +207,7 @@ Params make_params(int64_t width, int64_t height, int64_t tile, int64_t channels
                 int(width), int(height), int(tile), int(channels), int(std::max<int64_t>(1, threads))};
 }
 
-void check_input(const torch::Tensor& t, const char* name, torch::ScalarType type) {
+void check_input(const at::Tensor& t, const char* name, at::ScalarType type) {
   TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
   TORCH_CHECK(t.scalar_type() == type, name, " has the wrong dtype");
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
@@ -168,15 +220,15 @@ void check_input(const torch::Tensor& t, const char* name, torch::ScalarType typ
 // int64 (blended pixel-Gaussian pairs, tile-Gaussian pairs). Depth is the 4th blended channel
 // (background 0) and also the sort key. All outputs are written here, serially per tile, so no
 // extra torch ops (each a fork-join on a busy machine) are needed around the kernel.
-std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
-                                   torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
-                                   torch::Tensor background, int64_t width, int64_t height,
+std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
+                                   at::Tensor colors, at::Tensor depths, at::Tensor radii,
+                                   at::Tensor background, int64_t width, int64_t height,
                                    int64_t tile, int64_t threads, double alpha_max, double alpha_min,
                                    double t_min, double sigma_cutoff) {
   for (auto& [t, name] : {std::pair{means2d, "means2d"}, {conics, "conics"}, {opacities, "opacities"},
                           {colors, "colors"}, {depths, "depths"}, {background, "background"}})
-    check_input(t, name, torch::kFloat32);
-  check_input(radii, "radii", torch::kInt32);
+    check_input(t, name, at::kFloat);
+  check_input(radii, "radii", at::kInt);
   TORCH_CHECK(colors.size(1) == 3 && background.numel() == 3, "expected RGB colors and background");
   const int64_t n = means2d.size(0);
   const Params p = make_params(width, height, tile, kChannels, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
@@ -189,11 +241,11 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
                                background.data_ptr<float>()[2], 0.f};
   Binning bins = bin_gaussians(m2, con, op, dep, radii.data_ptr<int32_t>(), n, p);
 
-  auto image = torch::empty({height, width, 3}, means2d.options());
-  auto alpha_out = torch::empty({height, width}, means2d.options());
-  auto depth_out = torch::empty({height, width}, means2d.options());
-  auto t_final = torch::empty({height, width}, means2d.options());
-  auto last = torch::empty({height, width}, radii.options());
+  auto image = at::empty({height, width, 3}, means2d.options());
+  auto alpha_out = at::empty({height, width}, means2d.options());
+  auto depth_out = at::empty({height, width}, means2d.options());
+  auto t_final = at::empty({height, width}, means2d.options());
+  auto last = at::empty({height, width}, radii.options());
   float* img_p = image.data_ptr<float>();
   float* al_p = alpha_out.data_ptr<float>();
   float* dp_p = depth_out.data_ptr<float>();
@@ -205,8 +257,7 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
   const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
   const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
 
-#pragma omp parallel for schedule(dynamic, 1) num_threads(p.threads)
-  for (int t = 0; t < n_tiles; ++t) {
+  parallel_for(n_tiles, p.threads, [&](int t) {
     const int px0 = (t % tx) * kTile, py0 = (t / tx) * kTile;
     const int pw = std::min(kTile, p.width - px0), ph = std::min(kTile, p.height - py0);
     const int64_t begin = bins.offsets[t], end = bins.offsets[t + 1];
@@ -246,10 +297,10 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
           const v8i halt = live & low, use = live & ~low;
           if (any(halt)) {
             stop[r] = halt ? splati(idx) : stop[r];
-            for (int l = 0; l < 8; ++l) n_done += halt[l] ? 1 : 0;
+            n_done += count(halt);
           }
           const v8f w = select(use, alpha * T[r], splat(0.f));
-          for (int l = 0; l < 8; ++l) blended += use[l] ? 1 : 0;
+          blended += count(use);
           for (int ch = 0; ch < kChannels; ++ch) acc[ch][r] += f[ch] * w;
           T[r] = select(use, next_T, T[r]);
         }
@@ -266,39 +317,41 @@ std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, 
         last_p[pix] = stop[r][l];
       }
     tile_blended[t] = blended;
-  }
-  auto offsets = torch::empty({int64_t(bins.offsets.size())}, torch::kInt64);
-  auto ids = torch::empty({int64_t(bins.ids.size())}, torch::kInt32);
+  });
+  auto offsets = at::empty({int64_t(bins.offsets.size())}, at::kLong);
+  auto ids = at::empty({int64_t(bins.ids.size())}, at::kInt);
   std::copy(bins.offsets.begin(), bins.offsets.end(), offsets.data_ptr<int64_t>());
   std::copy(bins.ids.begin(), bins.ids.end(), ids.data_ptr<int32_t>());
   const int64_t total_blended = std::accumulate(tile_blended.begin(), tile_blended.end(), int64_t(0));
-  auto stats = torch::tensor({total_blended, int64_t(bins.ids.size())}, torch::kInt64);
+  auto stats = at::empty({2}, at::kLong);
+  stats.data_ptr<int64_t>()[0] = total_blended;
+  stats.data_ptr<int64_t>()[1] = int64_t(bins.ids.size());
   return {image, alpha_out, depth_out, t_final, last, offsets, ids, stats};
 }
 
 // Gradients w.r.t. means2d (N,2), conics (N,3), opacities (N,), colors (N,3), depths (N,),
 // background (3,).
-std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
-                                    torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
-                                    torch::Tensor background, torch::Tensor t_final, torch::Tensor last,
-                                    torch::Tensor offsets, torch::Tensor ids, torch::Tensor grad_image,
-                                    torch::Tensor grad_alpha, torch::Tensor grad_depth,
+std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
+                                    at::Tensor colors, at::Tensor depths, at::Tensor radii,
+                                    at::Tensor background, at::Tensor t_final, at::Tensor last,
+                                    at::Tensor offsets, at::Tensor ids, at::Tensor grad_image,
+                                    at::Tensor grad_alpha, at::Tensor grad_depth,
                                     int64_t width, int64_t height, int64_t tile, int64_t threads,
                                     double alpha_max, double alpha_min, double t_min, double sigma_cutoff) {
   for (auto& [t, name] : {std::pair{means2d, "means2d"}, {conics, "conics"}, {opacities, "opacities"},
                           {colors, "colors"}, {depths, "depths"}, {background, "background"},
                           {t_final, "t_final"}})
-    check_input(t, name, torch::kFloat32);
+    check_input(t, name, at::kFloat);
   // Upstream gradients may be strided (e.g. expanded by sum()): read them through their strides
   // instead of paying for a contiguous copy.
   for (auto& [t, name] : {std::pair{grad_image, "grad_image"}, {grad_alpha, "grad_alpha"}, {grad_depth, "grad_depth"}}) {
-    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == torch::kFloat32, name, " must be a CPU float32 tensor");
+    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kFloat, name, " must be a CPU float32 tensor");
     TORCH_CHECK(t.size(0) == height && t.size(1) == width, name, " has the wrong shape");
   }
-  check_input(radii, "radii", torch::kInt32);
-  check_input(last, "last", torch::kInt32);
-  check_input(offsets, "offsets", torch::kInt64);
-  check_input(ids, "ids", torch::kInt32);
+  check_input(radii, "radii", at::kInt);
+  check_input(last, "last", at::kInt);
+  check_input(offsets, "offsets", at::kLong);
+  check_input(ids, "ids", at::kInt);
   const int64_t n = means2d.size(0);
   const Params p = make_params(width, height, tile, kChannels, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
   const float* m2 = means2d.data_ptr<float>();
@@ -333,13 +386,13 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
   const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
   const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
 
-#pragma omp parallel for schedule(dynamic, 1) num_threads(p.threads)
-  for (int t = 0; t < n_tiles; ++t) {
+  parallel_for(n_tiles, p.threads, [&](int t) {
     const int px0 = (t % tx) * kTile, py0 = (t / tx) * kTile;
     const int pw = std::min(kTile, p.width - px0), ph = std::min(kTile, p.height - py0);
     const int64_t begin = off[t], end = off[t + 1];
     v8f T[2 * kTile], Tf[2 * kTile], bgterm[2 * kTile], B[kChannels][2 * kTile], G[kChannels][2 * kTile];
     v8i stop[2 * kTile];
+    int32_t max_stop = 0;
     for (int r = 0; r < 2 * kTile; ++r) {  // lanes outside the image stay inert (stop = 0)
       T[r] = Tf[r] = splat(1.f);
       bgterm[r] = splat(0.f);
@@ -353,6 +406,7 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
         const float tf = tf_p[pix];
         T[r][l] = Tf[r][l] = tf;
         stop[r][l] = last_p[pix];
+        max_stop = std::max(max_stop, last_p[pix]);
         // d loss / d T_final = bg . g - g_alpha  (alpha_out = 1 - T_final)
         const int64_t py = py0 + y, px = px0 + x;
         float s = -ga[py * sa_y + px * sa_x];
@@ -364,7 +418,8 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
         }
         bgterm[r][l] = s * tf;
       }
-    for (int64_t k = end - 1; k >= begin; --k) {
+    // Entries at or after every pixel's stop index contributed nothing: start below them.
+    for (int64_t k = std::min(end, begin + max_stop) - 1; k >= begin; --k) {
       const int32_t g = id_p[k];
       const Box& b = boxes[g];
       const float ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2], o = op[g];
@@ -414,30 +469,32 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
       rec[5] = hsum(gO);
       for (int ch = 0; ch < kChannels; ++ch) rec[6 + ch] = hsum(gf[ch]);
     }
-  }
+  });
 
-  // Outputs are zero-filled here (serially) rather than with torch::zeros: see forward().
-  auto g_m2 = torch::empty({n, 2}, means2d.options());
-  auto g_con = torch::empty({n, 3}, means2d.options());
-  auto g_op = torch::empty({n}, means2d.options());
-  auto g_col = torch::empty({n, 3}, means2d.options());
-  auto g_dep = torch::empty({n}, means2d.options());
-  auto g_bg = torch::empty({3}, means2d.options());
+  // Per-Gaussian records (one cache line each) gather the pair records serially, which keeps
+  // the result deterministic; then they are split into the output tensors. Outputs are not
+  // created with torch::zeros: each torch op is a fork-join, costly on a busy machine.
+  std::vector<float> acc(n * kGradStride, 0.f);
+  for (int64_t k = 0; k < n_pairs; ++k) {
+    float* a = acc.data() + int64_t(id_p[k]) * kGradStride;
+    const float* r = pair_grads.data() + k * kGradStride;
+    for (int j = 0; j < kGradStride; ++j) a[j] += r[j];
+  }
+  auto g_m2 = at::empty({n, 2}, means2d.options());
+  auto g_con = at::empty({n, 3}, means2d.options());
+  auto g_op = at::empty({n}, means2d.options());
+  auto g_col = at::empty({n, 3}, means2d.options());
+  auto g_dep = at::empty({n}, means2d.options());
+  auto g_bg = at::empty({3}, means2d.options());
   float *pm = g_m2.data_ptr<float>(), *pc = g_con.data_ptr<float>(), *po = g_op.data_ptr<float>(),
         *pf = g_col.data_ptr<float>(), *pd = g_dep.data_ptr<float>();
-  std::fill(pm, pm + 2 * n, 0.f);
-  std::fill(pc, pc + 3 * n, 0.f);
-  std::fill(po, po + n, 0.f);
-  std::fill(pf, pf + 3 * n, 0.f);
-  std::fill(pd, pd + n, 0.f);
-  for (int64_t k = 0; k < n_pairs; ++k) {  // serial reduction: deterministic
-    const int64_t g = id_p[k];
-    const float* r = pair_grads.data() + k * kGradStride;
-    pm[2 * g] += r[0]; pm[2 * g + 1] += r[1];
-    pc[3 * g] += r[2]; pc[3 * g + 1] += r[3]; pc[3 * g + 2] += r[4];
-    po[g] += r[5];
-    pf[3 * g] += r[6]; pf[3 * g + 1] += r[7]; pf[3 * g + 2] += r[8];
-    pd[g] += r[9];
+  for (int64_t g = 0; g < n; ++g) {
+    const float* a = acc.data() + g * kGradStride;
+    pm[2 * g] = a[0]; pm[2 * g + 1] = a[1];
+    pc[3 * g] = a[2]; pc[3 * g + 1] = a[3]; pc[3 * g + 2] = a[4];
+    po[g] = a[5];
+    pf[3 * g] = a[6]; pf[3 * g + 1] = a[7]; pf[3 * g + 2] = a[8];
+    pd[g] = a[9];
   }
   for (int ch = 0; ch < 3; ++ch) {
     double s = 0.0;
@@ -450,10 +507,10 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
 namespace {
 
 // consts = (near, dilation, clamp_margin, radius_sigmas, quat_eps, max_radius)
-atgs::Camera make_camera(const torch::Tensor& viewmat, const torch::Tensor& K, int64_t width, int64_t height,
+atgs::Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
                          double clamp_margin) {
-  check_input(viewmat, "viewmat", torch::kFloat32);
-  check_input(K, "K", torch::kFloat32);
+  check_input(viewmat, "viewmat", at::kFloat);
+  check_input(K, "K", at::kFloat);
   const float* V = viewmat.data_ptr<float>();
   const float* k = K.data_ptr<float>();
   atgs::Camera cam;
@@ -484,49 +541,53 @@ atgs::ProjectConsts make_consts(const std::vector<double>& c) {
 }  // namespace
 
 // Returns means2d (N,2), conics (N,3), depths (N,), radii (N,) int32.
-std::vector<torch::Tensor> project_fwd(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                       torch::Tensor viewmat, torch::Tensor K, int64_t width, int64_t height,
+std::vector<at::Tensor> project_fwd(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                       at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
                                        int64_t threads, std::vector<double> consts) {
   for (auto& [t, name] : {std::pair{means, "means"}, {quats, "quats"}, {scales, "scales"}})
-    check_input(t, name, torch::kFloat32);
+    check_input(t, name, at::kFloat);
   const atgs::Camera cam = make_camera(viewmat, K, width, height, consts.at(2));
   const atgs::ProjectConsts k = make_consts(consts);
   const int64_t n = means.size(0);
-  auto m2 = torch::empty({n, 2}, means.options());
-  auto con = torch::empty({n, 3}, means.options());
-  auto dep = torch::empty({n}, means.options());
-  auto rad = torch::empty({n}, means.options().dtype(torch::kInt32));
+  auto m2 = at::empty({n, 2}, means.options());
+  auto con = at::empty({n, 3}, means.options());
+  auto dep = at::empty({n}, means.options());
+  auto rad = at::empty({n}, means.options().dtype(at::kInt));
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   float *o_m2 = m2.data_ptr<float>(), *o_con = con.data_ptr<float>(), *o_dep = dep.data_ptr<float>();
   int32_t* o_rad = rad.data_ptr<int32_t>();
-#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > kParallelProjectMin)
-  for (int64_t i = 0; i < n; ++i)
-    atgs::project_forward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, o_m2 + 2 * i, o_con + 3 * i, o_dep + i,
-                          o_rad + i);
+  const int64_t chunks = (n + kProjectChunk - 1) / kProjectChunk;
+  parallel_for(int(chunks), n > kParallelProjectMin ? int(threads) : 1, [&](int c) {
+    for (int64_t i = c * kProjectChunk; i < std::min(n, (c + 1) * kProjectChunk); ++i)
+      atgs::project_forward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, o_m2 + 2 * i, o_con + 3 * i, o_dep + i,
+                            o_rad + i);
+  });
   return {m2, con, dep, rad};
 }
 
 // Gradients w.r.t. means (N,3), quats (N,4), scales (N,3).
-std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                       torch::Tensor viewmat, torch::Tensor K, int64_t width, int64_t height,
-                                       int64_t threads, std::vector<double> consts, torch::Tensor v_means2d,
-                                       torch::Tensor v_conics, torch::Tensor v_depths) {
+std::vector<at::Tensor> project_bwd(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                       at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
+                                       int64_t threads, std::vector<double> consts, at::Tensor v_means2d,
+                                       at::Tensor v_conics, at::Tensor v_depths) {
   for (auto& [t, name] : {std::pair{means, "means"}, {quats, "quats"}, {scales, "scales"},
                           {v_means2d, "v_means2d"}, {v_conics, "v_conics"}, {v_depths, "v_depths"}})
-    check_input(t, name, torch::kFloat32);
+    check_input(t, name, at::kFloat);
   const atgs::Camera cam = make_camera(viewmat, K, width, height, consts.at(2));
   const atgs::ProjectConsts k = make_consts(consts);
   const int64_t n = means.size(0);
-  auto g_means = torch::empty({n, 3}, means.options());
-  auto g_quats = torch::empty({n, 4}, means.options());
-  auto g_scales = torch::empty({n, 3}, means.options());
+  auto g_means = at::empty({n, 3}, means.options());
+  auto g_quats = at::empty({n, 4}, means.options());
+  auto g_scales = at::empty({n, 3}, means.options());
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   const float *vm = v_means2d.data_ptr<float>(), *vc = v_conics.data_ptr<float>(), *vd = v_depths.data_ptr<float>();
   float *gm = g_means.data_ptr<float>(), *gq = g_quats.data_ptr<float>(), *gs = g_scales.data_ptr<float>();
-#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > kParallelProjectMin)
-  for (int64_t i = 0; i < n; ++i)
-    atgs::project_backward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, vm + 2 * i, vc + 3 * i, vd[i],
-                           gm + 3 * i, gq + 4 * i, gs + 3 * i);
+  const int64_t chunks = (n + kProjectChunk - 1) / kProjectChunk;
+  parallel_for(int(chunks), n > kParallelProjectMin ? int(threads) : 1, [&](int c) {
+    for (int64_t i = c * kProjectChunk; i < std::min(n, (c + 1) * kProjectChunk); ++i)
+      atgs::project_backward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, vm + 2 * i, vc + 3 * i, vd[i],
+                             gm + 3 * i, gq + 4 * i, gs + 3 * i);
+  });
   return {g_means, g_quats, g_scales};
 }
 
