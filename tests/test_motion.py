@@ -216,3 +216,20 @@ def test_scene_extent_and_spacing(tmp_path) -> None:
 def test_bad_config() -> None:
     with pytest.raises(ValueError, match="max_frames"):
         MotionConfig(max_frames=1).validate()
+
+
+def test_compression_like_flicker_is_not_motion(tmp_path) -> None:
+    """Lossy video: static pixels are mostly unchanged but some jump by a few levels (block
+    artifacts); such sparse jumps below ``min_threshold`` must not count as motion."""
+    bg = _background(0)
+    rng = np.random.default_rng(3)
+    jumps = rng.random((20, H, W)) < 0.1  # 10% of the pixels jump in each frame
+    levels = rng.choice([-8, -5, 5, 8], size=(20, H, W, 1)) / 255.0
+
+    def frame(ci: int, f: int) -> np.ndarray:
+        return np.clip(bg + jumps[f, ..., None] * levels[f], 0, 1)
+
+    write_prepared_scene(tmp_path / "s", _cams(1), frame, 20)
+    s = measure_motion(PreparedScene.load(tmp_path / "s"), CFG)
+    assert s.noise == 0.0  # most pixels never change: the noise floor cannot see the jumps
+    assert s.static and s.moving_fraction == 0.0

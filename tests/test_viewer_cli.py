@@ -137,3 +137,20 @@ def test_cameras_path_passes_through_training_cameras() -> None:
     for c in orbit:  # every orbit camera looks at the center (origin)
         uv, z = c.project(np.zeros((1, 3)))
         np.testing.assert_allclose(uv[0], [c.cx, c.cy], atol=1e-6)
+
+
+def test_depth_video_uses_one_colormap_range(ckpt: Path, tmp_path: Path, monkeypatch) -> None:
+    import viewer.output as vo
+
+    ranges: list = []
+    real = vo.display_rgb
+
+    def spy(raw, mode, background, zrange=None):
+        ranges.append(zrange)
+        return real(raw, mode, background, zrange)
+
+    monkeypatch.setattr("viewer.headless.display_rgb", spy)
+    out = tmp_path / "depth.mp4"
+    assert render_main([str(ckpt), "--mode", "depth", "--out", str(out), "--frames", "3", "--size", "32x24",
+                        "--gl", "osmesa"]) == 0
+    assert len(ranges) == 3 and ranges[0] is not None and all(r == ranges[0] for r in ranges)

@@ -300,7 +300,11 @@ class PlayerApp:
         self.renderer.render(self.control.camera(max(fb_w, 1), max(fb_h, 1)), self.settings)
         self._last_key = None  # the target now holds this render; redo the view next frame
         raw = self.renderer.read()
-        save_image(path, to_uint8(display_rgb(raw, self.settings.mode, self.settings.background)))
+        try:
+            save_image(path, to_uint8(display_rgb(raw, self.settings.mode, self.settings.background)))
+        except (OSError, ViewerError) as exc:  # a full disk must not close the player
+            self.message = f"screenshot failed: {exc}"
+            return Path(path)
         self.message = f"saved {path}"
         return Path(path)
 
@@ -312,19 +316,24 @@ class PlayerApp:
 
     # --- UI ------------------------------------------------------------------------------------
     def _draw_ui(self) -> None:
+        """Player layout: a scrub bar along the bottom, a statistics overlay top left and a
+        collapsible settings panel top right (collapsed at first in small windows)."""
+        imgui = self.imgui
+        W = imgui.get_io().display_size.x
+        H = imgui.get_io().display_size.y
+        self._draw_scrub_bar(W, H)
+        self._draw_stats()
+        self._draw_settings(W)
+
+    def _draw_scrub_bar(self, W: float, H: float) -> None:
         imgui = self.imgui
         pb = self.playback
-        imgui.set_next_window_pos((8, 8), imgui.Cond_.first_use_ever)
-        imgui.set_next_window_bg_alpha(0.75)
-        imgui.begin("ATGS", None, imgui.WindowFlags_.always_auto_resize)
-        # time
-        imgui.text(f"frame {pb.frame} / {pb.num_frames - 1}   t = {pb.time:.4f}   {pb.frame / max(pb.fps, 1e-9):.2f} s")
-        changed, t = imgui.slider_float("time", pb.time, 0.0, 1.0, "%.4f")
-        if changed:
-            pb.seek_time(t)
-        changed, f = imgui.slider_int("frame", pb.frame, 0, max(0, pb.num_frames - 1))
-        if changed:
-            pb.seek_frame(f)
+        F = imgui.WindowFlags_
+        bar_h = 2 * imgui.get_frame_height_with_spacing() + 2 * imgui.get_style().window_padding.y
+        imgui.set_next_window_pos((0, H - bar_h))
+        imgui.set_next_window_size((W, bar_h))
+        imgui.set_next_window_bg_alpha(0.7)
+        imgui.begin("timeline", None, F.no_decoration | F.no_move | F.no_saved_settings)
         if imgui.button("Pause" if pb.playing else "Play"):
             pb.toggle()
         imgui.same_line()
@@ -334,14 +343,53 @@ class PlayerApp:
         if imgui.button(">"):
             pb.step(1)
         imgui.same_line()
-        _, pb.loop = imgui.checkbox("loop", pb.loop)
-        labels = [f"{s:g}x" for s in SPEEDS]
+        imgui.set_next_item_width(-1)
+        changed, f = imgui.slider_int("##frame", pb.frame, 0, max(0, pb.num_frames - 1), f"frame %d / {pb.num_frames - 1}")
+        if changed:
+            pb.seek_frame(f)
+        imgui.set_next_item_width(max(60.0, W - 260.0))
+        changed, t = imgui.slider_float("##time", pb.time, 0.0, 1.0, f"t = %.4f   ({pb.frame / max(pb.fps, 1e-9):.2f} s)")
+        if changed:
+            pb.seek_time(t)
+        imgui.same_line()
+        labels = [f"{v:g}x" for v in SPEEDS]
         cur = min(range(len(SPEEDS)), key=lambda k: abs(SPEEDS[k] - abs(pb.speed)))
-        changed, i = imgui.combo("speed", cur, labels)
+        imgui.set_next_item_width(70)
+        changed, i = imgui.combo("##speed", cur, labels)
         if changed:
             pb.speed = SPEEDS[i]
-        imgui.separator()
-        # camera
+        imgui.same_line()
+        _, pb.loop = imgui.checkbox("loop", pb.loop)
+        imgui.end()
+
+    def _draw_stats(self) -> None:
+        imgui = self.imgui
+        F = imgui.WindowFlags_
+        imgui.set_next_window_pos((6, 6))
+        imgui.set_next_window_bg_alpha(0.45)
+        flags = F.no_decoration | F.no_move | F.no_saved_settings | F.always_auto_resize | F.no_inputs
+        imgui.begin("stats", None, flags)
+        st = self.stats
+        n = len(self.renderer.gaussians) if self.renderer.gaussians is not None else 0
+        anchors = "?" if self._anchors < 0 else f"{self._anchors}"
+        imgui.text(f"{st.fps:5.1f} FPS  ({st.frame_ms:.0f} ms)   res x{self.render_scale:.2f}")
+        imgui.text(f"decode {st.decode_ms:.0f}  sort {st.sort_ms:.1f}  upload {st.upload_ms:.1f}  draw {st.draw_ms:.0f} ms")
+        imgui.text(f"anchors {anchors}  Gaussians {n} ({self.renderer.timings.drawn} drawn)")
+        if self.cache.last_error:
+            imgui.text(self.cache.last_error)
+        if self.message:
+            imgui.text(self.message)
+        imgui.end()
+
+    def _draw_settings(self, W: float) -> None:
+        imgui = self.imgui
+        small = W < 900
+        # In a small window the (collapsed) panel goes below the statistics instead of over them.
+        y = 6 + (5 * imgui.get_text_line_height_with_spacing() + 2 * imgui.get_style().window_padding.y if small else 0)
+        imgui.set_next_window_pos((W - 6, y), imgui.Cond_.first_use_ever, (1.0, 0.0))
+        imgui.set_next_window_collapsed(small, imgui.Cond_.first_use_ever)
+        imgui.set_next_window_bg_alpha(0.75)
+        imgui.begin("view (H hides the UI)", None, imgui.WindowFlags_.always_auto_resize)
         names = [c.name for c in self.cameras]
         changed, i = imgui.combo("camera", self.cam_index, names)
         if changed:
@@ -349,36 +397,23 @@ class PlayerApp:
         changed, fov = imgui.slider_float("fov", math.degrees(self.control.state.fov_y), 10.0, 120.0, "%.1f deg")
         if changed:
             self.control.set_fov(fov)
-        _, self.fly_mode = imgui.checkbox("fly mode (WASD/QE)", self.fly_mode)
+        _, self.fly_mode = imgui.checkbox("fly (WASD/QE)", self.fly_mode)
         imgui.same_line()
         if imgui.button("reset view"):
             self.control.reset()
         imgui.separator()
-        # rendering
         changed, m = imgui.combo("mode", MODES.index(self.settings.mode), list(MODES))
         if changed:
             self.settings.mode = MODES[m]  # type: ignore[assignment]
         _, self.settings.scale_modifier = imgui.slider_float("scale", self.settings.scale_modifier, 0.05, 4.0, "%.2f")
-        _, self.adaptive = imgui.checkbox("adaptive resolution (25 FPS)", self.adaptive)
+        _, self.adaptive = imgui.checkbox("adaptive resolution", self.adaptive)
         if not self.adaptive:
             _, self.render_scale = imgui.slider_float("resolution", self.render_scale, 0.25, 1.0, "%.2f")
-        else:
-            imgui.text(f"resolution {self.render_scale:.2f} while moving")
-        if imgui.button("screenshot"):
+        if imgui.button("screenshot (P)"):
             self.screenshot()
-        if self.message:
-            imgui.same_line()
-            imgui.text(self.message)
         imgui.separator()
-        st = self.stats
-        n = len(self.renderer.gaussians) if self.renderer.gaussians is not None else 0
-        imgui.text(f"{st.fps:5.1f} FPS  frame {st.frame_ms:5.1f} ms")
-        imgui.text(f"decode {st.decode_ms:5.1f}  sort {st.sort_ms:4.1f}  upload {st.upload_ms:4.1f}  draw {st.draw_ms:5.1f} ms")
-        anchors = "?" if self._anchors < 0 else f"{self._anchors}"
-        imgui.text(f"anchors {anchors}   Gaussians {n} ({self.renderer.timings.drawn} drawn)")
-        imgui.text(f"cached frames {len(self.cache.cached_frames())}   {self.gl_info}")
-        if self.cache.last_error:
-            imgui.text(self.cache.last_error)
+        imgui.text(f"cached frames {len(self.cache.cached_frames())}")
+        imgui.text(self.gl_info)
         imgui.end()
 
     # --- teardown ------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import numpy as np
 from atgs.cameras import Camera
 from atgs.headless_gl import create_headless_context
 from viewer.decode_cache import DecodeCache
-from viewer.output import display_rgb, to_uint8
+from viewer.output import depth_range, display_rgb, to_uint8
 from viewer.packing import PackedGaussians
 from viewer.source import GaussianSource, decode_frame
 from viewer.splat_renderer import RenderSettings, SplatRenderer
@@ -34,10 +34,11 @@ class HeadlessRenderer:
             self.renderer.set_gaussians(packed)
             self._frame = packed.frame
 
-    def render_rgb8(self, camera: Camera, settings: RenderSettings) -> np.ndarray:
+    def render_rgb8(self, camera: Camera, settings: RenderSettings,
+                    zrange: tuple[float, float] | None = None) -> np.ndarray:
         """(H,W,3) uint8 display image of the current frame (depth/alpha mapped for viewing)."""
         self.renderer.render(camera, settings)
-        return to_uint8(display_rgb(self.renderer.read(), settings.mode, settings.background))
+        return to_uint8(display_rgb(self.renderer.read(), settings.mode, settings.background, zrange))
 
     def frame_rgb8(self, frame: int, camera: Camera, settings: RenderSettings) -> np.ndarray:
         self.set_frame(decode_frame(self.source, frame))
@@ -59,6 +60,7 @@ def render_sequence(
     """Render (frame[i], camera[i]) pairs, decoding ahead in a background thread; calls
     ``on_image(i, rgb8)``. Returns mean stage times in ms."""
     totals = {"decode_wait_ms": 0.0, "sort_ms": 0.0, "draw_ms": 0.0, "upload_ms": 0.0}
+    zrange: tuple[float, float] | None = None
     with DecodeCache(lambda f: decode_frame(hr.source, f), capacity=4) as cache:
         for i, (f, cam) in enumerate(zip(frames, cameras)):
             cache.request(list(dict.fromkeys(frames[i : i + 3])))
@@ -67,7 +69,10 @@ def render_sequence(
             totals["decode_wait_ms"] += (time.perf_counter() - t0) * 1e3
             assert packed is not None
             hr.set_frame(packed)
-            on_image(i, hr.render_rgb8(cam, settings))
+            if settings.mode == "depth" and zrange is None:
+                hr.renderer.render(cam, settings)
+                zrange = depth_range(hr.renderer.read())  # one colormap range for the whole video
+            on_image(i, hr.render_rgb8(cam, settings, zrange))
             tm = hr.renderer.timings
             totals["sort_ms"] += tm.sort_ms
             totals["draw_ms"] += tm.draw_ms

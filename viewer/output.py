@@ -19,10 +19,21 @@ def colormap(x: np.ndarray) -> np.ndarray:
     return np.clip(1.5 - np.abs(4.0 * x - centers), 0.0, 1.0)
 
 
-def display_rgb(raw: np.ndarray, mode: str, background: tuple[float, float, float]) -> np.ndarray:
+def depth_range(raw: np.ndarray) -> tuple[float, float]:
+    """(min, max) expected depth over the covered pixels of a depth-mode target."""
+    a = raw[..., 3]
+    covered = a > 1e-4
+    if not covered.any():
+        return 0.0, 1.0
+    z = raw[..., 0][covered] / a[covered]
+    return float(z.min()), float(z.max())
+
+
+def display_rgb(raw: np.ndarray, mode: str, background: tuple[float, float, float],
+                zrange: tuple[float, float] | None = None) -> np.ndarray:
     """(H,W,4) float target (premultiplied rgb or z*alpha, alpha) -> (H,W,3) float in [0,1] for
-    viewing: color as is; depth normalized over the covered pixels and colormapped (near = red);
-    alpha as gray."""
+    viewing: color as is; depth colormapped over ``zrange`` (default: this image's covered
+    pixels; near = red); alpha as gray."""
     if mode == "color":
         return np.clip(raw[..., :3], 0.0, 1.0)
     a = raw[..., 3]
@@ -30,7 +41,7 @@ def display_rgb(raw: np.ndarray, mode: str, background: tuple[float, float, floa
         return np.repeat(np.clip(a, 0.0, 1.0)[..., None], 3, axis=2)
     covered = a > 1e-4
     z = np.where(covered, raw[..., 0] / np.maximum(a, 1e-4), 0.0)
-    lo, hi = (float(z[covered].min()), float(z[covered].max())) if covered.any() else (0.0, 1.0)
+    lo, hi = zrange if zrange is not None else depth_range(raw)
     x = (z - lo) / max(hi - lo, 1e-6)
     rgb = colormap(1.0 - x)
     bg = np.asarray(background, dtype=np.float64)

@@ -41,11 +41,15 @@ class MotionConfig:
 
     max_cameras: int = 4  # training cameras, evenly spread over the list
     max_frames: int = 64  # evenly spaced frames per camera (first and last always included)
-    max_side: int = 128  # box-downsample so that the longer image side is at most this
+    # box-downsample so that the longer side is at most this: averages out noise and compression
+    # artifacts, and keeps the measurement cheap
+    max_side: int = 64
     noise_multiplier: float = 6.0  # change threshold in noise floors: ~10 sigma, no false "ever moved"
-    min_threshold: float = 2.0 / 255.0  # quantization: never trust differences below this
+    # never trust smaller changes: lossy video (H.264 crf 23, 4:2:0) makes static pixels drift by
+    # up to ~12/255 over a few seconds (docs/auto.md); lossless data loses only faint changes
+    min_threshold: float = 10.0 / 255.0
     max_threshold: float = 0.1  # a noisy/ever-moving estimate must not hide strong changes
-    noise_percentile: float = 25.0  # over pixels, of the per-pixel temporal median difference
+    noise_percentile: float = 25.0  # over pixels, of the per-pixel noise: the global noise floor
     active_fraction: float = 1e-3  # a frame pair with fewer changed pixels counts as static
     static_fraction: float = 2e-3  # scenes with fewer ever-moving pixels count as static
     max_spacing_points: int = 4096  # points per keyframe group used for the spacing estimate
@@ -246,12 +250,12 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
     if P >= 2:
         diffs = frame_difference(imgs[:, 1:], imgs[:, :-1])  # (C, P-1, h, w)
         noise = estimate_noise(diffs, cfg.noise_percentile)
-        threshold = float(np.clip(cfg.noise_multiplier * noise, cfg.min_threshold, cfg.max_threshold))
-        changed = diffs > threshold
+        thr = threshold = float(np.clip(cfg.noise_multiplier * noise, cfg.min_threshold, cfg.max_threshold))
+        changed = diffs > thr
+        del diffs
         energy_cp = changed.mean(axis=(2, 3))  # (C, P-1)
         energy = energy_cp.mean(axis=0)
         ever = changed.any(axis=1).mean(axis=(1, 2))  # (C,)
-        del diffs
         # a pair is active when it changes clearly more than noise blips, relative to the peak
         active_pair = energy_cp >= max(cfg.active_fraction, 0.05 * float(energy_cp.max()))
         cum = np.concatenate([np.zeros((C, 1), np.int64), np.cumsum(active_pair, axis=1)], axis=1)
@@ -262,7 +266,7 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
             starts = (cum[:, L:P] - cum[:, 0:P - L]) > 0
             if not starts.any():
                 continue
-            d = frame_difference(imgs[:, L:], imgs[:, :-L]) > threshold  # (C, P-L, h, w)
+            d = frame_difference(imgs[:, L:], imgs[:, :-L]) > thr  # (C, P-L, h, w)
             frac = d.mean(axis=(2, 3))
             lag_vals.append(float(frac[starts].mean()))
             # mean frame gap of this sampled lag (frames are evenly spaced up to rounding)
@@ -279,9 +283,9 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
         energy, energy_frames, lag_frames, lag_vals = np.zeros(0), [], [], []
         time_scale, active_time = float(F), 0.0
         notes.append("a single frame: nothing can move")
-    if not static and noise * cfg.noise_multiplier > cfg.max_threshold:
-        notes.append(f"noise floor {noise:.3f} is high (or most pixels move all the time): "
-                     f"threshold capped at {cfg.max_threshold:.3f}")
+    if not static and threshold >= cfg.max_threshold:
+        notes.append(f"noise is high (or most pixels move all the time): change threshold capped at "
+                     f"{cfg.max_threshold * 255:.0f}/255")
 
     b = np.asarray(scene.bounds, dtype=np.float64)
     bsize = b[1] - b[0]

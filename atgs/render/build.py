@@ -1,4 +1,4 @@
-"""Compile-at-first-use of the C++ rasterizer extension, cached by source hash."""
+"""Compile-at-first-use of the C++/OpenMP rasterizer, cached by source hash."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ import torch
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("rasterize.cpp",)
 HEADERS = ("projection.h",)
-BASE_CFLAGS = ("-O3", "-pthread", "-std=c++17")
-LDFLAGS = ("-pthread",)
+BASE_CFLAGS = ("-O3", "-fopenmp", "-std=c++17")
+LDFLAGS = ("-fopenmp",)
 
 
 def cpu_flags() -> tuple[str, ...]:

@@ -9,10 +9,10 @@
 // Every pixel sees the same Gaussians in the same order whatever the tile size, because the
 // cut-off is a per-pixel test; tiles and per-Gaussian boxes only skip work.
 //
-// Parallelism: std::threads over tiles (see parallel_for). Within a tile the loop runs
-// Gaussian-outer / pixel-inner
-// over the box where the Gaussian can be non-negligible, keeping per-pixel state in local
-// arrays; the per-pixel order is still front to back. The backward pass writes one gradient
+// Parallelism: OpenMP over tiles (dynamic schedule: tiles differ a lot in cost). Within a tile
+// the loop runs Gaussian-outer / pixel-inner over the box where the Gaussian can be
+// non-negligible, 8 pixels per SIMD vector, keeping per-pixel state in local arrays; the
+// per-pixel order is still front to back. The backward pass writes one gradient
 // record per (tile, Gaussian) pair and reduces them serially, so results are deterministic.
 // Narrow includes (not <torch/extension.h>): they cut the first-use compile time by more than half.
 #include <ATen/core/Tensor.h>
@@ -21,13 +21,13 @@
 
 #include "projection.h"
 
+#include <omp.h>
+
 #if defined(__AVX__)
 #include <immintrin.h>
 #endif
 
 #include <algorithm>
-#include <atomic>
-#include <thread>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -40,7 +40,6 @@ constexpr int kChannels = 4;  // RGB + view depth
 constexpr int kTile = 16;  // tile edge in pixels; rows are processed as whole SIMD vectors
 constexpr int kTilePix = kTile * kTile;
 constexpr int64_t kParallelProjectMin = 65536;  // smaller inputs: a fork-join costs more than it saves
-constexpr int64_t kProjectChunk = 8192;
 constexpr int kGradStride = 6 + kChannels;  // mean(2) conic(3) opacity(1) features(4)
 
 // 8-lane vectors (GCC/Clang vector extensions): AVX2 when compiled with -mavx2, two SSE
@@ -94,30 +93,6 @@ inline v8f exp_neg(v8f s) {
   q = q * y + 1.f;
   const v8i bits = (127 - n) << 23;
   return q * reinterpret_cast<const v8f&>(bits);
-}
-
-// Runs body(0 .. n-1) on `threads` threads (the caller included) that pull indices from a
-// shared counter (dynamic scheduling: tiles differ a lot in cost). Plain std::threads rather than
-// OpenMP: an OpenMP team spin-waits after each region, and the autograd engine runs backward on
-// its own thread with its own team, so on a 2-core machine the idle team's spinning competed with
-// the working one (measured: twice the CPU time on a busy machine). Thread start-up (~50 us) is
-// negligible next to a render.
-template <class F>
-void parallel_for(int n, int threads, F&& body) {
-  const int extra = std::max(0, std::min(threads, n) - 1);
-  if (extra == 0) {
-    for (int i = 0; i < n; ++i) body(i);
-    return;
-  }
-  std::atomic<int> next{0};
-  auto worker = [&]() {
-    for (int i = next.fetch_add(1); i < n; i = next.fetch_add(1)) body(i);
-  };
-  std::vector<std::thread> pool;
-  pool.reserve(extra);
-  for (int i = 0; i < extra; ++i) pool.emplace_back(worker);
-  worker();
-  for (auto& th : pool) th.join();
 }
 
 struct Params {
@@ -257,7 +232,8 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
   const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
 
-  parallel_for(n_tiles, p.threads, [&](int t) {
+#pragma omp parallel for schedule(dynamic, 1) num_threads(p.threads)
+  for (int t = 0; t < n_tiles; ++t) {
     const int px0 = (t % tx) * kTile, py0 = (t / tx) * kTile;
     const int pw = std::min(kTile, p.width - px0), ph = std::min(kTile, p.height - py0);
     const int64_t begin = bins.offsets[t], end = bins.offsets[t + 1];
@@ -317,7 +293,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
         last_p[pix] = stop[r][l];
       }
     tile_blended[t] = blended;
-  });
+  }
   auto offsets = at::empty({int64_t(bins.offsets.size())}, at::kLong);
   auto ids = at::empty({int64_t(bins.ids.size())}, at::kInt);
   std::copy(bins.offsets.begin(), bins.offsets.end(), offsets.data_ptr<int64_t>());
@@ -386,7 +362,8 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
   const v8f lane_x0 = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};
   const v8i lane_i0 = {0, 1, 2, 3, 4, 5, 6, 7};
 
-  parallel_for(n_tiles, p.threads, [&](int t) {
+#pragma omp parallel for schedule(dynamic, 1) num_threads(p.threads)
+  for (int t = 0; t < n_tiles; ++t) {
     const int px0 = (t % tx) * kTile, py0 = (t / tx) * kTile;
     const int pw = std::min(kTile, p.width - px0), ph = std::min(kTile, p.height - py0);
     const int64_t begin = off[t], end = off[t + 1];
@@ -469,7 +446,7 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
       rec[5] = hsum(gO);
       for (int ch = 0; ch < kChannels; ++ch) rec[6 + ch] = hsum(gf[ch]);
     }
-  });
+  }
 
   // Per-Gaussian records (one cache line each) gather the pair records serially, which keeps
   // the result deterministic; then they are split into the output tensors. Outputs are not
@@ -556,12 +533,10 @@ std::vector<at::Tensor> project_fwd(at::Tensor means, at::Tensor quats, at::Tens
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   float *o_m2 = m2.data_ptr<float>(), *o_con = con.data_ptr<float>(), *o_dep = dep.data_ptr<float>();
   int32_t* o_rad = rad.data_ptr<int32_t>();
-  const int64_t chunks = (n + kProjectChunk - 1) / kProjectChunk;
-  parallel_for(int(chunks), n > kParallelProjectMin ? int(threads) : 1, [&](int c) {
-    for (int64_t i = c * kProjectChunk; i < std::min(n, (c + 1) * kProjectChunk); ++i)
-      atgs::project_forward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, o_m2 + 2 * i, o_con + 3 * i, o_dep + i,
-                            o_rad + i);
-  });
+#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > kParallelProjectMin)
+  for (int64_t i = 0; i < n; ++i)
+    atgs::project_forward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, o_m2 + 2 * i, o_con + 3 * i, o_dep + i,
+                          o_rad + i);
   return {m2, con, dep, rad};
 }
 
@@ -582,12 +557,10 @@ std::vector<at::Tensor> project_bwd(at::Tensor means, at::Tensor quats, at::Tens
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   const float *vm = v_means2d.data_ptr<float>(), *vc = v_conics.data_ptr<float>(), *vd = v_depths.data_ptr<float>();
   float *gm = g_means.data_ptr<float>(), *gq = g_quats.data_ptr<float>(), *gs = g_scales.data_ptr<float>();
-  const int64_t chunks = (n + kProjectChunk - 1) / kProjectChunk;
-  parallel_for(int(chunks), n > kParallelProjectMin ? int(threads) : 1, [&](int c) {
-    for (int64_t i = c * kProjectChunk; i < std::min(n, (c + 1) * kProjectChunk); ++i)
-      atgs::project_backward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, vm + 2 * i, vc + 3 * i, vd[i],
-                             gm + 3 * i, gq + 4 * i, gs + 3 * i);
-  });
+#pragma omp parallel for schedule(static) num_threads(int(std::max<int64_t>(1, threads))) if (n > kParallelProjectMin)
+  for (int64_t i = 0; i < n; ++i)
+    atgs::project_backward(pm + 3 * i, pq + 4 * i, ps + 3 * i, cam, k, vm + 2 * i, vc + 3 * i, vd[i],
+                           gm + 3 * i, gq + 4 * i, gs + 3 * i);
   return {g_means, g_quats, g_scales};
 }
 
