@@ -38,6 +38,7 @@ class BenchArgs:
     work_dir: Path = Path("/tmp/atgs-bench-train")
     out: Path = ROOT / "bench" / "results" / "train.json"
     threads: int = 0
+    ablation_names: tuple[str, ...] = ()  # run only these ablations (merged by name into the results)
 
 
 @dataclass
@@ -143,7 +144,13 @@ def main() -> None:
     def save() -> None:  # merge with what other bench processes wrote meanwhile
         args.out.parent.mkdir(parents=True, exist_ok=True)
         merged = json.loads(args.out.read_text()) if args.out.is_file() else {}
-        merged.update({k: v for k, v in results.items() if k in ("main", "ablations", "memory")})
+        for k, v in results.items():
+            if k in ("ablations", "memory") and isinstance(merged.get(k), list):
+                old = {r["name"]: r for r in merged[k]}
+                old.update({r["name"]: r for r in v})
+                merged[k] = list(old.values())
+            elif k == "main":
+                merged[k] = v
         merged.setdefault("machine", results["machine"])
         tmp = args.out.with_suffix(f".tmp{os.getpid()}")
         tmp.write_text(json.dumps(merged, indent=1))
@@ -163,8 +170,12 @@ def main() -> None:
             RunSpec("few keyframes (K=3)", args.preset, it, model_overrides={"num_segments": 4, "num_keyframes": 3},
                     **base),
         ]
-        results["ablations"] = [run_subprocess(s, args) for s in specs]
-        save()
+        if args.ablation_names:
+            specs = [s for s in specs if s.name in args.ablation_names]
+        results["ablations"] = []
+        for s in specs:
+            results["ablations"].append(run_subprocess(s, args))
+            save()
     if "memory" in args.only:
         mem = []
         for frames in args.memory_frames:

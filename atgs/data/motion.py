@@ -49,7 +49,7 @@ class MotionConfig:
     # up to ~12/255 over a few seconds (docs/auto.md); lossless data loses only faint changes
     min_threshold: float = 10.0 / 255.0
     max_threshold: float = 0.1  # a noisy/ever-moving estimate must not hide strong changes
-    noise_percentile: float = 25.0  # over pixels, of the per-pixel noise: the global noise floor
+    noise_percentile: float = 25.0  # over pixels, of the per-pixel temporal median difference
     active_fraction: float = 1e-3  # a frame pair with fewer changed pixels counts as static
     static_fraction: float = 2e-3  # scenes with fewer ever-moving pixels count as static
     max_spacing_points: int = 4096  # points per keyframe group used for the spacing estimate

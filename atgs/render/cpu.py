@@ -65,11 +65,13 @@ class _Rasterize2D(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):  # type: ignore[override]
         threads = torch.get_num_threads()
-        image, alpha, depth, t_final, last, offsets, ids, _stats = load_extension().forward(
+        image, alpha, depth, t_final, last, offsets, ids, slots, order, first, _stats = load_extension().forward(
             means2d, conics, opacities, colors, depths, radii, background,
             width, height, TILE, threads, ALPHA_MAX, ALPHA_MIN, T_MIN, SIGMA_CUTOFF,
         )  # fmt: skip
-        ctx.save_for_backward(means2d, conics, opacities, colors, depths, radii, background, t_final, last, offsets, ids)
+        ctx.save_for_backward(
+            means2d, conics, opacities, colors, depths, radii, background, t_final, last, offsets, ids, slots, order, first
+        )
         ctx.size = (width, height, threads)
         return image, alpha, depth
 
@@ -147,5 +149,5 @@ def pair_counts(
         proj.means2d.contiguous(), proj.conics.contiguous(), opacities.float().contiguous(),
         torch.zeros_like(means).float(), proj.depths.contiguous(), proj.radii, torch.zeros(3), width, height,
         TILE, torch.get_num_threads(), ALPHA_MAX, ALPHA_MIN, T_MIN, SIGMA_CUTOFF,
-    )[7]  # fmt: skip
+    )[-1]  # fmt: skip
     return {"blended_pairs": int(stats[0]), "tile_pairs": int(stats[1]), "visible": int((proj.radii > 0).sum())}

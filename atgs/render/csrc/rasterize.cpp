@@ -136,6 +136,11 @@ struct Binning {
   std::vector<Box> boxes;          // per Gaussian
   std::vector<int64_t> offsets;    // per tile, size n_tiles + 1
   std::vector<int32_t> ids;        // Gaussian ids, front to back within each tile
+  // The same pairs numbered Gaussian by Gaussian (depth order): slots[k] is the number of list
+  // entry k, and Gaussian order[j] owns slots first[j] .. first[j+1]-1. The backward pass stores
+  // its per-pair gradients by slot, so the final reduction reads them sequentially.
+  std::vector<int32_t> slots, order;
+  std::vector<int64_t> first;
 };
 
 Binning bin_gaussians(const float* means2d, const float* conics, const float* opac,
@@ -164,13 +169,24 @@ Binning bin_gaussians(const float* means2d, const float* conics, const float* op
       for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x) bins.offsets[int64_t(y) * tx + x + 1]++;
   std::partial_sum(bins.offsets.begin(), bins.offsets.end(), bins.offsets.begin());
   bins.ids.resize(bins.offsets.back());
+  bins.slots.resize(bins.offsets.back());
+  bins.order.resize(keys.size());
+  bins.first.resize(keys.size() + 1);
   std::vector<int64_t> cursor(bins.offsets.begin(), bins.offsets.end() - 1);
+  int32_t slot = 0;
   for (size_t j = 0; j < keys.size(); ++j) {
     const Box& b = sorted[j];
     const int32_t g = int32_t(uint32_t(keys[j]));
+    bins.order[j] = g;
+    bins.first[j] = slot;
     for (int y = b.y0 / kTile; y <= b.y1 / kTile; ++y)
-      for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x) bins.ids[cursor[int64_t(y) * tx + x]++] = g;
+      for (int x = b.x0 / kTile; x <= b.x1 / kTile; ++x) {
+        const int64_t pos = cursor[int64_t(y) * tx + x]++;
+        bins.ids[pos] = g;
+        bins.slots[pos] = slot++;
+      }
   }
+  bins.first[keys.size()] = slot;
   return bins;
 }
 
@@ -191,7 +207,8 @@ void check_input(const at::Tensor& t, const char* name, at::ScalarType type) {
 }  // namespace
 
 // Returns image (H,W,3), alpha (H,W), depth (H,W), T_final (H,W), last (H,W) int32 (per-pixel
-// count of list entries used), tile offsets (n_tiles+1) int64, tile ids (pairs) int32, stats
+// count of list entries used), tile offsets (n_tiles+1) int64, tile ids (pairs) int32,
+// slots / order / first int32 / int32 / int64 (see Binning), stats
 // int64 (blended pixel-Gaussian pairs, tile-Gaussian pairs). Depth is the 4th blended channel
 // (background 0) and also the sort key. All outputs are written here, serially per tile, so no
 // extra torch ops (each a fork-join on a busy machine) are needed around the kernel.
@@ -298,11 +315,17 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   auto ids = at::empty({int64_t(bins.ids.size())}, at::kInt);
   std::copy(bins.offsets.begin(), bins.offsets.end(), offsets.data_ptr<int64_t>());
   std::copy(bins.ids.begin(), bins.ids.end(), ids.data_ptr<int32_t>());
+  auto slots = at::empty({int64_t(bins.slots.size())}, at::kInt);
+  auto order = at::empty({int64_t(bins.order.size())}, at::kInt);
+  auto first = at::empty({int64_t(bins.first.size())}, at::kLong);
+  std::copy(bins.slots.begin(), bins.slots.end(), slots.data_ptr<int32_t>());
+  std::copy(bins.order.begin(), bins.order.end(), order.data_ptr<int32_t>());
+  std::copy(bins.first.begin(), bins.first.end(), first.data_ptr<int64_t>());
   const int64_t total_blended = std::accumulate(tile_blended.begin(), tile_blended.end(), int64_t(0));
   auto stats = at::empty({2}, at::kLong);
   stats.data_ptr<int64_t>()[0] = total_blended;
   stats.data_ptr<int64_t>()[1] = int64_t(bins.ids.size());
-  return {image, alpha_out, depth_out, t_final, last, offsets, ids, stats};
+  return {image, alpha_out, depth_out, t_final, last, offsets, ids, slots, order, first, stats};
 }
 
 // Gradients w.r.t. means2d (N,2), conics (N,3), opacities (N,), colors (N,3), depths (N,),
@@ -310,7 +333,8 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
 std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                     at::Tensor colors, at::Tensor depths, at::Tensor radii,
                                     at::Tensor background, at::Tensor t_final, at::Tensor last,
-                                    at::Tensor offsets, at::Tensor ids, at::Tensor grad_image,
+                                    at::Tensor offsets, at::Tensor ids, at::Tensor slots, at::Tensor order,
+                                    at::Tensor first, at::Tensor grad_image,
                                     at::Tensor grad_alpha, at::Tensor grad_depth,
                                     int64_t width, int64_t height, int64_t tile, int64_t threads,
                                     double alpha_max, double alpha_min, double t_min, double sigma_cutoff) {
@@ -328,6 +352,13 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
   check_input(last, "last", at::kInt);
   check_input(offsets, "offsets", at::kLong);
   check_input(ids, "ids", at::kInt);
+  check_input(slots, "slots", at::kInt);
+  check_input(order, "order", at::kInt);
+  check_input(first, "first", at::kLong);
+  const int32_t* slot_p = slots.data_ptr<int32_t>();
+  const int32_t* order_p = order.data_ptr<int32_t>();
+  const int64_t* first_p = first.data_ptr<int64_t>();
+  const int64_t n_sorted = order.size(0);
   const int64_t n = means2d.size(0);
   const Params p = make_params(width, height, tile, kChannels, threads, alpha_max, alpha_min, t_min, sigma_cutoff);
   const float* m2 = means2d.data_ptr<float>();
@@ -441,22 +472,16 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
           gv += vs * (cb * dx + cc * dy);
         }
       }
-      float* rec = pair_grads.data() + k * kGradStride;
+      float* rec = pair_grads.data() + int64_t(slot_p[k]) * kGradStride;
       rec[0] = hsum(gu); rec[1] = hsum(gv); rec[2] = hsum(gA); rec[3] = hsum(gB); rec[4] = hsum(gC);
       rec[5] = hsum(gO);
       for (int ch = 0; ch < kChannels; ++ch) rec[6 + ch] = hsum(gf[ch]);
     }
   }
 
-  // Per-Gaussian records (one cache line each) gather the pair records serially, which keeps
-  // the result deterministic; then they are split into the output tensors. Outputs are not
-  // created with torch::zeros: each torch op is a fork-join, costly on a busy machine.
-  std::vector<float> acc(n * kGradStride, 0.f);
-  for (int64_t k = 0; k < n_pairs; ++k) {
-    float* a = acc.data() + int64_t(id_p[k]) * kGradStride;
-    const float* r = pair_grads.data() + k * kGradStride;
-    for (int j = 0; j < kGradStride; ++j) a[j] += r[j];
-  }
+  // Gaussian-major slots: each Gaussian's pair records are contiguous, summed in a fixed order
+  // (deterministic) and written once. Outputs are not created with torch::zeros: each torch op
+  // is a fork-join of its thread pool, costly on a busy machine.
   auto g_m2 = at::empty({n, 2}, means2d.options());
   auto g_con = at::empty({n, 3}, means2d.options());
   auto g_op = at::empty({n}, means2d.options());
@@ -465,8 +490,18 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
   auto g_bg = at::empty({3}, means2d.options());
   float *pm = g_m2.data_ptr<float>(), *pc = g_con.data_ptr<float>(), *po = g_op.data_ptr<float>(),
         *pf = g_col.data_ptr<float>(), *pd = g_dep.data_ptr<float>();
-  for (int64_t g = 0; g < n; ++g) {
-    const float* a = acc.data() + g * kGradStride;
+  std::fill(pm, pm + 2 * n, 0.f);
+  std::fill(pc, pc + 3 * n, 0.f);
+  std::fill(po, po + n, 0.f);
+  std::fill(pf, pf + 3 * n, 0.f);
+  std::fill(pd, pd + n, 0.f);
+  for (int64_t j = 0; j < n_sorted; ++j) {
+    float a[kGradStride] = {};
+    for (int64_t q = first_p[j]; q < first_p[j + 1]; ++q) {
+      const float* r = pair_grads.data() + q * kGradStride;
+      for (int i = 0; i < kGradStride; ++i) a[i] += r[i];
+    }
+    const int64_t g = order_p[j];
     pm[2 * g] = a[0]; pm[2 * g + 1] = a[1];
     pc[3 * g] = a[2]; pc[3 * g + 1] = a[3]; pc[3 * g + 2] = a[4];
     po[g] = a[5];
