@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from atgs.cameras import Camera
 from atgs.checkpoint import read_checkpoint, save_checkpoint
-from atgs.model.atgs_model import TEMPORAL_MLP, ATGSModel, Decoded
+from atgs.model.atgs_model import ATGSModel, Decoded
 from atgs.model.config import ModelConfig, TrainConfig, from_dict, to_dict
 from atgs.render import rasterize
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors
