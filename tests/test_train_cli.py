@@ -22,3 +22,30 @@ def test_existing_checkpoint_is_not_overwritten(tmp_path):
     assert (tmp_path / "ckpt.pt").read_bytes() == b"old"
     with pytest.raises(SystemExit, match="not found"):
         run(parse(["--out", str(tmp_path / "new"), "--resume"]))
+
+
+def test_auto_applies_scene_choices_and_keeps_explicit_flags(tmp_path, capsys):
+    """--auto on a static scene picks K = M = 1; a --model.* flag given explicitly wins."""
+    import numpy as np
+
+    from atgs.cameras import Camera, look_at
+    from atgs.cli.train import apply_auto, explicit_model_flags
+    from atgs.data.scene import PreparedScene, write_prepared_scene
+
+    K = np.array([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]])
+    cams = [Camera(f"cam{i:02d}", 48, 32, K, look_at([3 * np.cos(i), 3 * np.sin(i), 1.0], [0, 0, 0]))
+            for i in range(3)]
+    still = np.random.default_rng(0).random((32, 48, 3)).astype(np.float32)
+    pts = np.random.default_rng(1).random((50, 3)) - 0.5
+    write_prepared_scene(tmp_path / "s", cams, lambda c, f: still, 12, pts, np.full((50, 3), 0.5),
+                         np.arange(50) % 3, keyframes=[0, 5, 11])
+    scene = PreparedScene.load(tmp_path / "s")
+
+    argv = ["--auto", "--preset", "cpu-fast", "--model.spatial-resolution", "17"]
+    args = parse(argv)
+    explicit = explicit_model_flags(argv)
+    assert explicit == {"spatial_resolution"}
+    apply_auto(args, scene, explicit)
+    assert args.model.num_keyframes == 1 and args.model.num_segments == 1, "a static scene needs one of each"
+    assert args.model.spatial_resolution == 17, "explicit flags win over --auto"
+    assert "kept the given value" in capsys.readouterr().out

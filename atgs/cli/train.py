@@ -45,6 +45,9 @@ class TrainArgs:
     """Where the built-in synthetic scene is cached."""
     synth_keyframes: int = 6
     """Keyframes of the built-in synthetic scene (when --data is not given)."""
+    auto: bool = False
+    """Measure the scene's motion and choose K, M, hash table size and spatial grid resolution
+    from it (printed with the reasons); --model.* flags given explicitly still win."""
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
@@ -83,7 +86,31 @@ def load_scene(args: TrainArgs):
     return PreparedScene.load(path)
 
 
-def run(args: TrainArgs) -> dict:
+def explicit_model_flags(argv: list[str]) -> set[str]:
+    """Model knobs given on the command line, as dotted field names ("hash.log2_table_size")."""
+    names = set()
+    for a in argv:
+        if a.startswith("--model."):
+            names.add(a[len("--model."):].split("=", 1)[0].replace("-", "_"))
+    return names
+
+
+def apply_auto(args: TrainArgs, scene, explicit: set[str]) -> None:
+    """--auto: measure the scene and replace the preset's sizes by what the scene needs."""
+    from atgs.auto_config import apply_overrides, choose_config, format_choice
+    from atgs.data.motion import measure_motion
+
+    stats = measure_motion(scene)
+    choice = choose_config(stats, args.model)
+    kept = {k: v for k, v in choice.overrides.items() if k not in explicit}
+    print("atgs-train: --auto chose (from the measured motion):")
+    print(format_choice(choice))
+    for k in sorted(set(choice.overrides) - set(kept)):
+        print(f"  (--model.{k.replace('_', '-')} given on the command line: kept the given value)")
+    args.model = apply_overrides(args.model, kept)
+
+
+def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
     from atgs.train.trainer import Trainer
 
     ckpt = args.out / "ckpt.pt"
@@ -100,6 +127,8 @@ def run(args: TrainArgs) -> dict:
         if args.iterations is not None:
             args.train.iterations = args.iterations
         scene = load_scene(args)
+        if args.auto:
+            apply_auto(args, scene, explicit)
         trainer = Trainer(scene, args.model, args.train, args.out)
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "config.json").write_text(json.dumps(
@@ -120,17 +149,15 @@ def run(args: TrainArgs) -> dict:
 def main(argv: list[str] | None = None) -> None:
     from atgs.checkpoint import CheckpointError
 
-    args = parse(sys.argv[1:] if argv is None else argv)
-    try:
-        run(args)
-    except CheckpointError as e:
-        raise SystemExit(f"atgs-train: {e}") from None
-    except Exception as e:
-        from atgs.data.errors import DataError
+    from atgs.data.errors import DataError
 
-        if isinstance(e, DataError):
-            raise SystemExit(f"atgs-train: {e}") from None
-        raise
+    argv = sys.argv[1:] if argv is None else argv
+    args = parse(argv)
+    try:
+        run(args, explicit_model_flags(argv))
+    except (CheckpointError, DataError) as e:
+        print(f"atgs-train: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":
