@@ -18,6 +18,7 @@ from atgs.gaussians import Gaussians
 from atgs.model.anchors import AnchorInit, init_anchors
 from atgs.model.config import ModelConfig
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
+from atgs.model.fast_decode import InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
 from atgs.model.timeline import Timeline
 
@@ -98,6 +99,8 @@ class ATGSModel:
             torch.manual_seed(seed)
             self.decoder = GaussianDecoder(2 * d, cfg.gaussians_per_anchor, cfg.hidden_opacity,
                                            cfg.hidden_cov, cfg.hidden_color, cfg.hidden_offset)
+        # Time-invariant quantities of the inference decode; invalidated by tensor versions.
+        self.inference_cache = InferenceCache()
 
     # --- construction -------------------------------------------------------------------
     @classmethod
@@ -144,13 +147,18 @@ class ATGSModel:
         return self.timeline.window_at(t)
 
     def gaussians_at(self, t: float) -> Gaussians:
-        """All Gaussians at normalized time t (clamped to [0, 1])."""
+        """All Gaussians at normalized time t (clamped to [0, 1]); cached fast path
+        (atgs.model.fast_decode), equal to the training decode up to float32 round-off."""
         f = self.timeline.frame_at(t)
         m, tau = self.timeline.segment_at(t)
-        with torch.no_grad():
-            return self._decode(f, m, tau, None, track=False).gaussians
+        return self.inference_cache.decode(self, f, m, tau)
 
     def gaussians_at_frame(self, f: int) -> Gaussians:
+        tl = self.timeline
+        return self.inference_cache.decode(self, f, tl.segment_of_frame(f), tl.local_time_of_frame(f))
+
+    def gaussians_at_frame_reference(self, f: int) -> Gaussians:
+        """The uncached decode of frame f (the training path without autograd), for tests."""
         tl = self.timeline
         with torch.no_grad():
             return self._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), None, track=False).gaussians

@@ -119,6 +119,36 @@ class HashGrid4D:
             h = h ^ (c * p)  # int64 wrap-around keeps the low bits exact
         return h & (self.table_size - 1)
 
+    def spatial_slots(self, x: torch.Tensor, lv: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Time-invariant part of level lv for points x (N, 3): partial slots (N, 8) int64 and
+        trilinear weights (N, 8). :meth:`combine_time` adds a time vertex; the result equals
+        :meth:`level_slots` of the 4D corner (both the dense sum and the hash xor split exactly)."""
+        r = self.res[lv]
+        corners, w = interp_indices(x.clamp(0, 1), [r, r, r])
+        cx, cy, cz = corners.unbind(-1)
+        if self.dense_level(lv):
+            return cx + (r + 1) * (cy + (r + 1) * cz), w
+        h = cx * _PRIMES[0]
+        for c, p in zip((cy, cz), _PRIMES[1:3]):
+            h = h ^ (c * p)
+        return h & (self.table_size - 1), w  # (a ^ b) & m == (a & m) ^ (b & m)
+
+    def combine_time(self, partial: torch.Tensor, lv: int, vertex: int, grid: int) -> torch.Tensor:
+        """Table rows of the spatial partial slots of level lv at integer time vertex ``vertex``."""
+        r = self.res[lv]
+        if self.dense_level(lv):
+            slots = partial + (r + 1) ** 3 * vertex
+        else:
+            slots = partial ^ ((vertex * _PRIMES[3]) & (self.table_size - 1))
+        return slots + (grid * self.levels + lv) * self.table_size
+
+    def time_corners(self, tau: float, lv: int) -> tuple[int, float, float]:
+        """(lower time vertex, weight of it, weight of the next one) of local time tau at level lv,
+        computed in float32 exactly as :func:`interp_indices` does for the 4th coordinate."""
+        t = torch.full((1, 1), float(tau), dtype=torch.float32).clamp(0, 1)
+        corners, w = interp_indices(t, [self.time_res[lv]])
+        return int(corners[0, 0, 0]), float(w[0, 0]), float(w[0, 1])
+
     def indices(self, x: torch.Tensor, tau: float, grid: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows (N, L, 16) and weights (N, L, 16) of points x (N, 3) in [0,1]^3 at local time tau."""
         n = x.shape[0]

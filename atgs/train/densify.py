@@ -41,7 +41,9 @@ class DensifyStats:
         self.anchor_count.index_add_(0, dec.active, torch.ones(dec.active.numel()))
         if means2d_grad is None:
             return
-        vis = radii > 0
+        # a non-finite screen-space gradient (the trainer zeroes it for the update) must not
+        # poison the running sums: such Gaussians are not counted this step
+        vis = (radii > 0) & torch.isfinite(means2d_grad).all(dim=1)
         slots = (dec.anchor_ids * q + dec.slot_ids)[vis]
         g = means2d_grad[vis] * torch.tensor([0.5 * width, 0.5 * height])
         self.grad_accum.index_add_(0, slots, g.norm(dim=1))

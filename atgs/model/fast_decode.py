@@ -1,0 +1,202 @@
+"""Fast inference decode (``gaussians_at`` / ``gaussians_at_frame``, no autograd, no camera).
+
+Only the local time tau changes between frames, so everything that depends on the anchors alone
+is computed once per parameter state and kept:
+
+- per anchor: ``inside``, ``exp(v)``, ``f_a + f_s`` and its product with the ``f_a + f_s`` half
+  of the four decoder heads' first layers (stacked into one matrix, biases included);
+- per (segment, level, time vertex) of the 4D hash grid: the trilinear spatial interpolation of
+  that time slice for every anchor (the 4D quadrilinear interpolation is the time-weighted sum
+  of two such slices), built lazily and kept in a memory-bounded LRU.
+
+A frame then costs two cached slices per level, the small per-segment MLP, one matmul for the
+time half of the stacked first layers, and the four heads' second layers. The cache is keyed on
+the identity and in-place version counter (``Tensor._version``) of every tensor it was built
+from, so a checkpoint load, an optimizer step (in-place ``index_copy_`` / Adam) or an anchor
+edit (new tensors) invalidates it. Results equal the training path (``ATGSModel._decode``) up to
+float32 summation order; tests/test_model_decode_speed_equivalence.py checks this.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+import threading
+from typing import TYPE_CHECKING
+
+import torch
+from torch import nn
+
+from atgs.gaussians import Gaussians
+from atgs.model.decoder import GaussianDecoder
+
+if TYPE_CHECKING:  # pragma: no cover
+    from atgs.model.atgs_model import ATGSModel
+
+# Bytes of hash-slice cache kept per model (at least two slices per level are always kept).
+SLICE_CACHE_BYTES = 256 * 2**20
+
+
+def _key(tensors: list[torch.Tensor]) -> list[tuple[torch.Tensor, int]]:
+    return [(t, t._version) for t in tensors]
+
+
+def _same(a: list[tuple[torch.Tensor, int]], b: list[tuple[torch.Tensor, int]]) -> bool:
+    return len(a) == len(b) and all(x is y and vx == vy for (x, vx), (y, vy) in zip(a, b))
+
+
+def plain_heads(decoder: nn.Module) -> list[tuple[nn.Linear, nn.Linear]] | None:
+    """The (first, second) Linear layers of the four heads, or None if a head is not the plain
+    Linear-ReLU-Linear MLP (e.g. the reduced-precision wrapper of atgs.model.precision)."""
+    if not isinstance(decoder, GaussianDecoder):
+        return None
+    out = []
+    for name in GaussianDecoder.HEADS:
+        head = getattr(decoder, name)
+        if not (isinstance(head, nn.Sequential) and len(head) == 3 and isinstance(head[0], nn.Linear)
+                and isinstance(head[1], nn.ReLU) and isinstance(head[2], nn.Linear)
+                and head[0].weight.dtype == torch.float32 and head[2].weight.dtype == torch.float32):
+            return None
+        out.append((head[0], head[2]))
+    return out
+
+
+@dataclass
+class _Features:
+    key: list[tuple[torch.Tensor, int]]
+    inside: torch.Tensor  # (N, 1) float
+    fa: torch.Tensor  # (N, D) f_a + f_s
+    scale_off: torch.Tensor  # (N, 3) exp(v[:3])
+    scale_base: torch.Tensor  # (N, 3) exp(v[3:])
+    partial: list[torch.Tensor]  # per level (N, 8) int64 spatial part of the hash slots
+    weights: list[torch.Tensor]  # per level (N, 8) trilinear weights
+    slices: "OrderedDict[tuple[int, int, int], torch.Tensor]"  # (m, level, vertex) -> (N, F)
+
+
+@dataclass
+class _Heads:
+    key: list[tuple[torch.Tensor, int]]
+    features_key: list[tuple[torch.Tensor, int]]
+    pre: torch.Tensor  # (N, H) (f_a + f_s) @ W1[:, :D].T + b1 of the four heads, stacked
+    w_t: torch.Tensor  # (D, H) time half of the stacked first layers, transposed, contiguous
+    splits: list[int]  # hidden size of each head
+    second: list[tuple[torch.Tensor, torch.Tensor]]  # (W2.T contiguous, b2) per head
+
+
+class InferenceCache:
+    """Per-model cache of the time-invariant decode quantities (thread safe)."""
+
+    def __init__(self, slice_cache_bytes: int = SLICE_CACHE_BYTES) -> None:
+        self.slice_cache_bytes = int(slice_cache_bytes)
+        self._lock = threading.Lock()
+        self._features: _Features | None = None
+        self._heads: _Heads | None = None
+
+    def clear(self) -> None:
+        with self._lock:
+            self._features, self._heads = None, None
+
+    # --- cached quantities -------------------------------------------------------------------
+    def _feature_tensors(self, model: "ATGSModel") -> list[torch.Tensor]:
+        return [model.anchor_mu, model.anchor_feature, model.anchor_log_scale, model.spatial.table,
+                model.hash.table, model.bbox_min, model.bbox_max]
+
+    def _features_for(self, model: "ATGSModel") -> _Features:
+        key = _key(self._feature_tensors(model))
+        c = self._features
+        if c is not None and _same(c.key, key):
+            return c
+        mu = model.anchor_mu
+        xn = model.normalized_positions(mu)
+        inside = ((xn >= 0) & (xn <= 1)).all(1, keepdim=True).to(mu.dtype)
+        fa = model.anchor_feature
+        if model.cfg.use_spatial_grid:
+            fa = fa + model.spatial.query(xn, False)[0]
+        partial, weights = [], []
+        for lv in range(model.hash.levels):
+            p, w = model.hash.spatial_slots(xn, lv)
+            partial.append(p.contiguous())
+            weights.append(w.contiguous())
+        ls = model.anchor_log_scale
+        c = _Features(key, inside, fa.contiguous(), torch.exp(ls[:, :3]), torch.exp(ls[:, 3:]),
+                      partial, weights, OrderedDict())
+        self._features, self._heads = c, None
+        return c
+
+    def _slice(self, model: "ATGSModel", c: _Features, m: int, lv: int, vertex: int) -> torch.Tensor:
+        """Trilinear interpolation (N, F) of the time slice ``vertex`` of level lv, grid m, zero
+        for anchors outside the box."""
+        k = (m, lv, vertex)
+        s = c.slices.get(k)
+        if s is not None:
+            c.slices.move_to_end(k)
+            return s
+        hg = model.hash
+        rows = hg.combine_time(c.partial[lv], lv, vertex, m)
+        feats = hg.table.index_select(0, rows.reshape(-1)).view(*rows.shape, hg.features)
+        s = (feats * c.weights[lv][..., None]).sum(dim=1) * c.inside
+        c.slices[k] = s
+        per = s.numel() * s.element_size()
+        keep = max(2 * hg.levels, self.slice_cache_bytes // max(per, 1))
+        while len(c.slices) > keep:
+            c.slices.popitem(last=False)
+        return s
+
+    def _heads_for(self, model: "ATGSModel", c: _Features) -> _Heads | None:
+        layers = plain_heads(model.decoder)
+        if layers is None:
+            return None
+        key = _key([p for pair in layers for lin in pair for p in (lin.weight, lin.bias)])
+        h = self._heads
+        if h is not None and _same(h.key, key) and h.features_key is c.key:
+            return h
+        d = c.fa.shape[1]
+        w1 = torch.cat([a.weight for a, _ in layers]).detach()  # (H, 2D)
+        b1 = torch.cat([a.bias for a, _ in layers]).detach()
+        pre = torch.addmm(b1, c.fa, w1[:, :d].T)
+        second = [(b.weight.detach().T.contiguous(), b.bias.detach()) for _, b in layers]
+        h = _Heads(key, c.key, pre, w1[:, d:].T.contiguous(), [a.out_features for a, _ in layers], second)
+        self._heads = h
+        return h
+
+    # --- decode ---------------------------------------------------------------------------
+    def decode(self, model: "ATGSModel", f: int, m: int, tau: float) -> Gaussians:
+        """The Gaussians of ``model._decode(f, m, tau, None, track=False)``."""
+        with self._lock, torch.no_grad():
+            c = self._features_for(model)
+            active = model.active_anchors(f).nonzero().squeeze(1)
+            hg = model.hash
+            parts = []
+            for lv in range(hg.levels):
+                v0, w0, w1 = hg.time_corners(tau, lv)
+                s0 = self._slice(model, c, m, lv, v0)
+                s1 = self._slice(model, c, m, lv, v0 + 1)
+                parts.append(torch.add(s0.index_select(0, active) * w0, s1.index_select(0, active), alpha=w1))
+            h = torch.cat(parts, dim=1)
+            ft = torch.relu(torch.addmm(model.tmlp_b1[m], h, model.tmlp_w1[m]))
+            ft = torch.addmm(model.tmlp_b2[m], ft, model.tmlp_w2[m])
+            heads = self._heads_for(model, c)
+            q = model.cfg.gaussians_per_anchor
+            a = active.numel()
+            if heads is None:  # custom decoder (e.g. reduced precision): run it as is
+                fw = torch.cat([c.fa.index_select(0, active), ft], dim=1)
+                raw = model.decoder(fw, model.anchor_mu.index_select(0, active),
+                                    model.anchor_log_scale.index_select(0, active))
+                opac, scales, quats, colors, means = raw.opacities, raw.scales, raw.quats, raw.colors, raw.means
+            else:
+                hid = torch.relu(torch.addmm(heads.pre.index_select(0, active), ft, heads.w_t))
+                outs = [torch.addmm(b2, x, w2t) for x, (w2t, b2) in
+                        zip(hid.split(heads.splits, dim=1), heads.second)]
+                opac = torch.sigmoid(outs[0]).view(a, q)
+                cov = outs[1].view(a, q, 7)
+                scales = c.scale_base.index_select(0, active)[:, None, :] * torch.sigmoid(cov[..., :3])
+                quats = nn.functional.normalize(cov[..., 3:], dim=-1)
+                colors = torch.sigmoid(outs[2]).view(a, q, 3)
+                mu = model.anchor_mu.index_select(0, active)
+                means = mu[:, None, :] + outs[3].view(a, q, 3) * c.scale_off.index_select(0, active)[:, None, :]
+            out = [means.reshape(-1, 3), quats.reshape(-1, 4), scales.reshape(-1, 3), opac.reshape(-1),
+                   colors.reshape(-1, 3)]
+            if model.cfg.opacity_threshold > 0:
+                keep = (out[3] > model.cfg.opacity_threshold).nonzero().squeeze(1)
+                out = [p.index_select(0, keep) for p in out]
+            return Gaussians(*out)
