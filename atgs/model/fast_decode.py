@@ -3,8 +3,11 @@
 Only the local time tau changes between frames, so everything that depends on the anchors alone
 is computed once per parameter state and kept:
 
-- per anchor: ``inside``, ``exp(v)``, ``f_a + f_s`` and its product with the ``f_a + f_s`` half
-  of the four decoder heads' first layers (stacked into one matrix, biases included);
+- per anchor: ``inside``, ``exp(v)``, ``f_a + f_s`` and the spatial part of every hash level's
+  corner slots with its trilinear weights;
+- per keyframe window (the last two): the active anchors, their rows of the above, and their
+  ``f_a + f_s`` times that half of the four decoder heads' first layers (stacked into one
+  matrix, biases included);
 - per (segment, level, time vertex) of the 4D hash grid: the trilinear spatial interpolation of
   that time slice for every anchor (the 4D quadrilinear interpolation is the time-weighted sum
   of two such slices), built lazily and kept in a memory-bounded LRU.
@@ -71,14 +74,28 @@ class _Features:
     partial: list[torch.Tensor]  # per level (N, 8) int64 spatial part of the hash slots
     weights: list[torch.Tensor]  # per level (N, 8) trilinear weights
     slices: "OrderedDict[tuple[int, int, int], torch.Tensor]"  # (m, level, vertex) -> (N, F)
+    windows: "OrderedDict[tuple, _Window]"  # keyframe window -> its active anchors' rows
+
+
+@dataclass
+class _Window:
+    """Rows of the anchors active in one keyframe window (frames of a window share them)."""
+
+    active: torch.Tensor  # (A,) int64
+    mu: torch.Tensor  # (A, 3)
+    scale_off: torch.Tensor  # (A, 3)
+    scale_base: torch.Tensor  # (A, 3)
+    pre: torch.Tensor | None  # (A, H) (f_a + f_s) @ w_a + b1, filled on first use
+    pre_of: object | None  # the _Heads that ``pre`` was taken from
 
 
 @dataclass
 class _Heads:
     key: list[tuple[torch.Tensor, int]]
     features_key: list[tuple[torch.Tensor, int]]
-    pre: torch.Tensor  # (N, H) (f_a + f_s) @ W1[:, :D].T + b1 of the four heads, stacked
-    w_t: torch.Tensor  # (D, H) time half of the stacked first layers, transposed, contiguous
+    b1: torch.Tensor  # (H,) first-layer biases of the four heads, stacked
+    w_a: torch.Tensor  # (D, H) (f_a + f_s) half of the stacked first layers, transposed
+    w_t: torch.Tensor  # (D, H) f_t half, transposed
     splits: list[int]  # hidden size of each head
     second: list[tuple[torch.Tensor, torch.Tensor]]  # (W2.T contiguous, b2) per head
 
@@ -98,8 +115,8 @@ class InferenceCache:
 
     # --- cached quantities -------------------------------------------------------------------
     def _feature_tensors(self, model: "ATGSModel") -> list[torch.Tensor]:
-        return [model.anchor_mu, model.anchor_feature, model.anchor_log_scale, model.spatial.table,
-                model.hash.table, model.bbox_min, model.bbox_max]
+        return [model.anchor_mu, model.anchor_feature, model.anchor_log_scale, model.anchor_keyframe,
+                model.spatial.table, model.hash.table, model.bbox_min, model.bbox_max]
 
     def _features_for(self, model: "ATGSModel") -> _Features:
         key = _key(self._feature_tensors(model))
@@ -119,7 +136,7 @@ class InferenceCache:
             weights.append(w.contiguous())
         ls = model.anchor_log_scale
         c = _Features(key, inside, fa.contiguous(), torch.exp(ls[:, :3]), torch.exp(ls[:, 3:]),
-                      partial, weights, OrderedDict())
+                      partial, weights, OrderedDict(), OrderedDict())
         self._features, self._heads = c, None
         return c
 
@@ -134,13 +151,27 @@ class InferenceCache:
         hg = model.hash
         rows = hg.combine_time(c.partial[lv], lv, vertex, m)
         feats = hg.table.index_select(0, rows.reshape(-1)).view(*rows.shape, hg.features)
-        s = (feats * c.weights[lv][..., None]).sum(dim=1) * c.inside
+        s = torch.bmm(c.weights[lv][:, None, :], feats).squeeze(1) * c.inside
         c.slices[k] = s
         per = s.numel() * s.element_size()
         keep = max(2 * hg.levels, self.slice_cache_bytes // max(per, 1))
         while len(c.slices) > keep:
             c.slices.popitem(last=False)
         return s
+
+    def _window_for(self, model: "ATGSModel", c: _Features, f: int) -> _Window:
+        k = (model.timeline.window_of_frame(f), bool(model.cfg.static_keyframe0))  # anchor_keyframe: c.key
+        w = c.windows.get(k)
+        if w is not None:
+            c.windows.move_to_end(k)
+            return w
+        active = model.active_anchors(f).nonzero().squeeze(1)
+        w = _Window(active, model.anchor_mu.index_select(0, active), c.scale_off.index_select(0, active),
+                    c.scale_base.index_select(0, active), None, None)
+        c.windows[k] = w
+        while len(c.windows) > 2:  # playback moves forward: the current and the previous window
+            c.windows.popitem(last=False)
+        return w
 
     def _heads_for(self, model: "ATGSModel", c: _Features) -> _Heads | None:
         layers = plain_heads(model.decoder)
@@ -153,9 +184,9 @@ class InferenceCache:
         d = c.fa.shape[1]
         w1 = torch.cat([a.weight for a, _ in layers]).detach()  # (H, 2D)
         b1 = torch.cat([a.bias for a, _ in layers]).detach()
-        pre = torch.addmm(b1, c.fa, w1[:, :d].T)
         second = [(b.weight.detach().T.contiguous(), b.bias.detach()) for _, b in layers]
-        h = _Heads(key, c.key, pre, w1[:, d:].T.contiguous(), [a.out_features for a, _ in layers], second)
+        h = _Heads(key, c.key, b1, w1[:, :d].T.contiguous(), w1[:, d:].T.contiguous(),
+                   [a.out_features for a, _ in layers], second)
         self._heads = h
         return h
 
@@ -164,7 +195,8 @@ class InferenceCache:
         """The Gaussians of ``model._decode(f, m, tau, None, track=False)``."""
         with self._lock, torch.no_grad():
             c = self._features_for(model)
-            active = model.active_anchors(f).nonzero().squeeze(1)
+            win = self._window_for(model, c, f)
+            active = win.active
             hg = model.hash
             parts = []
             for lv in range(hg.levels):
@@ -173,27 +205,27 @@ class InferenceCache:
                 s1 = self._slice(model, c, m, lv, v0 + 1)
                 parts.append(torch.add(s0.index_select(0, active) * w0, s1.index_select(0, active), alpha=w1))
             h = torch.cat(parts, dim=1)
-            ft = torch.relu(torch.addmm(model.tmlp_b1[m], h, model.tmlp_w1[m]))
+            ft = torch.addmm(model.tmlp_b1[m], h, model.tmlp_w1[m]).relu_()
             ft = torch.addmm(model.tmlp_b2[m], ft, model.tmlp_w2[m])
             heads = self._heads_for(model, c)
             q = model.cfg.gaussians_per_anchor
             a = active.numel()
             if heads is None:  # custom decoder (e.g. reduced precision): run it as is
                 fw = torch.cat([c.fa.index_select(0, active), ft], dim=1)
-                raw = model.decoder(fw, model.anchor_mu.index_select(0, active),
-                                    model.anchor_log_scale.index_select(0, active))
+                raw = model.decoder(fw, win.mu, model.anchor_log_scale.index_select(0, active))
                 opac, scales, quats, colors, means = raw.opacities, raw.scales, raw.quats, raw.colors, raw.means
             else:
-                hid = torch.relu(torch.addmm(heads.pre.index_select(0, active), ft, heads.w_t))
+                if win.pre_of is not heads:
+                    win.pre, win.pre_of = torch.addmm(heads.b1, c.fa.index_select(0, active), heads.w_a), heads
+                hid = torch.addmm(win.pre, ft, heads.w_t).relu_()
                 outs = [torch.addmm(b2, x, w2t) for x, (w2t, b2) in
                         zip(hid.split(heads.splits, dim=1), heads.second)]
                 opac = torch.sigmoid(outs[0]).view(a, q)
                 cov = outs[1].view(a, q, 7)
-                scales = c.scale_base.index_select(0, active)[:, None, :] * torch.sigmoid(cov[..., :3])
+                scales = win.scale_base[:, None, :] * torch.sigmoid(cov[..., :3])
                 quats = nn.functional.normalize(cov[..., 3:], dim=-1)
                 colors = torch.sigmoid(outs[2]).view(a, q, 3)
-                mu = model.anchor_mu.index_select(0, active)
-                means = mu[:, None, :] + outs[3].view(a, q, 3) * c.scale_off.index_select(0, active)[:, None, :]
+                means = win.mu[:, None, :] + outs[3].view(a, q, 3) * win.scale_off[:, None, :]
             out = [means.reshape(-1, 3), quats.reshape(-1, 4), scales.reshape(-1, 3), opac.reshape(-1),
                    colors.reshape(-1, 3)]
             if model.cfg.opacity_threshold > 0:
