@@ -26,9 +26,9 @@ import tyro
 import atgs
 from atgs.model.fast_decode import InferenceCache
 from atgs.progress import progress_bar
+from _docs import update_docs_table  # bench/_docs.py (the script's own folder is on sys.path)
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
-START, END = "<!-- bench:decode:start -->", "<!-- bench:decode:end -->"
 
 
 @dataclass
@@ -124,15 +124,7 @@ def markdown_table(results: list[dict]) -> str:
 
 
 def update_docs(path: Path, table: str) -> None:
-    text = path.read_text()
-    if START not in text or END not in text:
-        print(f"{path}: no bench:decode markers; table not written")
-        return
-    head, rest = text.split(START, 1)
-    _, tail = rest.split(END, 1)
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text(f"{head}{START}\n{table}\n{END}{tail}")
-    os.replace(tmp, path)
+    update_docs_table(path, "decode", table)
 
 
 def main(cfg: BenchConfig) -> None:

@@ -25,9 +25,9 @@ from tqdm import tqdm
 from atgs.render import rasterize
 from atgs.render.cpu import pair_counts
 from atgs.render.scenes import random_scene
+from _docs import update_docs_table  # bench/_docs.py (the script's own folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench:rasterizer:start -->", "<!-- bench:rasterizer:end -->"
 
 
 @dataclass
@@ -171,12 +171,7 @@ def write_atomic(path: Path, text: str) -> None:
 def main(cfg: BenchConfig) -> None:
     result = run(cfg)
     write_atomic(cfg.json_out, json.dumps(result, indent=2) + "\n")
-    doc = cfg.doc.read_text() if cfg.doc.exists() else f"# Rasterizer\n\n{START}\n{END}\n"
-    if START not in doc or END not in doc:
-        doc = doc.rstrip() + f"\n\n## Benchmark\n\n{START}\n{END}\n"
-    head, rest = doc.split(START, 1)
-    _, tail = rest.split(END, 1)
-    write_atomic(cfg.doc, f"{head}{START}\n{table(result)}\n{END}{tail}")
+    update_docs_table(cfg.doc, "rasterizer", table(result), create_section="Benchmark")
     print(table(result))
     print(f"wrote {cfg.json_out} and {cfg.doc}", file=sys.stderr)
 

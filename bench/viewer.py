@@ -20,6 +20,8 @@ from pathlib import Path as _Path
 
 # This file is named like the `viewer` package; drop its own directory from the import path
 # so that `import viewer` finds the package, not this script.
+from _docs import update_docs_table  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
+
 sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
 
 import json
@@ -186,7 +188,6 @@ def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer
     return row
 
 
-START, END = "<!-- bench:viewer:start -->", "<!-- bench:viewer:end -->"
 
 
 def markdown_table(result: dict) -> str:
@@ -215,15 +216,7 @@ def markdown_table(result: dict) -> str:
 
 
 def update_docs(path: Path, table: str) -> None:
-    text = path.read_text()
-    if START not in text or END not in text:
-        print(f"{path}: no bench markers; table not written")
-        return
-    head, rest = text.split(START, 1)
-    _, tail = rest.split(END, 1)
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text(f"{head}{START}\n{table}\n{END}{tail}")
-    os.replace(tmp, path)
+    update_docs_table(path, "viewer", table)
 
 
 def main(cfg: BenchConfig) -> None:

@@ -1,0 +1,28 @@
+"""Writes a benchmark's table into a docs page, between `<!-- bench:NAME:start/end -->` markers."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def markers(name: str) -> tuple[str, str]:
+    return f"<!-- bench:{name}:start -->", f"<!-- bench:{name}:end -->"
+
+
+def update_docs_table(path: Path, name: str, table: str, create_section: str | None = None) -> bool:
+    """Replace the text between the markers (atomically). Without markers: append a section
+    titled ``create_section`` if given, else leave the file alone and return False."""
+    start, end = markers(name)
+    text = path.read_text() if path.exists() else ""
+    if start not in text or end not in text:
+        if create_section is None:
+            print(f"{path}: no bench:{name} markers; table not written")
+            return False
+        text = text.rstrip() + f"\n\n## {create_section}\n\n{start}\n{end}\n"
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(f"{head}{start}\n{table}\n{end}{tail}")
+    os.replace(tmp, path)
+    return True
