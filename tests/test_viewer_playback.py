@@ -167,3 +167,25 @@ def test_pinned_frames_are_served_without_decoding() -> None:
         assert cache.get(1) is pinned[1] and cache.wait_for(2) is pinned[2]
         assert cache.wait_for(3, timeout=10).frame == 3
         assert calls == [3]
+
+
+def test_gil_free_finish_uses_ctypes_gl_or_falls_back(monkeypatch) -> None:
+    """The window waits for the splat through a ctypes glFinish (GIL released, so the decode
+    thread keeps decoding); without a libglvnd GL library it falls back to the given wait."""
+    import ctypes.util
+
+    from viewer import gl_sync
+
+    calls: list[int] = []
+
+    def fallback() -> None:
+        calls.append(1)
+
+    monkeypatch.setattr(gl_sync, "_GL_LIBS", ("libno-such-gl-library.so.0",))
+    assert gl_sync.gil_free_finish(fallback) is fallback
+    monkeypatch.undo()
+    if ctypes.util.find_library("OpenGL") or ctypes.util.find_library("GL"):
+        fn = gl_sync.gil_free_finish(fallback)
+        assert fn is not fallback and isinstance(fn, ctypes._CFuncPtr)
+        assert fn.restype is None and fn.argtypes == []
+    assert calls == []

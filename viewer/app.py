@@ -21,6 +21,7 @@ import numpy as np
 from viewer.camera_control import CameraControl
 from viewer.decode_cache import DecodeCache
 from viewer.errors import ViewerError
+from viewer.gl_sync import gil_free_finish
 from viewer.output import display_rgb, save_image, to_uint8
 from viewer.packing import PackedGaussians
 from viewer.playback import FrameFeeder, Playback
@@ -29,6 +30,9 @@ from viewer.source import GaussianSource, decode_frame, scene_up
 from viewer.splat_renderer import MODES, RenderSettings, SplatRenderer
 
 SPEEDS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
+# UI frame cap: an idle loop that spins holds the GIL and starves the decode thread (a decode
+# of ~20 ms took 200-300 ms while the loop spun); sleeping out the rest of the frame frees it.
+MAX_UI_FPS = 60.0
 
 
 @dataclass
@@ -120,6 +124,7 @@ class PlayerApp:
         imgui.backends.opengl3_init("#version 330")
 
         self.renderer = SplatRenderer(self.ctx)
+        self._gl_finish = gil_free_finish(self.ctx.finish)
         self.settings = settings or RenderSettings()
         self.playback = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0))
         self.cache = DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=preloaded)
@@ -148,6 +153,7 @@ class PlayerApp:
             now = time.perf_counter()
             dt, self._last_time = now - self._last_time, now
             self.step(min(dt, 0.25))
+            rest_until(now + 1.0 / MAX_UI_FPS)
 
     def step(self, dt: float) -> None:
         """One UI frame: input, playback, decode feed, splat, UI, swap."""
@@ -168,9 +174,13 @@ class PlayerApp:
         if packed is not None:
             self.stats.shown_frames.append(packed.frame)
         fb_w, fb_h = glfw.get_framebuffer_size(self.window)
-        drew = False
+        drew, wait_ms = False, 0.0
         if fb_w > 0 and fb_h > 0:
             drew = self._render_view(fb_w, fb_h)
+            if drew:  # wait for the splat here, GIL released, so the decode thread keeps running
+                t_wait = time.perf_counter()
+                self._gl_finish()
+                wait_ms = (time.perf_counter() - t_wait) * 1e3
             self.ctx.screen.use()
             self.ctx.viewport = (0, 0, fb_w, fb_h)
             self.ctx.screen.clear(*self.settings.background, 1.0)
@@ -182,7 +192,7 @@ class PlayerApp:
         t_swap = time.perf_counter()
         glfw.swap_buffers(self.window)  # llvmpipe finishes the frame here, with the GIL released
         if drew:
-            draw_ms = self.renderer.timings.draw_ms + (time.perf_counter() - t_swap) * 1e3
+            draw_ms = self.renderer.timings.draw_ms + wait_ms + (time.perf_counter() - t_swap) * 1e3
             self.stats.push("draw_ms", draw_ms)
             self._adapt_resolution(draw_ms)
         self.stats.push("frame_ms", (time.perf_counter() - t_start) * 1e3)
@@ -507,6 +517,13 @@ def exercise_inputs(app: PlayerApp) -> dict:
     return out
 
 
+def rest_until(t: float) -> None:
+    """Sleep (GIL released) until perf_counter() reaches t; return at once if it has."""
+    left = t - time.perf_counter()
+    if left > 0:
+        time.sleep(left)
+
+
 def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
     """Scripted session: play ``frames`` UI frames, scrub to t = 0.75, orbit, screenshot.
 
@@ -524,7 +541,9 @@ def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
     # Play `frames` UI frames; on a loaded machine keep playing until the shown frame moved.
     playhead: list[int] = [pb.frame]  # where the playhead was before each step, then after the last
     while steps < frames or (len(set(app.stats.shown_frames)) < 2 and time.monotonic() < deadline):
+        t_step = time.perf_counter()
         app.step(dt)
+        rest_until(t_step + dt)  # real-time pacing, as run() does, so decoding gets its share
         playhead.append(pb.frame)  # step() advanced the playhead and then picked a frame to show
         steps += 1
     played = list(app.stats.shown_frames)
