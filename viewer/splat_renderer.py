@@ -210,9 +210,9 @@ class SplatRenderer:
     def render(self, camera: Camera, settings: RenderSettings | None = None, sync: bool = True) -> moderngl.Framebuffer:
         """Splat into the offscreen target of the camera's size; returns that framebuffer.
 
-        ``sync`` waits for the GL (so ``timings.draw_ms`` is the draw); the window passes False
-        because glFinish holds Python's GIL and would starve the decode thread, while the wait
-        inside glfw.swap_buffers (a ctypes call) releases it."""
+        ``sync`` waits for the GL with moderngl's finish (so ``timings.draw_ms`` is the draw).
+        The window passes False and waits with ``viewer.gl_sync.gil_free_finish`` instead:
+        moderngl's finish holds Python's GIL and would starve the decode thread."""
         s = settings or RenderSettings()
         if s.mode not in MODES:
             raise ValueError(f"unknown render mode {s.mode!r}; use one of {', '.join(MODES)}")
