@@ -26,3 +26,21 @@ def update_docs_table(path: Path, name: str, table: str, create_section: str | N
     tmp.write_text(f"{head}{start}\n{table}\n{end}{tail}")
     os.replace(tmp, path)
     return True
+
+
+def write_json_atomic(path: Path, data) -> None:
+    import json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def publish(result, json_out: Path, table: str, docs: Path | None, name: str) -> None:
+    """The end of every benchmark: results JSON (atomic), the table on screen and in the docs."""
+    write_json_atomic(json_out, result)
+    print(f"wrote {json_out}")
+    print(table)
+    if docs is not None:
+        update_docs_table(docs, name, table)

@@ -11,7 +11,6 @@ largest difference between the two paths (opacity threshold off, so both return 
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import random
@@ -26,7 +25,7 @@ import tyro
 import atgs
 from atgs.model.fast_decode import InferenceCache
 from atgs.progress import progress_bar
-from _docs import update_docs_table  # bench/_docs.py (the script's own folder is on sys.path)
+from _docs import publish  # bench/_docs.py (the script's own folder is on sys.path)
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -123,10 +122,6 @@ def markdown_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def update_docs(path: Path, table: str) -> None:
-    update_docs_table(path, "decode", table)
-
-
 def main(cfg: BenchConfig) -> None:
     if not cfg.checkpoint.is_file():
         raise SystemExit(f"bench/decode.py: --checkpoint {cfg.checkpoint} does not exist; train one with "
@@ -134,15 +129,7 @@ def main(cfg: BenchConfig) -> None:
     if not cfg.threads or min(cfg.threads) < 1:
         raise SystemExit(f"bench/decode.py: --threads {cfg.threads}: give one or more counts >= 1")
     result = [run(cfg, n) for n in cfg.threads]
-    cfg.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cfg.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, cfg.out)
-    print(f"wrote {cfg.out}")
-    table = markdown_table(result)
-    print(table)
-    if cfg.docs is not None:
-        update_docs(cfg.docs, table)
+    publish(result, cfg.out, markdown_table(result), cfg.docs, "decode")
 
 
 if __name__ == "__main__":

@@ -8,13 +8,12 @@ Scenes: random Gaussians in the view frustum whose 3-sigma screen radius is log-
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import statistics
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from tqdm import tqdm
 from atgs.render import rasterize
 from atgs.render.cpu import pair_counts
 from atgs.render.scenes import random_scene
-from _docs import update_docs_table  # bench/_docs.py (the script's own folder is on sys.path)
+from _docs import update_docs_table, write_json_atomic  # bench/_docs.py (the script's own folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -161,16 +160,9 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def main(cfg: BenchConfig) -> None:
     result = run(cfg)
-    write_atomic(cfg.json_out, json.dumps(result, indent=2) + "\n")
+    write_json_atomic(cfg.json_out, result)
     update_docs_table(cfg.doc, "rasterizer", table(result), create_section="Benchmark")
     print(table(result))
     print(f"wrote {cfg.json_out} and {cfg.doc}", file=sys.stderr)

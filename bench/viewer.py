@@ -20,7 +20,7 @@ from pathlib import Path as _Path
 
 # This file is named like the `viewer` package; drop its own directory from the import path
 # so that `import viewer` finds the package, not this script.
-from _docs import update_docs_table  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
+from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
 
 sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
 
@@ -221,10 +221,6 @@ def markdown_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def update_docs(path: Path, table: str) -> None:
-    update_docs_table(path, "viewer", table)
-
-
 def main(cfg: BenchConfig) -> None:
     load_before = os.getloadavg()
     ctx = create_headless_context(cfg.gl)
@@ -263,15 +259,7 @@ def main(cfg: BenchConfig) -> None:
     }  # fmt: skip
     renderer.release()
     ctx.release()
-    cfg.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cfg.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, cfg.out)
-    print(f"wrote {cfg.out}")
-    table = markdown_table(result)
-    print(table)
-    if cfg.docs is not None:
-        update_docs(cfg.docs, table)
+    publish(result, cfg.out, markdown_table(result), cfg.docs, "viewer")
 
 
 if __name__ == "__main__":
