@@ -34,7 +34,7 @@ def test_decoder_heads_follow_spec_formulas():
 
 def _toy_model(window=3, static=True, K=4, F=13, **kw):
     m, _ = preset("tiny")
-    m.window, m.static_keyframe0 = window, static
+    m.window, m.static_keyframe0, m.anchor_layout = window, static, "per-keyframe"
     for k, v in kw.items():
         setattr(m, k, v)
     gen = torch.Generator().manual_seed(0)

@@ -19,6 +19,7 @@ import torch
 from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
 from atgs.model import precision
+from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ATGSModel
 from atgs.model.config import HashGridConfig, ModelConfig, preset
 from atgs.render import rasterize
@@ -99,8 +100,8 @@ def test_time_extremes_decode_finite_and_clamped(case: str) -> None:
         k = model.anchor_keyframe
         if W == 0 or W // 2 >= K - 1:  # window covers every keyframe
             assert mask.all(), case
-        if W == 1:  # only the nearest keyframe (and the static keyframe 0)
-            assert torch.equal(mask, (k == kbar) | (k == 0)), case
+        if W == 1:  # only the nearest keyframe (and the always-active static anchors)
+            assert torch.equal(mask, (k == kbar) | (k == STATIC)), case
     first, last = model.gaussians_at_frame(0), model.gaussians_at_frame(F - 1)
     assert_same(model.gaussians_at(0.0), first, f"{case}: t=0 is frame 0")
     for t in (-1e-7, -0.5, -1e30, -math.inf):
@@ -246,6 +247,8 @@ def test_anchor_init_from_degenerate_point_sets_is_finite() -> None:
 # the "cpu" preset's decoder sizes, in docs/model.md "Precision"; tolerances ~3x the measured):
 # means in units of the Gaussian's own largest scale, scales relative, quaternion components,
 # opacity and colour absolute.
+IMAGE_MIN_PSNR = {torch.bfloat16: 50.0, torch.float16: 70.0}  # dB against the float32 render
+IMAGE_MAX_ERROR = {torch.bfloat16: 8 / 255, torch.float16: 1 / 255}  # at any pixel
 TOLERANCES = {
     torch.bfloat16: {"means": 5e-2, "quats": 1e-1, "scales": 1e-2, "opacities": 3e-3, "colors": 3e-3},
     torch.float16: {"means": 6e-3, "quats": 3e-2, "scales": 1.5e-3, "opacities": 4e-4, "colors": 4e-4},
@@ -277,12 +280,14 @@ def test_reduced_precision_decode_within_tolerance(dtype: torch.dtype) -> None:
     for k, tol in TOLERANCES[dtype].items():
         assert worst[k] <= tol, f"{dtype}: {k} error {worst[k]:.2e} > {tol:.0e}"
     assert worst["colors"] > 0, "the reduced-precision path is actually used"
-    # the rendered image stays within 1/255 at every pixel
+    # the rendered image stays close to float32 (bf16 moves sharp edges by a fraction of a pixel)
     cam = model.cameras[0]
     img = [rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
                      cam.width, cam.height, backend="cpu").image
            for g in (model.gaussians_at(0.5), precision.gaussians_at(model, 0.5, dtype))]
-    assert (img[0] - img[1]).abs().max() < 1 / 255
+    diff = img[0] - img[1]
+    assert 10 * math.log10(1.0 / max(float(diff.pow(2).mean()), 1e-20)) > IMAGE_MIN_PSNR[dtype]
+    assert diff.abs().max() < IMAGE_MAX_ERROR[dtype]
     # the model itself is untouched and keeps decoding in float32
     for k, v in model.decoder.state_dict().items():
         assert v.dtype == torch.float32 and torch.equal(v, ref_params[k]), k

@@ -1,12 +1,21 @@
 """Time-conditioned anchors from keyframe point clouds: voxel downsampling per keyframe and
-the initial log scale v (6 numbers: v[:3] scales offsets, v[3:] the base Gaussian scale)."""
+the initial log scale v (6 numbers: v[:3] scales offsets, v[3:] the base Gaussian scale).
+
+Anchors carry the keyframe they were made from; keyframe ``STATIC`` (-1) marks anchors that are
+active at every time. :func:`split_static` finds the points of content that does not move
+(re-observed at most keyframes), so that it is modelled once instead of once per keyframe."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 import torch
+
+
+STATIC = -1  # keyframe index of always-active anchors
 
 
 @dataclass
@@ -57,6 +66,16 @@ def voxel_downsample(points: torch.Tensor, voxel: float) -> torch.Tensor:
     return cells.float() * voxel
 
 
+def anchor_voxel_size(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: float = 0.0,
+                      generator: torch.Generator | None = None) -> float:
+    """``voxel_size`` if given, else the median point spacing within keyframe groups (groups
+    re-observe the same static points, so spacing across groups would be too small)."""
+    if voxel_size > 0:
+        return float(voxel_size)
+    groups = [points[keyframes == k] for k in torch.unique(keyframes).tolist()]
+    return float(np.median([auto_voxel_size(g, generator=generator) for g in groups]))
+
+
 def init_anchors(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: float = 0.0,
                  max_per_keyframe: int = 0, generator: torch.Generator | None = None) -> AnchorInit:
     """Anchors per keyframe group: voxel downsampled points; v = log(sqrt(mean squared distance
@@ -64,11 +83,7 @@ def init_anchors(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: floa
     points = points.float()
     if points.shape[0] == 0:
         raise ValueError("the scene has no points to initialize anchors from (points.ply is empty)")
-    if voxel_size > 0:
-        voxel = voxel_size
-    else:  # spacing within keyframe groups: groups re-observe the same static points
-        groups = [points[keyframes == k] for k in torch.unique(keyframes).tolist()]
-        voxel = float(np.median([auto_voxel_size(g, generator=generator) for g in groups]))
+    voxel = anchor_voxel_size(points, keyframes, voxel_size, generator)
     mus, kfs, scales = [], [], []
     for k in torch.unique(keyframes).tolist():
         p = voxel_downsample(points[keyframes == k], voxel)
@@ -86,3 +101,22 @@ def init_anchors(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: floa
         kfs.append(torch.full((p.shape[0],), int(k), dtype=torch.int64))
         scales.append(s[:, None].expand(-1, 6))
     return AnchorInit(torch.cat(mus), torch.cat(scales).contiguous(), torch.cat(kfs), float(voxel))
+
+
+def split_static(points: torch.Tensor, keyframes: torch.Tensor, cell: float, min_fraction: float = 0.5
+                 ) -> torch.Tensor:
+    """Mask of points in static content: points whose cell (edge ``cell``, a coarse voxel that
+    absorbs triangulation noise) is occupied at >= max(2, ceil(min_fraction * K)) of the K
+    keyframes. Moving content occupies a cell only around the times it passes through it."""
+    kf_ids = torch.unique(keyframes)
+    K = kf_ids.numel()
+    if K < 2 or points.shape[0] == 0:
+        return torch.zeros(points.shape[0], dtype=torch.bool)
+    cells = torch.round(points.double() / cell).long()
+    uniq_cells, cell_of = torch.unique(cells, dim=0, return_inverse=True)
+    # distinct (cell, keyframe) pairs -> number of keyframes that see each cell
+    pair = cell_of * (int(keyframes.max()) + 2) + (keyframes + 1)
+    seen_pairs = torch.unique(pair)
+    count = torch.bincount(seen_pairs // (int(keyframes.max()) + 2), minlength=uniq_cells.shape[0])
+    need = max(2, math.ceil(min_fraction * K))
+    return count[cell_of] >= need

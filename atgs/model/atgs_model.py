@@ -15,7 +15,7 @@ import torch
 
 from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
-from atgs.model.anchors import AnchorInit, init_anchors
+from atgs.model.anchors import STATIC, AnchorInit, anchor_voxel_size, init_anchors, split_static
 from atgs.model.config import ModelConfig
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import InferenceCache
@@ -25,6 +25,7 @@ from atgs.model.timeline import Timeline
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
 ANCHOR_TABLES = ("anchor_feature", "anchor_log_scale")
 TEMPORAL_MLP = ("tmlp_w1", "tmlp_b1", "tmlp_w2", "tmlp_b2")
+ANCHOR_LAYOUTS = ("split", "per-keyframe")
 
 
 @dataclass
@@ -113,12 +114,20 @@ class ATGSModel:
         keep, kf = select_keyframe_points(scene_keyframes, point_keyframes.long(), tl)
         gen = torch.Generator().manual_seed(seed)
         points, kf = points[keep].float(), kf[keep]
+        if cfg.anchor_layout not in ANCHOR_LAYOUTS:
+            raise ValueError(f"anchor_layout must be one of {ANCHOR_LAYOUTS}, got {cfg.anchor_layout!r}")
+        split = cfg.anchor_layout == "split"
+        if points.shape[0] == 0:
+            raise ValueError("the scene has no points to initialize anchors from (points.ply is empty)")
+        voxel = anchor_voxel_size(points, kf, cfg.voxel_size, gen)
+        if split:  # a coarse cell (2 voxels) so that triangulation noise does not read as motion
+            kf = torch.where(split_static(points, kf, 2 * voxel, cfg.static_fraction), STATIC, kf)
         if cfg.random_anchors > 0:
             box = bounds.float() if bounds is not None else torch.stack([points.min(0).values, points.max(0).values])
             extra = box[0] + torch.rand(cfg.random_anchors, 3, generator=gen) * (box[1] - box[0])
             points = torch.cat([points, extra])
-            kf = torch.cat([kf, torch.zeros(cfg.random_anchors, dtype=torch.int64)])
-        anchors = init_anchors(points, kf, cfg.voxel_size, cfg.max_anchors_per_keyframe, gen)
+            kf = torch.cat([kf, torch.full((cfg.random_anchors,), STATIC if split else 0, dtype=torch.int64)])
+        anchors = init_anchors(points, kf, voxel, cfg.max_anchors_per_keyframe, gen)
         lo, hi = anchors.mu.min(0).values, anchors.mu.max(0).values
         size = (hi - lo).clamp_min(1e-3)
         pad = cfg.bbox_padding * size
@@ -172,8 +181,8 @@ class ATGSModel:
     def active_anchors(self, f: int) -> torch.Tensor:
         lo, hi = self.timeline.window_of_frame(f)
         k = self.anchor_keyframe
-        mask = (k >= lo) & (k <= hi)
-        if self.cfg.static_keyframe0:
+        mask = ((k >= lo) & (k <= hi)) | (k == STATIC)
+        if self.cfg.static_keyframe0 and self.cfg.anchor_layout == "per-keyframe":
             mask |= k == 0
         return mask
 

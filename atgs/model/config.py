@@ -32,7 +32,12 @@ class ModelConfig:
     # Keyframes and window. num_keyframes=0 uses the keyframes of the prepared scene.
     num_keyframes: int = 0
     window: int = 7  # W; 0 disables the window (all anchors active at all times)
-    static_keyframe0: bool = True  # anchors of keyframe 0 are active at every time (authors' code)
+    # "split": content seen at most keyframes is static, modelled once by always-active anchors,
+    # and only moving content gets anchors per keyframe; "per-keyframe": every keyframe's points
+    # become that keyframe's anchors (the paper).
+    anchor_layout: str = "split"
+    static_fraction: float = 0.5  # split: a cell is static if seen at >= this fraction of keyframes
+    static_keyframe0: bool = True  # per-keyframe: keyframe 0's anchors are always active (authors' code)
     # Temporal segments: M grids; frames_per_segment>0 overrides M with ceil(F/frames_per_segment).
     num_segments: int = 2
     frames_per_segment: int = 0
@@ -69,6 +74,8 @@ class DensifyConfig:
     success_threshold: float = 0.8
     min_opacity: float = 0.005
     max_anchors: int = 200_000
+    # After the last step, drop anchors that never contributed since densification stopped.
+    final_prune: bool = True
 
 
 @dataclass

@@ -160,7 +160,7 @@ class InferenceCache:
         return s
 
     def _window_for(self, model: "ATGSModel", c: _Features, f: int) -> _Window:
-        k = (model.timeline.window_of_frame(f), bool(model.cfg.static_keyframe0))  # anchor_keyframe: c.key
+        k = (model.timeline.window_of_frame(f), bool(model.cfg.static_keyframe0), model.cfg.anchor_layout)  # anchor_keyframe: c.key
         w = c.windows.get(k)
         if w is not None:
             c.windows.move_to_end(k)

@@ -6,7 +6,8 @@ per anchor the accumulated opacity of its q Gaussians and how often it was decod
 Growing adds anchors at voxel centres (3 voxel levels) where the mean gradient is high and no
 anchor of the same keyframe exists; a new anchor inherits the keyframe of its parent and the
 element-wise max of its parents' features. Pruning removes anchors whose mean opacity stays
-below a threshold.
+below a threshold; :func:`prune_final` removes, after the last step, the anchors that never
+contributed since densification stopped (never decoded in a training view, or always faint).
 """
 
 from __future__ import annotations
@@ -143,6 +144,28 @@ def prune_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt
     prune = seen & (stats.opacity_accum < cfg.min_opacity * stats.anchor_count)
     stats.opacity_accum[seen] = 0
     stats.anchor_count[seen] = 0
+    if not prune.any() or bool(prune.all()):
+        return 0
+    keep = ~prune
+    model.keep_anchors(keep)
+    stats.keep(keep, q)
+    if opt is not None:
+        for name in ANCHOR_TABLES:
+            opt.keep_rows(name, keep)
+    return int(prune.sum())
+
+
+def prune_final(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None,
+                prune_unseen: bool) -> int:
+    """After training: remove anchors whose mean opacity since the last densification is below
+    ``min_opacity`` and, with ``prune_unseen`` (enough steps have passed that every anchor in
+    some training view was decoded), anchors never decoded in a training view. Their Gaussians
+    could only show up as untrained clutter in novel views. Returns how many were removed."""
+    q = model.cfg.gaussians_per_anchor
+    seen = stats.anchor_count > 0
+    prune = seen & (stats.opacity_accum < cfg.min_opacity * stats.anchor_count)
+    if prune_unseen:
+        prune |= ~seen
     if not prune.any() or bool(prune.all()):
         return 0
     keep = ~prune

@@ -67,7 +67,11 @@ def make_toy_scene(num_frames: int = 6, num_cameras: int = 5, width: int = 40, h
                             torch.from_numpy(c.K).float(), width, height, backend="auto")
             frames[(ci, fr)] = (out.image.clamp(0, 1) * 255).round().byte().numpy()
     kf_frames = sorted({round(j * (num_frames - 1) / max(1, keyframes - 1)) for j in range(keyframes)})
-    pts, pk = [static + 0.02 * torch.randn(n_static, 3, generator=gen)], [torch.zeros(n_static, dtype=torch.int64)]
+    # every keyframe re-observes the static points (with triangulation noise), as real captures do
+    pts, pk = [], []
+    for j in range(len(kf_frames)):
+        pts.append(static + 0.02 * torch.randn(n_static, 3, generator=gen))
+        pk.append(torch.full((n_static,), j, dtype=torch.int64))
     for j, fr in enumerate(kf_frames):
         pts.append(blob(fr) + 0.08 * torch.randn(4, 3, generator=gen))
         pk.append(torch.full((4,), j, dtype=torch.int64))

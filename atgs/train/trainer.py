@@ -20,7 +20,7 @@ from atgs.checkpoint import read_checkpoint, save_checkpoint
 from atgs.model.atgs_model import ATGSModel, Decoded
 from atgs.model.config import ModelConfig, TrainConfig, from_dict, to_dict
 from atgs.render import rasterize
-from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors
+from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.losses import image_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
 from atgs.train.sampling import ImageCache, SegmentSampler
@@ -95,6 +95,7 @@ class Trainer:
         self.step = 0
         self.bad_in_row = 0
         self.skipped = 0
+        self.final_pruned = 0
         self.images = ImageCache(self._load_image, cfg.image_cache_mb)
 
     # --- data -------------------------------------------------------------------------------
@@ -240,11 +241,26 @@ class Trainer:
     def _maybe_densify(self) -> None:
         d = self.cfg.densify
         stop = int(d.stop_fraction * self.cfg.iterations)
+        if self.step == self.cfg.iterations and d.final_prune:
+            self._final_prune(stop)
+            return
         if not d.enabled or self.step < d.start or self.step > stop or self.step % d.interval:
             return
         n_add = grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
         n_del = prune_anchors(self.model, self.stats, d, self.sparse_opt)
         self.last_densify = (n_add, n_del)
+
+    def _final_prune(self, stop: int) -> None:
+        d = self.cfg.densify
+        last = 0  # the step at which the densify statistics were last reset
+        if d.enabled and stop >= d.start:
+            last = stop - stop % d.interval if stop - stop % d.interval >= d.start else 0
+        # an anchor in some training view is active in >= 1/K of the frames: after
+        # 2 * cameras * K steps, never having been decoded in view means it never will be
+        need = 2 * len(self.train_idx) * self.model.num_keyframes
+        n = prune_final(self.model, self.stats, d, self.sparse_opt, self.step - last >= need)
+        self.last_densify = (0, n)
+        self.final_pruned = n
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
@@ -372,7 +388,7 @@ class Trainer:
         seconds = time.perf_counter() - t0
         self.save()
         result = {"steps": self.step - start, "seconds": seconds, "anchors": self.model.num_anchors,
-                  "skipped": self.skipped}
+                  "skipped": self.skipped, "final_pruned": self.final_pruned}
         if stop_at is None and (final_renders or cfg.eval_every > 0):
             result["eval"] = self.evaluate(self.out / "renders" if final_renders else None)
         return result
