@@ -41,12 +41,13 @@ from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
 from atgs.headless_gl import create_headless_context, gl_description
 from atgs.progress import progress_bar
+from viewer.adaptive import next_render_scale
 from viewer.decode_cache import DecodeCache
 from viewer.gl_sync import gil_free_finish
-from viewer.packing import pack_gaussians
+from viewer.packing import PackedGaussians, pack_gaussians
 from viewer.playback import FrameFeeder, Playback
 from viewer.source import GaussianSource, SyntheticSource, decode_frame
-from viewer.splat_renderer import RenderSettings, SplatRenderer
+from viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
 
 
 @dataclass
@@ -64,6 +65,9 @@ class BenchConfig:
     """Render targets: f4 = float32 (headless/tests), f1 = RGBA8 (the player window, color mode)."""
     docs: Path | None = Path("docs/viewer.md")
     """Replace the table between the bench markers in this file (None: leave the docs alone)."""
+    cutoffs: tuple[int, ...] = (1, 2, 4, 8)
+    """Alpha cutoffs (in 1/255) of the speed / quality table (1 = the rasterizer's rule)."""
+    cutoff_repeats: int = 5
 
 
 def random_gaussians(n: int, seed: int = 0) -> Gaussians:
@@ -138,11 +142,25 @@ def untrained_model(num_points: int = 6_000, frames: int = 24) -> GaussianSource
     return ATGSModel.from_points(mcfg, pts, kf, scene_kf, frames, 30.0, src.cameras)
 
 
+def preload_all(source: GaussianSource) -> dict[int, PackedGaussians]:
+    out = {}
+    with progress_bar(source.num_frames, "preloading frames", unit="frame") as bar:
+        for f in range(source.num_frames):
+            out[f] = decode_frame(source, f)
+            bar.update(1)
+    return out
+
+
 def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer: SplatRenderer,
-                   preload: bool = False) -> dict:
+                   preload: bool = False, adaptive: bool = False, min_alpha: float = ALPHA_MIN,
+                   pinned: dict[int, PackedGaussians] | None = None) -> dict:
     """Wall-clock playback through the player's pipeline: feeder/cache (background decode),
     upload on change, sort + draw every frame, camera slowly orbiting (so the sort runs).
-    Each frame waits for the GL with the GIL released, as the window does (see gil_free_finish)."""
+    Each frame waits for the GL with the GIL released, as the window does (see gil_free_finish).
+    ``adaptive``: the window's adaptive resolution (the splatting resolution follows
+    viewer.adaptive.next_render_scale, after 20 unmeasured frames to settle, as in a window's
+    first second); otherwise always the full playback size. ``pinned``: frames decoded before
+    (reused across --preload rows)."""
     # osmesa contexts are not libglvnd's: a ctypes glFinish would not wait for them
     finish = gil_free_finish(renderer.ctx.finish) if cfg.gl == "egl" else renderer.ctx.finish
     W, H = cfg.playback_size
@@ -157,14 +175,24 @@ def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer
     n_gauss = len(decode_frame(source, 0))
     pb = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0), playing=True)
     shown = []
-    pinned = {f: decode_frame(source, f) for f in range(source.num_frames)} if preload else None
+    scale, scales = 1.0, []
+    settings = RenderSettings(min_alpha=min_alpha)
+    load_before = os.getloadavg()
+    if preload and pinned is None:
+        pinned = preload_all(source)
+    elif not preload:
+        pinned = None
+    warm = 20 if adaptive else 0
     with DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=pinned) as cache:
         feeder = FrameFeeder(cache, lookahead=4)
         cache.wait_for(0, timeout=120)
         t_start = time.perf_counter()
         last = t_start
         draw, sort = [], []
-        for i in range(cfg.playback_frames):
+        for i in range(warm + cfg.playback_frames):
+            if i == warm:  # measure from here
+                t_start = last = time.perf_counter()
+                draw, sort, shown, scales = [], [], [], []
             now = time.perf_counter()
             pb.advance(now - last)
             last = now
@@ -177,15 +205,26 @@ def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer
             R = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1.0]])
             w2c = base.w2c.copy()
             w2c[:3, :3] = base.w2c[:3, :3] @ R.T
-            cam = Camera("p", W, H, K, w2c)
-            renderer.render(cam, RenderSettings(), sync=False)
+            rw, rh = max(1, int(W * scale)), max(1, int(H * scale))
+            Ks = K.copy()
+            Ks[0] *= rw / W
+            Ks[1] *= rh / H
+            cam = Camera("p", rw, rh, Ks, w2c)
+            renderer.render(cam, settings, sync=False)
             t_wait = time.perf_counter()
             finish()  # draw = issuing the draw + waiting for it, as the window measures it
             draw.append(renderer.timings.draw_ms + (time.perf_counter() - t_wait) * 1e3)
             sort.append(renderer.timings.sort_ms)
+            scales.append(scale)
+            if adaptive:
+                scale = next_render_scale(scale, draw[-1])
         wall = time.perf_counter() - t_start
+    mode = (" (--preload" if preload else " (streaming decode") + (", adaptive resolution)" if adaptive else ")")
     row = {
-        "scene": name + (" (--preload)" if preload else " (streaming decode)"), "size": f"{W}x{H}", "gaussians": n_gauss,
+        "scene": name + mode, "size": f"{W}x{H}", "gaussians": n_gauss,
+        "min_alpha_255": round(min_alpha * 255, 3), "adaptive": adaptive,
+        "mean_scale": float(np.mean(scales)), "last_scale": scales[-1],
+        "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
         "decode_ms": _median(decode_ms), "sort_ms": _median(sort), "draw_ms": _median(draw),
         "fps": cfg.playback_frames / wall, "distinct_frames_shown": len(set(shown)),
         "frames_rendered": cfg.playback_frames, "source_fps": float(source.fps or 30.0),
@@ -194,6 +233,45 @@ def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer
     return row
 
 
+
+def bench_cutoffs(source: GaussianSource, name: str, cfg: BenchConfig, renderer: SplatRenderer) -> list[dict]:
+    """Speed / quality of the alpha cutoff on frame 0 from the first camera at the playback
+    size: splats drawn, draw time (RGBA8 target, as the window) and PSNR of the float image
+    against the default cutoff 1/255 (same sort, so only the cutoff differs)."""
+    finish = gil_free_finish(renderer.ctx.finish) if cfg.gl == "egl" else renderer.ctx.finish
+    W, H = cfg.playback_size
+    cams = list(source.cameras)
+    base = cams[0] if cams else bench_camera(W, H)
+    K = base.K.copy()
+    K[0] *= W / base.width
+    K[1] *= H / base.height
+    cam = Camera("c", W, H, K, base.w2c)
+    renderer.set_gaussians(decode_frame(source, 0))
+    rows, ref = [], None
+    for c in cfg.cutoffs:
+        s = RenderSettings(min_alpha=c / 255.0)
+        renderer.target_dtype = "f4"
+        img = renderer.render_image(cam, s)
+        if ref is None:
+            ref = img
+        mse = float(np.mean((img.astype(np.float64) - ref) ** 2))
+        renderer.target_dtype = "f1"
+        renderer.render(cam, s, sync=True)
+        ms = []
+        for _ in range(cfg.cutoff_repeats):
+            t0 = time.perf_counter()
+            renderer._sort_key.version = -1  # redo the cull + sort too: the full per-view cost
+            renderer.render(cam, s, sync=False)
+            finish()
+            ms.append((time.perf_counter() - t0) * 1e3)
+        row = {
+            "scene": name, "size": f"{W}x{H}", "min_alpha_255": c, "drawn": renderer.timings.drawn,
+            "ms": _median(ms), "psnr_db": 10 * math.log10(1.0 / max(mse, 1e-20)) if mse > 0 else float("inf"),
+            "max_abs_diff": float(np.abs(img - ref).max()), "loadavg": os.getloadavg(),
+        }  # fmt: skip
+        print(json.dumps(row))
+        rows.append(row)
+    return rows
 
 
 def markdown_table(result: dict) -> str:
@@ -211,12 +289,23 @@ def markdown_table(result: dict) -> str:
             f"| {r['gaussians']:,} | {r['target']} | {r['pack_ms']:.1f} | {r['sort_ms']:.1f} | {r['upload_ms']:.1f} "
             f"| {r['draw_ms']:.0f} | {r['fps_new_frame']:.1f} | {r['fps_camera_move']:.1f} |"
         )
-    lines += ["", "| playback scene | size | Gaussians | decode ms | sort ms | draw ms | FPS | distinct frames shown |",
-              "|---|---|---:|---:|---:|---:|---:|---:|"]
+    lines += ["", "| playback scene | size | Gaussians | cutoff | res. factor | decode ms | sort ms | draw ms | FPS "
+              "| distinct frames shown | load before / after |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in result["playback"]:
         lines.append(
-            f"| {r['scene']} | {r['size']} | {r['gaussians']:,} | {r['decode_ms']:.0f} | {r['sort_ms']:.1f} "
-            f"| {r['draw_ms']:.0f} | {r['fps']:.1f} | {r['distinct_frames_shown']} / {r['frames_rendered']} |"
+            f"| {r['scene']} | {r['size']} | {r['gaussians']:,} | {r['min_alpha_255']:g}/255 | {r['mean_scale']:.2f} "
+            f"| {r['decode_ms']:.0f} | {r['sort_ms']:.1f} | {r['draw_ms']:.0f} | **{r['fps']:.1f}** "
+            f"| {r['distinct_frames_shown']} / {r['frames_rendered']} "
+            f"| {r['loadavg_before'][0]:.1f} / {r['loadavg_after'][0]:.1f} |"
+        )
+    lines += ["", "| alpha cutoff (frame 0, camera 0) | size | cutoff | splats drawn | cull + sort + draw ms "
+              "| PSNR vs 1/255 | max abs diff | load |",
+              "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in result.get("cutoffs", []):
+        lines.append(
+            f"| {r['scene']} | {r['size']} | {r['min_alpha_255']}/255 | {r['drawn']:,} | {r['ms']:.0f} "
+            f"| {r['psnr_db']:.1f} dB | {r['max_abs_diff']:.3f} | {r['loadavg'][0]:.1f} |"
         )
     return "\n".join(lines)
 
@@ -238,15 +327,22 @@ def main(cfg: BenchConfig) -> None:
 
         model = atgs.load(cfg.checkpoint)
         name = f"{cfg.checkpoint} ({model.num_frames} frames)"
-        playback.append(bench_playback(model, name, cfg, renderer))
-        playback.append(bench_playback(model, name, cfg, renderer, preload=True))
     else:
         model = untrained_model()
         name = "untrained ATGS model, cpu preset"
-        playback.append(bench_playback(model, name, cfg, renderer))
-        playback.append(bench_playback(model, name, cfg, renderer, preload=True))
-    playback.append(bench_playback(SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480)),
-                                   "built-in demo scene (atgs-view demo)", cfg, renderer))
+    demo = SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480), num_cameras=6)
+    demo_name = "built-in demo scene (atgs-view demo)"
+    # The built-in scene first: it is the aim's subject (25 FPS at 640x480).
+    playback.append(bench_playback(demo, demo_name, cfg, renderer))
+    playback.append(bench_playback(demo, demo_name, cfg, renderer, min_alpha=4 / 255))
+    playback.append(bench_playback(demo, demo_name, cfg, renderer, adaptive=True))
+    playback.append(bench_playback(model, name, cfg, renderer))
+    pinned = preload_all(model)
+    playback.append(bench_playback(model, name, cfg, renderer, preload=True, pinned=pinned))
+    playback.append(bench_playback(model, name, cfg, renderer, preload=True, min_alpha=4 / 255, pinned=pinned))
+    playback.append(bench_playback(model, name, cfg, renderer, preload=True, adaptive=True, pinned=pinned))
+    del pinned
+    cutoffs = bench_cutoffs(demo, demo_name, cfg, renderer) + bench_cutoffs(model, name, cfg, renderer)
     result = {
         "machine": {
             "gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
@@ -255,6 +351,7 @@ def main(cfg: BenchConfig) -> None:
         },
         "per_count": rows,
         "playback": playback,
+        "cutoffs": cutoffs,
         "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
     }  # fmt: skip
     renderer.release()

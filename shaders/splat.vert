@@ -1,9 +1,11 @@
 #version 330 core
-// One quad (two triangles) per Gaussian, drawn from an element buffer without vertex
-// attributes: element 4 g + c is corner c of Gaussian g, and the elements are listed in
-// back-to-front order. (One indexed draw is about twice as fast on llvmpipe as instancing,
-// whose per-instance overhead dominates for small splats.) The Gaussians live in an integer
-// texture, 3 texels each: (mean.xyz, opacity) | (cov00, cov01, cov02, cov11) | (cov12, cov22, rg16, b16).
+// One triangle per Gaussian, drawn from an element buffer without vertex attributes:
+// element 3 g + c is corner c of Gaussian g, and the elements are listed in back-to-front
+// order. (One indexed draw is about twice as fast on llvmpipe as instancing, whose
+// per-instance overhead dominates for small splats; one triangle instead of a two-triangle
+// quad halves llvmpipe's per-primitive setup, which bounds small splats and low resolutions.)
+// The Gaussians live in an integer texture, 3 texels each:
+// (mean.xyz, opacity) | (cov00, cov01, cov02, cov11) | (cov12, cov22, rg16, b16).
 // Conventions follow atgs.render (OpenCV camera, pixel centers at +0.5, EWA with 0.3 px^2
 // dilation, gsplat's Jacobian clamp, near plane, 3-sigma support).
 
@@ -16,11 +18,11 @@ uniform vec4 u_lim;             // Jacobian clamp: x/z in [-lim.x, lim.y], y/z i
 uniform float u_near;
 uniform float u_dilation;
 uniform float u_scale2;         // scale modifier squared (covariance scales with its square)
-uniform float u_extent;         // quad half-extent in standard deviations (3)
+uniform float u_extent;         // splat half-extent in standard deviations (3)
 uniform float u_alpha_min;
 
 // Position in the Gaussian's whitened frame (units of standard deviations along the
-// eigen-axes); affine over the quad, so screen-linear interpolation gives every pixel center
+// eigen-axes); affine over the triangle, so screen-linear interpolation gives every pixel center
 // its exact Mahalanobis coordinates: sigma = 0.5 |v_white|^2 = 0.5 d^T Sigma2d^-1 d.
 noperspective out vec2 v_white;
 flat out vec4 v_color;          // rgb, opacity
@@ -31,7 +33,7 @@ void cull() {
 }
 
 void main() {
-    int i = gl_VertexID >> 2;
+    int i = gl_VertexID / 3;
     ivec2 base = ivec2((i % u_per_row) * 3, i / u_per_row);
     uvec4 t0 = texelFetch(u_data, base, 0);
     uvec4 t1 = texelFetch(u_data, base + ivec2(1, 0), 0);
@@ -66,7 +68,7 @@ void main() {
 
     vec2 center = vec2(fx * pc.x * iz + u_intr.z, fy * pc.y * iz + u_intr.w);
 
-    // Eigen-decomposition of Sigma2d: the quad spans +-k sigma along both eigen-axes.
+    // Eigen-decomposition of Sigma2d: the splat spans +-k sigma along both eigen-axes.
     float mid = 0.5 * (a + c);
     float disc = sqrt(max(mid * mid - det, 0.0));
     float l1 = mid + disc;
@@ -78,14 +80,16 @@ void main() {
         e1 = (a >= c) ? vec2(1.0, 0.0) : vec2(0.0, 1.0);
     }
     vec2 e2 = vec2(-e1.y, e1.x);
-    // Beyond sqrt(2 ln(255 o)) sigmas alpha < 1/255: a low-opacity Gaussian gets a smaller quad.
+    // Beyond sqrt(2 ln(o / alpha_min)) sigmas alpha < alpha_min: a faint Gaussian gets a smaller triangle.
     float k = min(u_extent, sqrt(max(2.0 * log(opacity / u_alpha_min), 0.0)));
     if (k <= 0.0) { cull(); return; }
     // Half a pixel of slack so that pixel centers on the ellipse's edge are not lost.
     float h1 = k * sqrt(l1) + 0.5, h2 = k * sqrt(l2) + 0.5;
 
-    int c_id = gl_VertexID & 3;
-    vec2 corner = vec2(float(c_id & 1), float(c_id >> 1)) * 2.0 - 1.0;
+    // The equilateral triangle around the unit circle of the frame scaled by (h1, h2) along
+    // the eigen-axes: it contains the +-h1, +-h2 ellipse (vertices at distance 2).
+    int c_id = gl_VertexID - 3 * i;
+    vec2 corner = (c_id == 0) ? vec2(0.0, 2.0) : vec2((c_id == 1) ? -1.7320508 : 1.7320508, -1.0);
     vec2 pix = center + corner.x * h1 * e1 + corner.y * h2 * e2;
     vec2 ndc = vec2(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y);
     gl_Position = vec4(ndc, 0.0, 1.0);

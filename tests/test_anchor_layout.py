@@ -1,7 +1,6 @@
 """Static content modelled once (split anchor layout) and the final pruning of anchors that
 never contributed."""
 
-import itertools
 
 import numpy as np
 import pytest

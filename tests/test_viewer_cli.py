@@ -70,6 +70,8 @@ def test_bad_arguments_exit_2(ckpt: Path, tmp_path: Path, capsys: pytest.Capture
         (["--time", "1.5"], "--time"),
         (["--size", "big"], "--size"),
         (["--frame", "99"], "--frame 99"),
+        (["--min-alpha", "0"], "--min-alpha 0"),
+        (["--min-alpha", "1.5"], "--min-alpha 1.5"),
     ):
         assert main([str(ckpt), "--headless", "--out", str(tmp_path / "x.png"), *args]) == 2
         err = capsys.readouterr().err

@@ -145,7 +145,7 @@ def test_matches_training_rasterizer(renderer: SplatRenderer, exact_sort: bool) 
     assert psnr(depth / zmax, out.depth.detach().numpy() / zmax) >= 35.0
 
 
-def test_matches_rasterizer_through_egl() -> None:
+def test_matches_rasterizer_through_egl(renderer: SplatRenderer) -> None:
     from atgs.render import rasterize
 
     ctx = create_headless_context("egl")
@@ -159,6 +159,9 @@ def test_matches_rasterizer_through_egl() -> None:
     finally:
         r.release()
         ctx.release()
+        # EGL and OSMesa share Mesa's GL dispatch: make the module's OSMesa context current
+        # again, or the following tests would draw into no context.
+        renderer.ctx.__enter__()
 
 
 def test_constants_agree_with_rasterizer() -> None:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.adaptive import TARGET_MS, next_render_scale
 from viewer.camera_control import CameraControl
 from viewer.decode_cache import DecodeCache
 from viewer.errors import ViewerError
@@ -135,7 +136,7 @@ class PlayerApp:
         self.fly_speed = 0.5 * max(self.control.state.distance, 1e-3)  # world units per second
         self.render_scale = 1.0
         self.adaptive = True  # adaptive resolution (UI checkbox): lower while playing/moving, full when still
-        self.target_ms = 40.0  # 25 FPS
+        self.target_ms = TARGET_MS  # 25 FPS
         self._last_key: tuple | None = None
         self._last_scale = 1.0
         self.show_ui = True
@@ -204,7 +205,7 @@ class PlayerApp:
         cam_full = self.control.camera(fb_w, fb_h)
         shown = self.feeder.shown
         key = (cam_full.w2c.tobytes(), cam_full.K.tobytes(), fb_w, fb_h, id(shown), s.mode,
-               s.scale_modifier, tuple(s.background), self.adaptive or self.render_scale)
+               s.scale_modifier, s.min_alpha, tuple(s.background), self.adaptive or self.render_scale)
         scale = self.render_scale
         if key == self._last_key:
             if self._last_scale >= 1.0 or not self.adaptive:
@@ -225,10 +226,7 @@ class PlayerApp:
         """Adaptive resolution: keep splatting near ``target_ms`` while playing or moving."""
         if not self.adaptive or self._last_scale != self.render_scale:
             return
-        if draw_ms > 1.2 * self.target_ms:
-            self.render_scale = max(0.25, self.render_scale * 0.85)
-        elif draw_ms < 0.6 * self.target_ms:
-            self.render_scale = min(1.0, self.render_scale * 1.1)
+        self.render_scale = next_render_scale(self.render_scale, draw_ms, self.target_ms)
 
     # --- input -------------------------------------------------------------------------------
     def _handle_input(self, dt: float) -> None:
@@ -416,6 +414,10 @@ class PlayerApp:
         if changed:
             self.settings.mode = MODES[m]  # type: ignore[assignment]
         _, self.settings.scale_modifier = imgui.slider_float("scale", self.settings.scale_modifier, 0.05, 4.0, "%.2f")
+        # alpha cutoff in 1/255 steps: 1 is the rasterizer's rule; higher culls faint splats (faster)
+        changed, cut = imgui.slider_int("alpha cutoff /255", round(self.settings.min_alpha * 255), 1, 16)
+        if changed:
+            self.settings.min_alpha = cut / 255.0
         _, self.adaptive = imgui.checkbox("adaptive resolution", self.adaptive)
         if not self.adaptive:
             _, self.render_scale = imgui.slider_float("resolution", self.render_scale, 0.25, 1.0, "%.2f")

@@ -40,6 +40,9 @@ class ViewConfig:
     mode: Literal["color", "depth", "alpha"] = "color"
     scale_modifier: float = 1.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    min_alpha: float = 1 / 255
+    """Alpha cutoff: 1/255 is the training rasterizer's rule; e.g. 4/255 = 0.0157 culls faint
+    Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
     autotest: Path | None = None
     """Scripted window run (for tests): play, scrub, save a screenshot to this PNG, write a JSON report next to it, exit."""
     autotest_frames: int = 20
@@ -71,12 +74,17 @@ class RenderConfig:
     mode: Literal["color", "depth", "alpha"] = "color"
     scale_modifier: float = 1.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    min_alpha: float = 1 / 255
+    """Alpha cutoff (see atgs-view --help)."""
 
 
 def _settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
     if not cfg.scale_modifier > 0:
         raise ViewerError(f"--scale-modifier {cfg.scale_modifier}: must be > 0")
-    return RenderSettings(mode=cfg.mode, scale_modifier=cfg.scale_modifier, background=tuple(cfg.background))
+    if not 0.0 < cfg.min_alpha < 0.99:
+        raise ViewerError(f"--min-alpha {cfg.min_alpha}: must be in (0, 0.99); 1/255 = 0.0039 is the rasterizer's cutoff")
+    return RenderSettings(mode=cfg.mode, scale_modifier=cfg.scale_modifier, background=tuple(cfg.background),
+                          min_alpha=cfg.min_alpha)
 
 
 def start_camera(source: GaussianSource, index: int):

@@ -71,9 +71,10 @@ def pack_gaussians(g: Gaussians, frame: int = -1, num_anchors: int = -1) -> Pack
     n = means.shape[0]
     quats, scales = _np(g.quats, (n, 4)), _np(g.scales, (n, 3))
     op, col = _np(g.opacities, (n,)), _np(g.colors, (n, 3))
-    ok = np.isfinite(means).all(1) & np.isfinite(quats).all(1) & np.isfinite(scales).all(1)
-    ok &= np.isfinite(op) & np.isfinite(col).all(1)
-    if not ok.all():
+    # One flat check first (per-row reductions over 3-4 columns cost more than the packing).
+    if not all(bool(np.isfinite(a).all()) for a in (means, quats, scales, op, col)):
+        ok = np.isfinite(means).all(1) & np.isfinite(quats).all(1) & np.isfinite(scales).all(1)
+        ok &= np.isfinite(op) & np.isfinite(col).all(1)
         means, quats, scales, op, col = means[ok], quats[ok], scales[ok], op[ok], col[ok]
         n = means.shape[0]
     f = np.empty((n, WORDS_PER_GAUSSIAN), dtype=np.float32)

@@ -24,7 +24,8 @@ class FrustumCull:
 
     A Gaussian is dropped only if its 3-sigma footprint surely misses the image: the bound uses
     ||J||_F (with the same Jacobian clamp as the shader) times sqrt(trace Sigma3d), plus the
-    0.3 px^2 dilation and the quad's half-pixel slack.
+    0.3 px^2 dilation and the splat's half-pixel slack (the shader's triangle is larger, but
+    only the ellipse inside it can write pixels).
     """
 
     K: np.ndarray
@@ -52,11 +53,19 @@ def _on_screen(means: np.ndarray, extent: np.ndarray, w2c: np.ndarray, z: np.nda
 
 
 def back_to_front(means: np.ndarray, w2c: np.ndarray, near: float, exact: bool = False,
-                  extent: np.ndarray | None = None, cull: FrustumCull | None = None) -> np.ndarray:
+                  extent: np.ndarray | None = None, cull: FrustumCull | None = None,
+                  opacity: np.ndarray | None = None, min_alpha: float = 0.0) -> np.ndarray:
     """uint32 indices of the Gaussians in front of the near plane (and, with ``cull`` and
-    ``extent``, whose footprint may touch the image), farthest first."""
+    ``extent``, whose footprint may touch the image; with ``opacity``, whose opacity reaches
+    ``min_alpha``), farthest first.
+
+    The opacity test is the contribution cull: a pixel's alpha is at most the opacity, and the
+    shader discards alphas below ``min_alpha``, so a Gaussian with ``opacity < min_alpha``
+    cannot change any pixel; dropping it here only saves its vertex and setup work."""
     z = view_depths(means, w2c)
     front = z > near
+    if opacity is not None and min_alpha > 0.0:
+        front &= opacity >= np.float32(min_alpha)
     if cull is not None and extent is not None:
         zs = np.where(front, z, np.float32(1.0))
         front &= _on_screen(means, extent, w2c, zs, cull)

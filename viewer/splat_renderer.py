@@ -1,6 +1,6 @@
 """GLSL Gaussian splatting with the training rasterizer's conventions (moderngl, GL 3.3 core).
 
-One quad per Gaussian from a single indexed draw: the element buffer lists the quads in
+One triangle per Gaussian from a single indexed draw: the element buffer lists them in
 back-to-front order (CPU radix sort of view depths, redone only when the camera or the
 Gaussians change) and the Gaussians themselves live in an RGBA32UI texture uploaded once per
 frame. Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``, into a float
@@ -34,15 +34,15 @@ RADIUS_SIGMAS = 3.0
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 GAUSSIANS_PER_ROW = 1024  # texture row = 1024 Gaussians = 3072 texels
-# Two triangles per quad; corner c of Gaussian g is vertex 4 g + c (see shaders/splat.vert).
-QUAD_ELEMENTS = np.array([0, 1, 2, 2, 1, 3], dtype=np.uint32)
+# One triangle per Gaussian; corner c of Gaussian g is vertex 3 g + c (see shaders/splat.vert).
+VERTS_PER_SPLAT = 3
 
 
-def quad_elements(order: np.ndarray) -> np.ndarray:
-    """Element buffer (6 uint32 per Gaussian) drawing the Gaussians in ``order``."""
-    el = np.empty((order.size, 6), dtype=np.uint32)
-    el[:] = (order.astype(np.uint32) * np.uint32(4))[:, None]
-    el += QUAD_ELEMENTS
+def splat_elements(order: np.ndarray) -> np.ndarray:
+    """Element buffer (3 uint32 per Gaussian) drawing the Gaussians in ``order``."""
+    el = np.empty((order.size, VERTS_PER_SPLAT), dtype=np.uint32)
+    el[:] = (order.astype(np.uint32) * np.uint32(VERTS_PER_SPLAT))[:, None]
+    el += np.arange(VERTS_PER_SPLAT, dtype=np.uint32)
     return el.reshape(-1)
 
 
@@ -68,6 +68,15 @@ class RenderSettings:
     scale_modifier: float = 1.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     exact_sort: bool = False  # float argsort instead of the 16-bit radix sort
+    min_alpha: float = ALPHA_MIN
+    """Alpha cutoff: fragments below it are discarded, triangles shrink to where alpha can reach it,
+    and Gaussians whose opacity is below it are culled before the draw. 1/255 (default) is the
+    training rasterizer's rule; a larger cutoff trades accuracy for speed: no pixel loses more
+    than ``min_alpha`` of alpha per Gaussian (measured PSNR in docs/viewer.md)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.min_alpha < ALPHA_MAX:
+            raise ValueError(f"min_alpha {self.min_alpha}: must be in (0, {ALPHA_MAX}); 1/255 is the rasterizer's cutoff")
 
 
 @dataclass
@@ -77,7 +86,7 @@ class FrameTimings:
     sort_ms: float = 0.0
     upload_ms: float = 0.0
     draw_ms: float = 0.0
-    drawn: int = 0  # Gaussians that may touch the image (quads drawn)
+    drawn: int = 0  # Gaussians that may touch the image (triangles drawn)
     sorted_again: bool = False
 
 
@@ -86,7 +95,7 @@ class _SortKey:
     w2c: bytes = b""
     version: int = -1
     exact: bool = False
-    view: tuple = ()  # intrinsics, size and scale modifier (they change the cull)
+    view: tuple = ()  # intrinsics, size, scale modifier and alpha cutoff (they change the cull)
 
 
 @dataclass
@@ -117,6 +126,7 @@ class SplatRenderer:
         self._vao: moderngl.VertexArray | None = None
         self._count = 0
         self._means = np.zeros((0, 3), np.float32)
+        self._opacity = np.zeros(0, np.float32)
         self._extent: np.ndarray | None = None
         self._version = 0
         self._sort_key = _SortKey()
@@ -152,6 +162,7 @@ class SplatRenderer:
                 )
         self._count = n
         self._means = packed.means
+        self._opacity = np.ascontiguousarray(packed.data[:, 3]).view(np.float32)
         self._extent = packed.extent
         self.gaussians = packed
         self._version += 1
@@ -175,22 +186,24 @@ class SplatRenderer:
         return None if self._target is None else self._target.texture
 
     # --- sorting --------------------------------------------------------------------------
-    def _sort(self, camera: Camera, exact: bool, scale_modifier: float = 1.0) -> None:
+    def _sort(self, camera: Camera, exact: bool, scale_modifier: float = 1.0, min_alpha: float = ALPHA_MIN) -> None:
         key = camera.w2c.astype(np.float32).tobytes()
-        view = (camera.K.tobytes(), camera.width, camera.height, float(scale_modifier))
+        view = (camera.K.tobytes(), camera.width, camera.height, float(scale_modifier), float(min_alpha))
         sk = self._sort_key
         if sk.w2c == key and sk.version == self._version and sk.exact == exact and sk.view == view:
             self.timings.sort_ms = 0.0
             self.timings.sorted_again = False
             return
         t0 = time.perf_counter()
-        # Off-screen Gaussians are dropped here (conservatively), so they cost no vertex work.
+        # Off-screen Gaussians are dropped here (conservatively), and so are those too faint to
+        # reach the alpha cutoff anywhere: they cost no vertex or setup work.
         cull = FrustumCull(camera.K, camera.width, camera.height, clamp_limits(camera.K, camera.width, camera.height),
                            scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
-        order = back_to_front(self._means, camera.w2c, NEAR, exact=exact, extent=self._extent, cull=cull)
+        order = back_to_front(self._means, camera.w2c, NEAR, exact=exact, extent=self._extent, cull=cull,
+                              opacity=self._opacity, min_alpha=float(min_alpha))
         self._drawn = int(order.size)
         if order.size:
-            elements = quad_elements(order)
+            elements = splat_elements(order)
             nbytes = elements.nbytes
             if self._index_buf is None or self._index_buf.size < nbytes:
                 if self._vao is not None:
@@ -218,7 +231,7 @@ class SplatRenderer:
             raise ValueError(f"unknown render mode {s.mode!r}; use one of {', '.join(MODES)}")
         W, H = camera.width, camera.height
         target = self._ensure_target(W, H)
-        self._sort(camera, s.exact_sort, s.scale_modifier)
+        self._sort(camera, s.exact_sort, s.scale_modifier, s.min_alpha)
         t0 = time.perf_counter()
         fbo = target.fbo
         fbo.use()
@@ -236,7 +249,7 @@ class SplatRenderer:
                 "u_dilation": DILATION,
                 "u_scale2": float(s.scale_modifier) ** 2,
                 "u_extent": RADIUS_SIGMAS,
-                "u_alpha_min": ALPHA_MIN,
+                "u_alpha_min": float(s.min_alpha),
                 "u_alpha_max": ALPHA_MAX,
                 "u_sigma_cut": 0.5 * RADIUS_SIGMAS**2,
                 "u_mode": 1 if s.mode == "depth" else 0,
@@ -253,7 +266,7 @@ class SplatRenderer:
             self.ctx.enable(moderngl.BLEND)
             self.ctx.blend_equation = moderngl.FUNC_ADD
             self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
-            self._vao.render(moderngl.TRIANGLES, vertices=6 * self._drawn)
+            self._vao.render(moderngl.TRIANGLES, vertices=VERTS_PER_SPLAT * self._drawn)
             self.ctx.disable(moderngl.BLEND)
         if sync:
             self.ctx.finish()  # so that draw_ms measures the draw, not the next readback
