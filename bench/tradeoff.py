@@ -62,8 +62,9 @@ class TradeoffArgs:
     keyframes: int = 12  # keyframes of the prepared scene; runs use K=6 of them unless swept
     test_cameras: int = 2
     iterations: int = 800  # sweeps, layouts and --auto: cpu-fast with its schedule compressed to this
+    # (the base of the sweeps is the "preset cpu-fast" run: the same configuration)
     preset_fraction: float = 0.4  # presets train this fraction of their default iterations ...
-    preset_max_iterations: int = 1500  # ... capped here (the paper preset is GPU sized)
+    preset_max_iterations: int = 800  # ... capped here: an equal step budget (2 cores)
     jobs: int = 2
     threads: int = 1  # torch threads per run
     draw_size: tuple[int, int] = (640, 480)
@@ -73,6 +74,7 @@ class TradeoffArgs:
     docs: Path = ROOT / "docs" / "tradeoff.md"
     plot: Path = ROOT / "docs" / "images" / "tradeoff.png"
     replot: bool = False  # only redraw table and plot from the results file
+    rerun: bool = False  # run again runs whose results are already in the results file
 
 
 @dataclass
@@ -103,11 +105,9 @@ SWEEPS: list[tuple[str, dict, dict]] = [
     ("K=12", {"num_keyframes": 12}, {}),
     ("M=1", {"num_segments": 1}, {}),
     ("M=4", {"num_segments": 4}, {}),
-    ("features=16", {"feature_dim": 16}, {}),
     ("features=64", {"feature_dim": 64}, {}),
     ("hash=2^12", {"hash.log2_table_size": 12}, {}),
     ("hash=2^16", {"hash.log2_table_size": 16}, {}),
-    ("grid res=64", {"spatial_resolution": 64}, {}),
     ("images x0.5", {}, {"resolution_scale": 0.5}),
 ]
 BASE_MODEL = {"num_keyframes": 6}
@@ -130,7 +130,6 @@ def plan(args: TradeoffArgs) -> list[RunSpec]:
                 it = min(args.preset_max_iterations, max(50, round(preset(p)[1].iterations * args.preset_fraction)))
                 add(f"preset {p}", "presets", p, it)
         if "auto" in args.only:
-            add("base (cpu-fast)", "auto", "cpu-fast", args.iterations)
             add("cpu-fast --auto", "auto", "cpu-fast", args.iterations, auto=True)
         if "layout" in args.only:
             add("per-keyframe anchors (paper)", "layout", "cpu-fast", args.iterations,
@@ -230,6 +229,7 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
     out = work_dir / spec.scene / spec.name.replace(" ", "_").replace("/", "_")
     trainer = Trainer(scene, m, t, out)
     res = trainer.train(progress=False, final_renders=False)
+    trainer.cams = list(scene.cameras)  # evaluate at full resolution whatever the training resolution
     ev = trainer.evaluate()
     model = trainer.model
     payload = trainer.checkpoint_payload()
@@ -287,7 +287,7 @@ def table(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    """PSNR against training time (left) and against viewer decode+draw time (right), per scene."""
+    """PSNR against training time, viewer decode+draw time and model size, one row per scene."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -295,15 +295,16 @@ def plot(rows: list[dict], path: Path) -> None:
 
     ok = [r for r in rows if "error" not in r]
     scenes = sorted({r["scene"] for r in ok})
-    fig, axes = plt.subplots(len(scenes), 2, figsize=(12, 4.2 * len(scenes)), squeeze=False)
+    fig, axes = plt.subplots(len(scenes), 3, figsize=(17, 4.4 * len(scenes)), squeeze=False)
     style = {"presets": ("o", "tab:blue"), "auto": ("*", "tab:red"), "layout": ("s", "tab:green"),
              "sweep": (".", "tab:gray")}
     for i, sc in enumerate(scenes):
-        for j, (xkey, xlabel) in enumerate((("train_seconds", "training time [s] (1 thread)"),
-                                            ("frame_ms", "viewer decode + draw per frame [ms]"))):
+        for j, (xkey, xlabel) in enumerate((("train_seconds", "training time [s] (800 steps, 1 thread)"),
+                                            ("frame_ms", "viewer decode + draw per frame [ms], 640x480"),
+                                            ("model_mb", "model size [MB] (checkpoint without optimizer)"))):
             ax = axes[i][j]
             for r in (r for r in ok if r["scene"] == sc):
-                x = r["train_seconds"] if xkey == "train_seconds" else r["decode_ms"] + (r.get("draw_ms") or 0)
+                x = r["decode_ms"] + (r.get("draw_ms") or 0) if xkey == "frame_ms" else r[xkey]
                 mk, col = style[r["group"]]
                 ax.scatter(x, r["psnr"], marker=mk, color=col, s=60 if r["group"] != "sweep" else 30)
                 ax.annotate(r["name"].replace("preset ", ""), (x, r["psnr"]), fontsize=7,
@@ -345,9 +346,12 @@ def main() -> None:
         publish(results, args)
         return
     specs = plan(args)
+    if not args.rerun:  # resume an interrupted benchmark
+        specs = [s for s in specs if "error" in results["runs"].get(f"{s.scene}|{s.name}", {"error": 1})]
     # the scenes first, one at a time (synthesis + preparation are cached and not thread safe)
     for sc in args.scenes:
-        load_scene(replace(specs[0], scene=sc) if specs else RunSpec("x", "x", sc, "cpu-fast", 1), args.cache_dir)
+        if specs:
+            load_scene(replace(specs[0], scene=sc), args.cache_dir)
     results["machine"] = {"cpus": os.cpu_count(), "jobs": args.jobs, "threads_per_run": args.threads,
                           "loadavg_start": list(os.getloadavg())}
     from tqdm import tqdm

@@ -77,7 +77,8 @@ def anchor_voxel_size(points: torch.Tensor, keyframes: torch.Tensor, voxel_size:
 
 
 def init_anchors(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: float = 0.0,
-                 max_per_keyframe: int = 0, generator: torch.Generator | None = None) -> AnchorInit:
+                 max_per_keyframe: int = 0, generator: torch.Generator | None = None,
+                 static_voxel_factor: float = 1.0) -> AnchorInit:
     """Anchors per keyframe group: voxel downsampled points; v = log(sqrt(mean squared distance
     to the 3 nearest anchors of the same keyframe, the anchor itself included)) for all six numbers."""
     points = points.float()
@@ -86,7 +87,8 @@ def init_anchors(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: floa
     voxel = anchor_voxel_size(points, keyframes, voxel_size, generator)
     mus, kfs, scales = [], [], []
     for k in torch.unique(keyframes).tolist():
-        p = voxel_downsample(points[keyframes == k], voxel)
+        # static points pool the observations of every keyframe: they support a finer voxel
+        p = voxel_downsample(points[keyframes == k], voxel * (static_voxel_factor if k == STATIC else 1.0))
         if max_per_keyframe and p.shape[0] > max_per_keyframe:
             p = p[torch.randperm(p.shape[0], generator=generator)[:max_per_keyframe]]
         if p.shape[0] >= 2:

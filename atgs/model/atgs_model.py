@@ -127,7 +127,7 @@ class ATGSModel:
             extra = box[0] + torch.rand(cfg.random_anchors, 3, generator=gen) * (box[1] - box[0])
             points = torch.cat([points, extra])
             kf = torch.cat([kf, torch.full((cfg.random_anchors,), STATIC if split else 0, dtype=torch.int64)])
-        anchors = init_anchors(points, kf, voxel, cfg.max_anchors_per_keyframe, gen)
+        anchors = init_anchors(points, kf, voxel, cfg.max_anchors_per_keyframe, gen, cfg.static_voxel_factor)
         lo, hi = anchors.mu.min(0).values, anchors.mu.max(0).values
         size = (hi - lo).clamp_min(1e-3)
         pad = cfg.bbox_padding * size

@@ -37,6 +37,7 @@ class ModelConfig:
     # become that keyframe's anchors (the paper).
     anchor_layout: str = "split"
     static_fraction: float = 0.5  # split: a cell is static if seen at >= this fraction of keyframes
+    static_voxel_factor: float = 1.0  # split: voxel of the static anchors relative to the per-keyframe one
     static_keyframe0: bool = True  # per-keyframe: keyframe 0's anchors are always active (authors' code)
     # Temporal segments: M grids; frames_per_segment>0 overrides M with ceil(F/frames_per_segment).
     num_segments: int = 2
