@@ -148,3 +148,18 @@ def test_training_prunes_anchors_outside_every_view(tmp_path):
     d = (tr.model.anchor_mu[:, None, :] - far[None]).norm(dim=-1)
     assert (d > 1.0).all(), "the out-of-view anchors are gone"
     assert tr.model.num_anchors <= n0 - 4
+
+
+def test_static_voxel_factor_downsamples_static_points_finer():
+    from atgs.model.anchors import init_anchors, voxel_downsample
+
+    pts, kf, moving = _scene_points()
+    kf = torch.where(moving, kf, torch.full_like(kf, STATIC))
+    for factor in (1.0, 0.5):
+        a = init_anchors(pts, kf, voxel_size=0.1, static_voxel_factor=factor)
+        static = a.keyframe == STATIC
+        want = voxel_downsample(pts[~moving], 0.1 * factor)  # the static points at the finer voxel
+        assert int(static.sum()) == want.shape[0]
+        torch.testing.assert_close(a.mu[static].sort(0).values, want.sort(0).values)
+        for k in range(6):  # per-keyframe anchors keep the base voxel
+            assert int((a.keyframe == k).sum()) == voxel_downsample(pts[moving & (kf == k)], 0.1).shape[0]
