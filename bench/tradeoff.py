@@ -105,9 +105,12 @@ SWEEPS: list[tuple[str, dict, dict]] = [
     ("K=12", {"num_keyframes": 12}, {}),
     ("M=1", {"num_segments": 1}, {}),
     ("M=4", {"num_segments": 4}, {}),
+    ("features=16", {"feature_dim": 16}, {}),
     ("features=64", {"feature_dim": 64}, {}),
     ("hash=2^12", {"hash.log2_table_size": 12}, {}),
     ("hash=2^16", {"hash.log2_table_size": 16}, {}),
+    ("grid res=16", {"spatial_resolution": 16}, {}),
+    ("grid res=64", {"spatial_resolution": 64}, {}),
     ("images x0.5", {}, {"resolution_scale": 0.5}),
 ]
 BASE_MODEL = {"num_keyframes": 6}
