@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Literal
 
 
 @dataclass
@@ -35,7 +36,7 @@ class ModelConfig:
     # "split": content seen at most keyframes is static, modelled once by always-active anchors,
     # and only moving content gets anchors per keyframe; "per-keyframe": every keyframe's points
     # become that keyframe's anchors (the paper).
-    anchor_layout: str = "split"
+    anchor_layout: Literal["split", "per-keyframe"] = "split"
     static_fraction: float = 0.5  # split: a cell is static if seen at >= this fraction of keyframes
     static_voxel_factor: float = 1.0  # split: voxel of the static anchors relative to the per-keyframe one
     static_keyframe0: bool = True  # per-keyframe: keyframe 0's anchors are always active (authors' code)
