@@ -47,7 +47,7 @@ def _load_docs_helper():
 _docs = _load_docs_helper()
 update_docs_table, write_json_atomic = _docs.update_docs_table, _docs.write_json_atomic
 
-GROUPS = ("presets", "auto", "layout", "sweep")
+GROUPS = ("presets", "auto", "layout", "sweep", "layout-full")
 
 
 @dataclass
@@ -138,6 +138,10 @@ def plan(args: TradeoffArgs) -> list[RunSpec]:
             add("per-keyframe anchors (paper)", "layout", "cpu-fast", args.iterations,
                 {"anchor_layout": "per-keyframe"}, {"densify.final_prune": False})
             add("split, no final prune", "layout", "cpu-fast", args.iterations, {}, {"densify.final_prune": False})
+        if "layout-full" in args.only:  # the layouts again at cpu-fast's own full schedule
+            it = preset("cpu-fast")[1].iterations
+            add(f"{it} steps, split", "layout-full", "cpu-fast", it)
+            add(f"{it} steps, per-keyframe", "layout-full", "cpu-fast", it, {"anchor_layout": "per-keyframe"})
         if "sweep" in args.only:
             for name, mo, to in SWEEPS:
                 add(name, "sweep", "cpu-fast", args.iterations, mo, to)
@@ -296,7 +300,7 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ok = [r for r in rows if "error" not in r]
+    ok = [r for r in rows if "error" not in r and r["group"] != "layout-full"]  # plot: 800-step runs
     scenes = sorted({r["scene"] for r in ok})
     fig, axes = plt.subplots(len(scenes), 3, figsize=(17, 4.4 * len(scenes)), squeeze=False)
     style = {"presets": ("o", "tab:blue"), "auto": ("*", "tab:red"), "layout": ("s", "tab:green"),
