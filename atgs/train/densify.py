@@ -136,23 +136,28 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
     return int(mu.shape[0])
 
 
-def prune_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None) -> int:
-    """Remove anchors seen often enough whose mean opacity (per visit, summed over q) is below
-    ``min_opacity``; returns how many were removed (never all of them)."""
-    q = model.cfg.gaussians_per_anchor
-    seen = stats.anchor_count > cfg.interval * cfg.success_threshold
-    prune = seen & (stats.opacity_accum < cfg.min_opacity * stats.anchor_count)
-    stats.opacity_accum[seen] = 0
-    stats.anchor_count[seen] = 0
+def _remove_anchors(model: ATGSModel, stats: DensifyStats, prune: torch.Tensor, opt: SparseAdam | None) -> int:
+    """Drop the anchors marked in ``prune`` from the model, its statistics and the optimizer
+    state; never all of them. Returns how many were removed."""
     if not prune.any() or bool(prune.all()):
         return 0
     keep = ~prune
     model.keep_anchors(keep)
-    stats.keep(keep, q)
+    stats.keep(keep, model.cfg.gaussians_per_anchor)
     if opt is not None:
         for name in ANCHOR_TABLES:
             opt.keep_rows(name, keep)
     return int(prune.sum())
+
+
+def prune_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None) -> int:
+    """Remove anchors seen often enough whose mean opacity (per visit, summed over q) is below
+    ``min_opacity``; returns how many were removed (never all of them)."""
+    seen = stats.anchor_count > cfg.interval * cfg.success_threshold
+    prune = seen & (stats.opacity_accum < cfg.min_opacity * stats.anchor_count)
+    stats.opacity_accum[seen] = 0
+    stats.anchor_count[seen] = 0
+    return _remove_anchors(model, stats, prune, opt)
 
 
 def prune_final(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None,
@@ -161,17 +166,8 @@ def prune_final(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: 
     ``min_opacity`` and, with ``prune_unseen`` (enough steps have passed that every anchor in
     some training view was decoded), anchors never decoded in a training view. Their Gaussians
     could only show up as untrained clutter in novel views. Returns how many were removed."""
-    q = model.cfg.gaussians_per_anchor
     seen = stats.anchor_count > 0
     prune = seen & (stats.opacity_accum < cfg.min_opacity * stats.anchor_count)
     if prune_unseen:
         prune |= ~seen
-    if not prune.any() or bool(prune.all()):
-        return 0
-    keep = ~prune
-    model.keep_anchors(keep)
-    stats.keep(keep, q)
-    if opt is not None:
-        for name in ANCHOR_TABLES:
-            opt.keep_rows(name, keep)
-    return int(prune.sum())
+    return _remove_anchors(model, stats, prune, opt)
