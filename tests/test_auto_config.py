@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import math
+
 import pytest
 
 from atgs.auto_config import AutoRules, apply_overrides, choose_config, format_choice
@@ -68,6 +70,14 @@ def test_bounds_at_extremes(frames: int, moving: float, tau: float, name: str) -
     o = ch.overrides
     assert 1 <= o["num_keyframes"] <= min(frames, 6)
     assert 1 <= o["num_segments"] <= min(frames, rules.max_segments)
+    if frames == 1 or s.static:  # nothing moves: one keyframe, one temporal grid
+        assert (o["num_keyframes"], o["num_segments"]) == (1, 1)
+    else:  # the documented rule, written out: >= 2 keyframes when anything moves, then the caps
+        F, ts = frames, min(tau, frames)
+        want = max(2, math.ceil(rules.keyframes_per_turnover * F / ts), math.ceil((F - 1) / rules.max_keyframe_gap) + 1)
+        assert o["num_keyframes"] == min(want, F, rules.max_keyframes, 6)
+        seg = max(float(rules.min_segment_frames), rules.segment_turnovers * ts)
+        assert o["num_segments"] <= min(math.ceil(F / seg), F, rules.max_segments)  # memory may lower it
     t = o["hash.log2_table_size"]
     assert max(10, base.hash.log2_table_size - 4) <= t <= base.hash.log2_table_size + 2
     assert 8 <= o["spatial_resolution"] <= 256

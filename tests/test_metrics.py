@@ -226,6 +226,9 @@ def test_ms_ssim_orders_distortions() -> None:
     large = np.clip(x + 0.2 * rng.standard_normal(x.shape), 0, 1)
     v_small, v_large = float(M.ms_ssim(_t(x), _t(small))), float(M.ms_ssim(_t(x), _t(large)))
     assert 1.0 > v_small > v_large > 0.0
+    levels = M.ms_ssim_levels(64, 64)  # both values match the slow reference, not just their order
+    assert v_small == pytest.approx(ref_ms_ssim(x, small, levels), abs=1e-10)
+    assert v_large == pytest.approx(ref_ms_ssim(x, large, levels), abs=1e-10)
 
 
 # --- DSSIM and the bundle ---------------------------------------------------------------------------
