@@ -245,8 +245,9 @@ def format_choice(choice: AutoChoice) -> str:
     return "\n".join(lines)
 
 
-def apply_overrides(cfg: ModelConfig, overrides: dict[str, int | float | bool]) -> ModelConfig:
-    """A copy of ``cfg`` with ``overrides`` applied; nested fields as "hash.log2_table_size"."""
+def apply_overrides(cfg, overrides: dict[str, int | float | bool]):
+    """A copy of the config dataclass ``cfg`` with ``overrides`` applied; nested fields as
+    "hash.log2_table_size"."""
     out = copy.deepcopy(cfg)
     for key, value in overrides.items():
         obj, parts = out, key.split(".")

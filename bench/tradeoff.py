@@ -150,15 +150,6 @@ def plan(args: TradeoffArgs) -> list[RunSpec]:
     return sorted(specs, key=lambda s: GROUPS.index(s.group))  # the main comparisons first
 
 
-def _set(obj, dotted: str, value) -> None:
-    *path, last = dotted.split(".")
-    for p in path:
-        obj = getattr(obj, p)
-    if not hasattr(obj, last):
-        raise ValueError(f"unknown config field {dotted!r}")
-    setattr(obj, last, value)
-
-
 def load_scene(spec: RunSpec, cache_dir: Path):
     from atgs.data.scene import PreparedScene
     from atgs.data.synth import default_config, ensure_default_scene, with_overrides
@@ -219,14 +210,13 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
 
     torch.set_num_threads(spec.threads)
     scene = load_scene(spec, cache_dir)
+    from atgs.auto_config import apply_overrides  # dotted keys ("hash.log2_table_size") on any config
+
     m, t = preset(spec.preset, spec.iterations)
-    for k, v in spec.model_overrides.items():
-        _set(m, k, v)
-    for k, v in spec.train_overrides.items():
-        _set(t, k, v)
+    m, t = apply_overrides(m, spec.model_overrides), apply_overrides(t, spec.train_overrides)
     chosen = {}
     if spec.auto:
-        from atgs.auto_config import apply_overrides, choose_config
+        from atgs.auto_config import choose_config
         from atgs.data.motion import measure_motion
 
         choice = choose_config(measure_motion(scene), m)

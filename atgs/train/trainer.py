@@ -252,15 +252,13 @@ class Trainer:
 
     def _final_prune(self, stop: int) -> None:
         d = self.cfg.densify
-        last = 0  # the step at which the densify statistics were last reset
-        if d.enabled and stop >= d.start:
-            last = stop - stop % d.interval if stop - stop % d.interval >= d.start else 0
+        last = stop - stop % d.interval  # the last densification step reset the statistics
+        if not d.enabled or last < d.start:
+            last = 0
         # an anchor in some training view is active in >= 1/K of the frames: after
         # 2 * cameras * K steps, never having been decoded in view means it never will be
         need = 2 * len(self.train_idx) * self.model.num_keyframes
-        n = prune_final(self.model, self.stats, d, self.sparse_opt, self.step - last >= need)
-        self.last_densify = (0, n)
-        self.final_pruned = n
+        self.final_pruned = prune_final(self.model, self.stats, d, self.sparse_opt, self.step - last >= need)
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
