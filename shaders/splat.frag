@@ -1,16 +1,15 @@
 #version 330 core
 // Per-pixel Gaussian weight as atgs.render: sigma = 0.5 d^T Sigma2d^-1 d (= 0.5 |v_white|^2),
-// cut beyond 3 sigma, alpha = min(0.99, o exp(-sigma)), discard below 1/255.
-// Output is premultiplied for back-to-front blending (ONE, ONE_MINUS_SRC_ALPHA).
+// cut beyond 3 sigma, alpha = min(0.99, o exp(-sigma)), discard below the cutoff (1/255).
+// Output is premultiplied for back-to-front blending (ONE, ONE_MINUS_SRC_ALPHA); in depth mode
+// the color is the view depth z (set by splat.vert), so the target accumulates sum z alpha T.
 
-uniform int u_mode;             // 0 color, 1 depth (z * alpha in rgb)
 uniform float u_sigma_cut;      // 4.5 = 3 sigma
 uniform float u_alpha_max;
 uniform float u_alpha_min;
 
 noperspective in vec2 v_white;
 flat in vec4 v_color;
-flat in float v_depth;
 
 out vec4 frag;
 
@@ -19,6 +18,5 @@ void main() {
     if (sigma > u_sigma_cut) discard;
     float alpha = min(u_alpha_max, v_color.a * exp(-sigma));
     if (alpha < u_alpha_min) discard;
-    vec3 rgb = (u_mode == 1) ? vec3(v_depth) : v_color.rgb;
-    frag = vec4(rgb * alpha, alpha);
+    frag = vec4(v_color.rgb * alpha, alpha);
 }

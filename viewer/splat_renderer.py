@@ -1,8 +1,9 @@
 """GLSL Gaussian splatting with the training rasterizer's conventions (moderngl, GL 3.3 core).
 
-One triangle per Gaussian from a single indexed draw: the element buffer lists them in
-back-to-front order (CPU radix sort of view depths, redone only when the camera or the
-Gaussians change) and the Gaussians themselves live in an RGBA32UI texture uploaded once per
+One triangle per Gaussian from a single indexed draw of points: the element buffer lists the
+Gaussians in back-to-front order (CPU radix sort of view depths, redone only when the camera or
+the Gaussians change), the vertex shader projects each Gaussian once and a geometry shader
+emits its triangle; the Gaussians themselves live in an RGBA32UI texture uploaded once per
 frame. Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``, into a float
 target cleared to the background, which yields ``C + T bg`` and ``alpha = 1 - T`` like
 :func:`atgs.render.rasterize`.
@@ -34,16 +35,6 @@ RADIUS_SIGMAS = 3.0
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 GAUSSIANS_PER_ROW = 1024  # texture row = 1024 Gaussians = 3072 texels
-# One triangle per Gaussian; corner c of Gaussian g is vertex 3 g + c (see shaders/splat.vert).
-VERTS_PER_SPLAT = 3
-
-
-def splat_elements(order: np.ndarray) -> np.ndarray:
-    """Element buffer (3 uint32 per Gaussian) drawing the Gaussians in ``order``."""
-    el = np.empty((order.size, VERTS_PER_SPLAT), dtype=np.uint32)
-    el[:] = (order.astype(np.uint32) * np.uint32(VERTS_PER_SPLAT))[:, None]
-    el += np.arange(VERTS_PER_SPLAT, dtype=np.uint32)
-    return el.reshape(-1)
 
 
 def load_shader(name: str) -> str:
@@ -116,7 +107,11 @@ class SplatRenderer:
     def __init__(self, ctx: moderngl.Context, target_dtype: str = "f4") -> None:
         self.ctx = ctx
         self.target_dtype = target_dtype  # "f4" exact; "f2" halves blend bandwidth for display
-        self.prog = ctx.program(vertex_shader=load_shader("splat.vert"), fragment_shader=load_shader("splat.frag"))
+        self.prog = ctx.program(
+            vertex_shader=load_shader("splat.vert"),
+            geometry_shader=load_shader("splat.geom"),
+            fragment_shader=load_shader("splat.frag"),
+        )
         self.present_prog = ctx.program(
             vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("present.frag")
         )
@@ -203,7 +198,7 @@ class SplatRenderer:
                               opacity=self._opacity, min_alpha=float(min_alpha))
         self._drawn = int(order.size)
         if order.size:
-            elements = splat_elements(order)
+            elements = order.astype(np.uint32)  # one point per Gaussian, back to front
             nbytes = elements.nbytes
             if self._index_buf is None or self._index_buf.size < nbytes:
                 if self._vao is not None:
@@ -266,7 +261,7 @@ class SplatRenderer:
             self.ctx.enable(moderngl.BLEND)
             self.ctx.blend_equation = moderngl.FUNC_ADD
             self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
-            self._vao.render(moderngl.TRIANGLES, vertices=VERTS_PER_SPLAT * self._drawn)
+            self._vao.render(moderngl.POINTS, vertices=self._drawn)
             self.ctx.disable(moderngl.BLEND)
         if sync:
             self.ctx.finish()  # so that draw_ms measures the draw, not the next readback
