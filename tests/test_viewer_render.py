@@ -76,6 +76,35 @@ def test_single_gaussian_is_the_analytic_ellipse(renderer: SplatRenderer) -> Non
     np.testing.assert_allclose(depth, 2.0 * ref, atol=1e-5)
 
 
+def test_large_gaussian_crossing_the_image_border(renderer: SplatRenderer) -> None:
+    # A big, flat Gaussian near the top edge (taken from a trained model): its triangle reaches
+    # far outside the viewport. llvmpipe's clipping of such triangles interpolated the
+    # Gaussian's coordinates wrongly (alpha off by up to 27%) at some image sizes and not
+    # others (here 120, 160, 200, 360, ... px wide), so every size from 120 to 680 px.
+    g = Gaussians(
+        means=torch.tensor([[-10.0887, 3.0167, 3.4435]]),
+        quats=torch.tensor([[0.7075, 0.1404, 0.6753, -0.1540]]),
+        scales=torch.tensor([[0.7825, 2.2431, 1e-9]]),
+        opacities=torch.tensor([0.354]),
+        colors=torch.tensor([[0.45, 0.3, 0.2]]),
+    )
+    w2c = np.array([[0.0, 1.0, 0.0, 0.0], [0.192012, 0.0, -0.981393, 0.588836],
+                    [-0.981393, 0.0, -0.192012, 4.802424], [0.0, 0.0, 0.0, 1.0]])
+    renderer.set_gaussians(pack_gaussians(g))
+    for width in range(120, 700, 20):
+        height = width * 3 // 4
+        f = 213.027774 / 256 * width
+        K = np.array([[f, 0, 0.5 * width], [0, f, 0.5 * height], [0, 0, 1]])
+        cam = Camera("c", width, height, K, w2c)
+        ref = _analytic_alpha(g, cam)
+        assert ref[0].max() > 0.01 and ref.sum() > 0.01 * width * height  # crosses the top edge, big
+        alpha = renderer.render_image(cam, RenderSettings(mode="alpha"))
+        # float32 against float64 may round a pixel right at the cutoff either way
+        at_cutoff = np.maximum(alpha, ref) < 1 / 255 + 2e-4
+        assert at_cutoff[np.abs(alpha - ref) > 1e-5].sum() <= 3, f"{width}x{height}"
+        np.testing.assert_allclose(alpha[~at_cutoff], ref[~at_cutoff], atol=1e-5, err_msg=f"{width}x{height}")
+
+
 def test_rotated_camera_and_scale_modifier(renderer: SplatRenderer) -> None:
     # A camera that is not the identity: the shader must apply w2c like the numpy reference.
     w2c = look_at(np.array([0.7, -0.4, -1.5]), np.array([0.05, -0.03, 2.0]), np.array([0.0, -1.0, 0.2]))
