@@ -132,6 +132,42 @@ def test_behind_camera_and_empty_give_background(renderer: SplatRenderer) -> Non
     assert renderer.render_image(cam, RenderSettings(mode="alpha")).max() == 0.0
 
 
+def test_present_shows_the_target_in_each_mode(renderer: SplatRenderer) -> None:
+    # The window's last pass, into an 8-bit framebuffer of the target's size (no filtering):
+    # color = the target's rgb, alpha = gray coverage, depth = the colormap of z between the
+    # nearest and farthest Gaussian (red near ... blue far), background where nothing is.
+    import moderngl
+
+    g, cam = _random_scene(400, seed=5)
+    renderer.set_gaussians(pack_gaussians(g))
+    ctx = renderer.ctx
+    tex = ctx.texture((cam.width, cam.height), 3, dtype="f1")
+    fbo = ctx.framebuffer([tex])
+    shown = {}
+    for mode in ("color", "alpha", "depth"):
+        s = RenderSettings(mode=mode, background=(0.1, 0.2, 0.3))
+        target = renderer.render_image(cam, s)
+        renderer.present(fbo, (0, 0, cam.width, cam.height), s)
+        raw = fbo.read(components=3)
+        shown[mode] = np.frombuffer(raw, np.uint8).reshape(cam.height, cam.width, 3)[::-1] / 255.0
+        if mode == "color":
+            np.testing.assert_allclose(shown[mode], target, atol=1 / 255 + 1e-6)
+        if mode == "alpha":
+            np.testing.assert_allclose(shown[mode], np.repeat(target[..., None], 3, -1), atol=1 / 255 + 1e-6)
+    alpha = renderer.render_image(cam, RenderSettings(mode="alpha"))
+    empty, covered = alpha < 1e-4, alpha > 0.5
+    assert empty.any() and covered.sum() > 20
+    np.testing.assert_allclose(shown["depth"][empty], np.broadcast_to([0.1, 0.2, 0.3], shown["depth"][empty].shape), atol=1 / 255 + 1e-6)
+    z = renderer.render_image(cam, RenderSettings(mode="depth"))[covered] / alpha[covered]
+    near, far = z < np.quantile(z, 0.2), z > np.quantile(z, 0.8)
+    rgb = shown["depth"][covered]
+    # near is redder than far, far is bluer than near
+    assert rgb[near, 0].mean() > rgb[far, 0].mean() + 0.2 and rgb[far, 2].mean() > rgb[near, 2].mean() + 0.2
+    fbo.release()
+    tex.release()
+    del moderngl
+
+
 def _random_scene(n: int, seed: int) -> tuple[Gaussians, Camera]:
     gen = torch.Generator().manual_seed(seed)
     means = torch.rand(n, 3, generator=gen) * torch.tensor([2.0, 1.5, 2.0]) - torch.tensor([1.0, 0.75, 1.0])

@@ -101,6 +101,7 @@ class PlayerApp:
         glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
         glfw.window_hint(glfw.OPENGL_FORWARD_COMPAT, True)
         glfw.window_hint(glfw.VISIBLE, bool(visible))
+        glfw.window_hint(glfw.ALPHA_BITS, 0)  # the color present writes coverage into alpha: keep it off screen
         self.window = glfw.create_window(width, height, "ATGS viewer", None, None)
         if not self.window:
             glfw.terminate()

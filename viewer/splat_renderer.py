@@ -116,6 +116,10 @@ class SplatRenderer:
             vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("present.frag")
         )
         self.present_vao = ctx.vertex_array(self.present_prog, [])
+        self.present_color_prog = ctx.program(
+            vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("present_color.frag")
+        )
+        self.present_color_vao = ctx.vertex_array(self.present_color_prog, [])
         self._data_tex: moderngl.Texture | None = None
         self._index_buf: moderngl.Buffer | None = None
         self._vao: moderngl.VertexArray | None = None
@@ -297,13 +301,17 @@ class SplatRenderer:
             return
         fbo.use()
         self.ctx.viewport = viewport
+        self._target.texture.use(0)
+        self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
+        if settings.mode == "color":  # the target's rgb is already the image
+            self.present_color_prog["u_image"].value = 0
+            self.present_color_vao.render(moderngl.TRIANGLES, vertices=3)
+            return
         p = self.present_prog
         p["u_image"].value = 0
         p["u_mode"].value = MODES.index(settings.mode)
         p["u_range"].value = self.depth_range
         p["u_background"].value = tuple(float(c) for c in settings.background)
-        self._target.texture.use(0)
-        self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
         self.present_vao.render(moderngl.TRIANGLES, vertices=3)
 
     @staticmethod
@@ -312,7 +320,8 @@ class SplatRenderer:
             obj.release()
 
     def release(self) -> None:
-        for obj in (self._vao, self._index_buf, self._data_tex, self.present_vao, self.prog, self.present_prog):
+        for obj in (self._vao, self._index_buf, self._data_tex, self.present_vao, self.prog, self.present_prog,
+                    self.present_color_vao, self.present_color_prog):
             if obj is not None:
                 obj.release()
         if self._target is not None:
