@@ -102,6 +102,42 @@ def test_decode_cache_decodes_requested_frames_in_background_lru() -> None:
         assert cache.stats.evicted == 1
 
 
+def test_decode_cache_keeps_decoded_frames_within_the_byte_budget() -> None:
+    from viewer.decode_cache import packed_bytes
+
+    one = packed_bytes(_packed(0))
+    assert one == _packed(0).data.nbytes + _packed(0).means.nbytes + _packed(0).extent.nbytes
+    calls: list[int] = []
+
+    def decode(f: int) -> PackedGaussians:
+        calls.append(f)
+        return _packed(f)
+
+    # budget for 5 frames, 2 always kept: playing 0..9 in order keeps the last 5
+    with DecodeCache(decode, capacity=2, keep_bytes=5 * one) as cache:
+        for f in range(10):
+            cache.request([f])
+            assert cache.wait_for(f, timeout=10) is not None
+        assert sorted(cache.cached_frames()) == [5, 6, 7, 8, 9]
+        assert cache.cached_bytes == 5 * one and cache.stats.evicted == 5
+    # a budget for the whole sequence: a second loop decodes nothing again
+    calls.clear()
+    with DecodeCache(decode, capacity=2, keep_bytes=100 * one) as cache:
+        for loop in range(2):
+            for f in range(10):
+                cache.request([f])
+                assert cache.wait_for(f, timeout=10).frame == f
+        assert calls == list(range(10)) and cache.stats.evicted == 0
+    # no budget: only `capacity` frames stay
+    with DecodeCache(decode, capacity=2) as cache:
+        for f in range(6):
+            cache.request([f])
+            cache.wait_for(f, timeout=10)
+        assert sorted(cache.cached_frames()) == [4, 5] and cache.cached_bytes == 2 * one
+    with pytest.raises(ValueError, match="keep_bytes"):
+        DecodeCache(decode, keep_bytes=-1)
+
+
 def test_get_never_blocks_and_last_ready_frame_stays() -> None:
     gate = threading.Event()
 

@@ -76,7 +76,7 @@ class PlayerApp:
 
     def __init__(self, source: GaussianSource, camera_index: int = 0, size: str | None = None,
                  settings: RenderSettings | None = None, visible: bool = True,
-                 preloaded: dict[int, PackedGaussians] | None = None) -> None:
+                 preloaded: dict[int, PackedGaussians] | None = None, cache_mb: int = 1024) -> None:
         import imgui_bundle  # noqa: F401  (first: makes pyGLFW use imgui-bundle's libglfw)
         import glfw
         import moderngl
@@ -129,7 +129,8 @@ class PlayerApp:
         self._gl_finish = gil_free_finish(self.ctx.finish)
         self.settings = settings or RenderSettings()
         self.playback = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0))
-        self.cache = DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=preloaded)
+        self.cache = DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=preloaded,
+                                 keep_bytes=max(0, cache_mb) << 20)
         self.feeder = FrameFeeder(self.cache, lookahead=4)
         self.center = look_center(self.cameras)
         self.control = CameraControl.from_camera(cam0, pivot=self.center, up=scene_up(self.cameras))
@@ -611,7 +612,8 @@ def run_app(cfg) -> int:
     settings = _settings(cfg)
     source = open_source(cfg.checkpoint, cfg.demo_gaussians)
     preloaded = preload_frames(source, cfg.preload_mb) if cfg.preload else None
-    app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded)
+    app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
+                    cache_mb=cfg.cache_mb)
     try:
         if cfg.autotest is not None:
             report = autotest(app, Path(cfg.autotest), cfg.autotest_frames)

@@ -53,6 +53,9 @@ class ViewConfig:
     """Decode every frame before opening the window (smooth playback when decoding is slower than the video)."""
     preload_mb: int = 2048
     """Memory limit of --preload; longer sequences are refused with a message."""
+    cache_mb: int = 1024
+    """Decoded frames kept while playing (beyond the next few): a sequence that decodes slower
+    than real time plays every frame from its second loop on. 0 keeps only the next 8 frames."""
 
 
 @dataclass

@@ -1,8 +1,12 @@
-"""Background decoding of upcoming frames into a small LRU cache.
+"""Background decoding of upcoming frames into an LRU cache.
 
 The UI thread calls :meth:`DecodeCache.request` with the frames it wants (most urgent first)
 and :meth:`DecodeCache.get`, which never blocks: a frame that is not decoded yet is simply
 ``None`` and the player keeps showing the last ready frame.
+
+``capacity`` frames are always kept; beyond that, decoded frames stay while they fit in
+``keep_bytes``, so that a sequence whose decoding is slower than real time plays every frame
+from the second loop on (a trained 'cpu' model: ~60 ms per frame to decode, ~3.5 MB per frame).
 """
 
 from __future__ import annotations
@@ -27,12 +31,17 @@ class DecodeCache:
     """One worker thread decoding ``decode(frame)`` into at most ``capacity`` cached frames."""
 
     def __init__(self, decode: Callable[[int], PackedGaussians], capacity: int = 6,
-                 pinned: dict[int, PackedGaussians] | None = None) -> None:
-        """``pinned``: frames decoded up front (``--preload``); never evicted, never decoded again."""
+                 pinned: dict[int, PackedGaussians] | None = None, keep_bytes: int = 0) -> None:
+        """``pinned``: frames decoded up front (``--preload``); never evicted, never decoded again.
+        ``keep_bytes``: decoded frames beyond ``capacity`` are kept while their total size fits."""
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
+        if keep_bytes < 0:
+            raise ValueError(f"keep_bytes must be >= 0, got {keep_bytes}")
         self._decode = decode
         self.capacity = capacity
+        self.keep_bytes = keep_bytes
+        self._bytes = 0
         self._cond = threading.Condition()
         self._pinned = dict(pinned or {})
         self._cache: OrderedDict[int, PackedGaussians] = OrderedDict()
@@ -138,16 +147,27 @@ class DecodeCache:
                     self.last_error = error
                 else:
                     self._cache[frame] = packed
+                    self._bytes += packed_bytes(packed)
                     self._cache.move_to_end(frame)
                     self.stats.decoded += 1
                     self._evict()
                 self._cond.notify_all()
 
+    @property
+    def cached_bytes(self) -> int:
+        """Bytes held by the (unpinned) decoded frames."""
+        return self._bytes
+
     def _evict(self) -> None:
         keep = set(self._wanted)
-        while len(self._cache) > self.capacity:
+        while len(self._cache) > self.capacity and self._bytes > self.keep_bytes:
             victim = next((f for f in self._cache if f not in keep), None)
             if victim is None:
                 victim = next(iter(self._cache))
-            del self._cache[victim]
+            self._bytes -= packed_bytes(self._cache.pop(victim))
             self.stats.evicted += 1
+
+
+def packed_bytes(p: PackedGaussians) -> int:
+    """Memory of one decoded frame (GPU words, sort positions, cull extents)."""
+    return int(p.data.nbytes + p.means.nbytes + (0 if p.extent is None else p.extent.nbytes))
