@@ -249,6 +249,64 @@ def test_ensure_default_scene_is_cached(tmp_path) -> None:
     assert other != p1
 
 
+def _hold_lock(path: str, marker: str, seconds: float) -> None:
+    import time
+
+    from atgs.data.atomic import interprocess_lock
+
+    with interprocess_lock(Path(path)):
+        Path(marker).write_text("locked")
+        time.sleep(seconds)
+
+
+def test_interprocess_lock_makes_another_process_wait(tmp_path) -> None:
+    import multiprocessing as mp
+    import time
+
+    from atgs.data.atomic import interprocess_lock
+
+    lock, marker = tmp_path / "x.lock", tmp_path / "held"
+    child = mp.get_context("spawn").Process(target=_hold_lock, args=(str(lock), str(marker), 1.5))
+    child.start()
+    deadline = time.monotonic() + 60
+    while not marker.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert marker.exists()
+    t0 = time.monotonic()
+    with interprocess_lock(lock):
+        waited = time.monotonic() - t0
+    child.join(timeout=30)
+    assert child.exitcode == 0 and waited > 0.5  # the child held it for 1.5 s after the marker
+    t0 = time.monotonic()
+    with interprocess_lock(lock):  # free now: no wait
+        assert time.monotonic() - t0 < 0.5
+
+
+def _build_default_scene(cache: str, out: str) -> None:
+    from atgs.data.synth import ensure_default_scene
+
+    cfg = SynthConfig(frames=2, cameras=4, width=96, height=72, texture_size=128)
+    p = ensure_default_scene(Path(cache), cfg, keyframes=1, progress=False)
+    Path(out).write_text(f"{p}\n{(p / 'scene.json').stat().st_mtime_ns}")
+
+
+def test_ensure_default_scene_builds_once_for_concurrent_processes(tmp_path) -> None:
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    outs = [tmp_path / f"out{i}.txt" for i in range(2)]
+    procs = [ctx.Process(target=_build_default_scene, args=(str(tmp_path / "cache"), str(o))) for o in outs]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=300)
+    assert [p.exitcode for p in procs] == [0, 0]
+    (path_a, stamp_a), (path_b, stamp_b) = (o.read_text().split("\n") for o in outs)
+    # same entry, built once: the second process found the first one's scene.json, untouched
+    assert path_a == path_b and stamp_a == stamp_b
+    assert PreparedScene.load(Path(path_a)).num_frames == 2
+
+
 def test_easyvolcap_missing_files_are_named(synth, tmp_path) -> None:
     src = write_easyvolcap_layout(tmp_path / "ev", synth["cams"][:3], _gt_frame(synth), 1)
     (src / "extri.yml").unlink()

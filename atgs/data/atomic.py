@@ -1,7 +1,9 @@
 """Atomic output directories: build in ``DIR.tmp-xxxx``, rename into place on success.
 
 An existing ``DIR`` is never touched on failure. With ``overwrite=True`` the old directory is
-moved aside only after the new one is complete, then deleted.
+moved aside only after the new one is complete, then deleted. ``interprocess_lock`` serializes
+processes that would build the same cached output (e.g. two ``atgs-train`` runs started at once
+on the built-in scene).
 """
 
 from __future__ import annotations
@@ -52,3 +54,22 @@ def atomic_dir(out: Path, overwrite: bool = False) -> Iterator[Path]:
         raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def interprocess_lock(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock on the file ``path`` (created if missing) while in the block;
+    other processes entering it wait. A no-op where ``fcntl`` does not exist (Windows)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    with open(path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)

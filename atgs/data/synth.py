@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from atgs.data.atomic import atomic_dir
+from atgs.data.atomic import atomic_dir, interprocess_lock
 from atgs.data.camera_formats import cameras_to_poses_bounds
 from atgs.data.synth_scene import SynthConfig, SynthScene, sample_surface
 
@@ -99,7 +99,8 @@ def ensure_default_scene(cache_dir: str | Path, cfg: SynthConfig | None = None, 
     """Prepared directory of a synthetic scene, synthesized and prepared once, then cached.
 
     The cache key covers the config, the keyframe count and the synth/scene format versions;
-    a half-written cache entry is never visible (both steps write atomically).
+    a half-written cache entry is never visible (both steps write atomically), and processes
+    asking for the same entry at once build it once (the others wait on a lock file).
     """
     from atgs.data.prepare import PrepareConfig, prepare
     from atgs.data.scene import SCENE_VERSION, PreparedScene
@@ -109,16 +110,17 @@ def ensure_default_scene(cache_dir: str | Path, cfg: SynthConfig | None = None, 
     digest = hashlib.sha1(key.encode()).hexdigest()[:10]
     base = Path(cache_dir) / f"synth-{cfg.preset}-{digest}"
     prepared = base / "prepared"
-    if (prepared / "scene.json").is_file():
-        try:
-            PreparedScene.load(prepared)
-            return prepared
-        except Exception:  # noqa: BLE001 - a damaged cache is rebuilt below
-            pass
-    raw = base / "raw"
-    if not (raw / SIDECAR).is_file():
-        synthesize(raw, cfg, overwrite=True, progress=progress)
-    prepare(PrepareConfig(src=raw, out=prepared, keyframes=keyframes, overwrite=True, progress=progress))
+    with interprocess_lock(base.with_name(base.name + ".lock")):
+        if (prepared / "scene.json").is_file():
+            try:
+                PreparedScene.load(prepared)
+                return prepared
+            except Exception:  # noqa: BLE001 - a damaged cache is rebuilt below
+                pass
+        raw = base / "raw"
+        if not (raw / SIDECAR).is_file():
+            synthesize(raw, cfg, overwrite=True, progress=progress)
+        prepare(PrepareConfig(src=raw, out=prepared, keyframes=keyframes, overwrite=True, progress=progress))
     return prepared
 
 
