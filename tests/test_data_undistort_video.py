@@ -84,6 +84,65 @@ def test_video_round_trip(tmp_path, codec, crf, pix_fmt, min_psnr) -> None:
     assert [i for i, _ in iter_frames(path, 1, 5, 2)] == [1, 3]
 
 
+def _numbered_video(path, n: int, gop: int, fps: float = 25.0):
+    """A lossless video whose frame i shows i in binary (8 blocks of 8 px, white = 1)."""
+    frames = []
+    with VideoWriter(path, 64, 16, fps) as w:
+        w.stream.codec_context.gop_size = gop
+        for i in range(n):
+            img = np.zeros((16, 64, 3), np.uint8)
+            for b in range(7):
+                img[:, 8 * b : 8 * b + 8] = 255 * ((i >> b) & 1)
+            img[:, 56:] = (3 * i) % 256
+            frames.append(img)
+            w.write(img)
+    return frames
+
+
+def test_iter_frames_seeks_to_a_far_start_and_yields_the_same_frames(tmp_path) -> None:
+    from fractions import Fraction
+
+    import av
+
+    from atgs.data.video import SEEK_MIN_FRAMES, _frames_after_seek, _open
+
+    path = tmp_path / "numbered.mp4"
+    frames = _numbered_video(path, 120, gop=10)
+    for start, end, step in ((SEEK_MIN_FRAMES, 40, 1), (77, 90, 1), (95, None, 3), (119, 120, 1), (60, 61, 1)):
+        got = list(iter_frames(path, start, end, step))
+        want = list(range(start, 120 if end is None else end, step))
+        assert [i for i, _ in got] == want
+        for i, img in got:
+            np.testing.assert_array_equal(img, frames[i], err_msg=f"frame {i} (start {start})")
+    # it did seek: the first frame decoded after seeking to 77 is a keyframe after frame 0
+    with _open(path) as c:
+        it = _frames_after_seek(c, path, 77)
+        assert it is not None and 0 < next(it)[0] <= 77
+    # variable frame rate (a gap of ~4 frame times after frame 20): indices still count frames
+    odd = tmp_path / "vfr.mp4"
+    c = av.open(str(odd), mode="w")
+    st = c.add_stream("libx264rgb", rate=25)
+    st.width, st.height, st.pix_fmt = 64, 16, "rgb24"
+    st.codec_context.time_base = Fraction(1, 1000)
+    st.options = {"crf": "0", "g": "10"}
+    for i in range(60):
+        fr = av.VideoFrame.from_ndarray(np.full((16, 64, 3), (5 * i) % 256, np.uint8), format="rgb24")
+        fr.pts, fr.time_base = 40 * i + (150 if i >= 20 else 0), Fraction(1, 1000)  # a gap after frame 20
+        for pkt in st.encode(fr):
+            c.mux(pkt)
+    for pkt in st.encode():
+        c.mux(pkt)
+    c.close()
+    linear = {i: img for i, img in enumerate(im for _, im in iter_frames(odd))}
+    got = list(iter_frames(odd, 45, 50))
+    assert [i for i, _ in got] == [45, 46, 47, 48, 49]
+    for i, img in got:
+        np.testing.assert_array_equal(img, linear[i])
+    with _open(odd) as c:
+        it = _frames_after_seek(c, odd, 45)
+        assert it is not None and 20 < next(it)[0] <= 45  # seeked past the gap
+
+
 def test_video_errors_name_the_file(tmp_path) -> None:
     with pytest.raises(DataError, match=r"missing.mp4: video not found"):
         video_info(tmp_path / "missing.mp4")
