@@ -138,6 +138,42 @@ def test_decode_cache_keeps_decoded_frames_within_the_byte_budget() -> None:
         DecodeCache(decode, keep_bytes=-1)
 
 
+def test_prefetch_fills_the_budget_in_order_and_never_evicts() -> None:
+    from viewer.decode_cache import packed_bytes
+
+    one = packed_bytes(_packed(0))
+
+    def settle(cache: DecodeCache) -> None:  # until the worker has nothing left to do
+        deadline = time.monotonic() + 10
+        last = -1
+        while time.monotonic() < deadline:
+            n = cache.stats.decoded
+            if n == last and cache.busy_frame is None:
+                return
+            last = n
+            time.sleep(0.05)
+
+    with DecodeCache(_packed, capacity=2, keep_bytes=5 * one) as cache:
+        cache.prefetch(range(10))
+        settle(cache)
+        assert sorted(cache.cached_frames()) == [0, 1, 2, 3, 4] and cache.stats.evicted == 0
+        # playback past the budget evicts; from then on prefetching stays off
+        for f in (7, 8):
+            cache.request([f])
+            cache.wait_for(f, timeout=10)
+        settle(cache)
+        assert cache.stats.evicted == 2 and len(cache.cached_frames()) == 5
+        assert cache.stats.decoded == 7
+    with DecodeCache(_packed, capacity=2, keep_bytes=100 * one) as cache:
+        cache.prefetch([3, 1, 2, 0])
+        settle(cache)
+        assert list(cache.cached_frames()) == [3, 1, 2, 0]  # decoded in the given order
+    with DecodeCache(_packed, capacity=2) as cache:  # no budget: nothing is prefetched
+        cache.prefetch(range(10))
+        settle(cache)
+        assert cache.cached_frames() == [] and cache.stats.decoded == 0
+
+
 def test_get_never_blocks_and_last_ready_frame_stays() -> None:
     gate = threading.Event()
 

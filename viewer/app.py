@@ -132,6 +132,7 @@ class PlayerApp:
         self.cache = DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=preloaded,
                                  keep_bytes=max(0, cache_mb) << 20)
         self.feeder = FrameFeeder(self.cache, lookahead=4)
+        self.cache.prefetch(range(source.num_frames))  # fill --cache-mb in the background
         self.center = look_center(self.cameras)
         self.control = CameraControl.from_camera(cam0, pivot=self.center, up=scene_up(self.cameras))
         self.fly_mode = False

@@ -54,8 +54,9 @@ class ViewConfig:
     preload_mb: int = 2048
     """Memory limit of --preload; longer sequences are refused with a message."""
     cache_mb: int = 1024
-    """Decoded frames kept while playing (beyond the next few): a sequence that decodes slower
-    than real time plays every frame from its second loop on. 0 keeps only the next 8 frames."""
+    """Decoded frames kept (beyond the next few), filled in the background from the start: a
+    sequence that decodes slower than real time plays every frame once they are in. 0 keeps
+    only the next 8 frames and decodes nothing ahead."""
 
 
 @dataclass

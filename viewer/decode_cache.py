@@ -7,6 +7,8 @@ and :meth:`DecodeCache.get`, which never blocks: a frame that is not decoded yet
 ``capacity`` frames are always kept; beyond that, decoded frames stay while they fit in
 ``keep_bytes``, so that a sequence whose decoding is slower than real time plays every frame
 from the second loop on (a trained 'cpu' model: ~60 ms per frame to decode, ~3.5 MB per frame).
+:meth:`DecodeCache.prefetch` lets the worker fill that budget while nothing wanted is missing
+(e.g. while the player is paused on its first frame), so that it can play every frame at once.
 """
 
 from __future__ import annotations
@@ -42,6 +44,9 @@ class DecodeCache:
         self.capacity = capacity
         self.keep_bytes = keep_bytes
         self._bytes = 0
+        self._last_bytes = 0  # size of the last decoded frame: the estimate of the next one
+        self._fill: list[int] = []
+        self._fill_evictions = 0
         self._cond = threading.Condition()
         self._pinned = dict(pinned or {})
         self._cache: OrderedDict[int, PackedGaussians] = OrderedDict()
@@ -60,6 +65,15 @@ class DecodeCache:
         wanted = list(dict.fromkeys(int(f) for f in frames))[: self.capacity]
         with self._cond:
             self._wanted = wanted
+            self._cond.notify()
+
+    def prefetch(self, frames: Sequence[int]) -> None:
+        """Frames to decode, in this order, whenever no wanted frame is missing, while they fit
+        in ``keep_bytes``. Filling stops for good at the first eviction (the budget is full and
+        playback now needs the room), so it never evicts what it decoded itself."""
+        with self._cond:
+            self._fill = list(dict.fromkeys(int(f) for f in frames))
+            self._fill_evictions = self.stats.evicted
             self._cond.notify()
 
     def get(self, frame: int) -> PackedGaussians | None:
@@ -124,6 +138,11 @@ class DecodeCache:
         for f in self._wanted:
             if f not in self._cache and f not in self._failed and f not in self._pinned:
                 return f
+        if (self._fill and self.stats.evicted == self._fill_evictions
+                and self._bytes + max(self._last_bytes, 1) <= self.keep_bytes):
+            for f in self._fill:
+                if f not in self._cache and f not in self._failed and f not in self._pinned:
+                    return f
         return None
 
     def _run(self) -> None:
@@ -147,7 +166,8 @@ class DecodeCache:
                     self.last_error = error
                 else:
                     self._cache[frame] = packed
-                    self._bytes += packed_bytes(packed)
+                    self._last_bytes = packed_bytes(packed)
+                    self._bytes += self._last_bytes
                     self._cache.move_to_end(frame)
                     self.stats.decoded += 1
                     self._evict()
