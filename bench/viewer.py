@@ -157,9 +157,10 @@ def bench_playback(source: GaussianSource, name: str, cfg: BenchConfig, renderer
     """Wall-clock playback through the player's pipeline: feeder/cache (background decode),
     upload on change, sort + draw every frame, camera slowly orbiting (so the sort runs).
     Each frame waits for the GL with the GIL released, as the window does (see gil_free_finish).
-    ``adaptive``: the window's adaptive resolution (the splatting resolution follows
-    viewer.adaptive.next_render_scale, after 20 unmeasured frames to settle, as in a window's
-    first second); otherwise always the full playback size. ``pinned``: frames decoded before
+    ``adaptive``: the window's adaptive-resolution rule (viewer.adaptive.next_render_scale)
+    on the splat time alone, since there is no present or UI here (the window budgets its whole
+    frame; bench/viewer_window.py measures that), after 20 unmeasured frames to settle;
+    otherwise always the full playback size. ``pinned``: frames decoded before
     (reused across --preload rows)."""
     # osmesa contexts are not libglvnd's: a ctypes glFinish would not wait for them
     finish = gil_free_finish(renderer.ctx.finish) if cfg.gl == "egl" else renderer.ctx.finish
