@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from atgs.data.motion import MotionConfig, MotionStats, format_stats, measure_motion
-from atgs.model.config import ModelConfig, from_dict
+from atgs.config_dict import from_dict
+from atgs.model.config import ModelConfig
 
 _BYTES = 4  # float32
 

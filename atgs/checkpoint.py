@@ -12,47 +12,27 @@ A checkpoint is a dict of tensors and plain Python types only, read with
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
-import tempfile
 
 import torch
 
 from atgs.cameras import Camera
+from atgs.errors import UserError
+from atgs.io.atomic import atomic_file
 
 FORMAT = "atgs-checkpoint"
 VERSION = 1
 REQUIRED = ("model_config", "cameras", "num_frames", "fps", "model", "step")
 
 
-class CheckpointError(ValueError):
+class CheckpointError(UserError, ValueError):
     """A file that is not a readable ATGS checkpoint of a supported version."""
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:
-    """Write ``payload`` to ``path`` atomically: temp file in the same directory, fsync, rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = {"format": FORMAT, "version": VERSION, **payload}
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".tmp-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(data, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    try:  # make the rename durable
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
+    """Write ``payload`` to ``path`` atomically (atgs.io.atomic: temp file, fsync, rename)."""
+    with atomic_file(path) as tmp:
+        torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
 
 
 def read_checkpoint(path: str | Path) -> dict:
@@ -83,7 +63,8 @@ def read_checkpoint(path: str | Path) -> dict:
 
 def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>"):
     from atgs.model.atgs_model import ATGSModel
-    from atgs.model.config import ModelConfig, from_dict
+    from atgs.config_dict import from_dict
+    from atgs.model.config import ModelConfig
 
     try:
         cfg = from_dict(ModelConfig, data["model_config"])

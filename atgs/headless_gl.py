@@ -19,6 +19,8 @@ from typing import Literal
 
 import moderngl
 
+from atgs.errors import UserError
+
 GLBackend = Literal["auto", "egl", "osmesa"]
 MIN_GL_VERSION = 330
 
@@ -36,7 +38,7 @@ _OSMESA_LIBS = ("libOSMesa.so.8", "libOSMesa.so.6", "libOSMesa.so")
 _BUF_SIZE = 16  # the client buffer is never drawn into; FBOs are
 
 
-class HeadlessGLError(RuntimeError):
+class HeadlessGLError(UserError, RuntimeError):
     """No usable headless OpenGL context (message is one line and names the fix)."""
 
 

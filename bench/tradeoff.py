@@ -117,7 +117,7 @@ BASE_MODEL = {"num_keyframes": 6}
 
 
 def plan(args: TradeoffArgs) -> list[RunSpec]:
-    from atgs.model.config import preset
+    from atgs.train.config import preset
 
     common = dict(frames=args.frames, cameras=args.cameras, width=args.width, height=args.height,
                   keyframes=args.keyframes, test_cameras=args.test_cameras, threads=args.threads,
@@ -177,9 +177,9 @@ def viewer_times(model, camera, size: tuple[int, int], frames: list[int]) -> dic
         gs.append(g)
     out = {"decode_ms": 1000 * float(np.mean(dec)), "gaussians_per_frame": float(np.mean([len(g) for g in gs]))}
     try:
-        from viewer.headless import HeadlessRenderer
-        from viewer.packing import pack_gaussians
-        from viewer.splat_renderer import RenderSettings
+        from atgs.viewer.headless import HeadlessRenderer
+        from atgs.viewer.packing import pack_gaussians
+        from atgs.viewer.splat_renderer import RenderSettings
 
         hr = HeadlessRenderer(model)
         cam = camera.scaled(size[0] / camera.width)
@@ -205,7 +205,7 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
 
     import torch
 
-    from atgs.model.config import preset
+    from atgs.train.config import preset
     from atgs.train.trainer import Trainer
 
     torch.set_num_threads(spec.threads)

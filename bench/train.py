@@ -79,7 +79,7 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
 
     import torch
 
-    from atgs.model.config import preset
+    from atgs.train.config import preset
     from atgs.train.trainer import Trainer
 
     if spec.threads:

@@ -41,13 +41,13 @@ from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
 from atgs.headless_gl import create_headless_context, gl_description
 from atgs.progress import progress_bar
-from viewer.adaptive import next_render_scale
-from viewer.decode_cache import DecodeCache
-from viewer.gl_sync import gil_free_finish
-from viewer.packing import PackedGaussians, pack_gaussians
-from viewer.playback import FrameFeeder, Playback
-from viewer.source import GaussianSource, SyntheticSource, decode_frame
-from viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
+from atgs.viewer.adaptive import next_render_scale
+from atgs.viewer.decode_cache import DecodeCache
+from atgs.viewer.gl_sync import gil_free_finish
+from atgs.viewer.packing import PackedGaussians, pack_gaussians
+from atgs.viewer.playback import FrameFeeder, Playback
+from atgs.viewer.source import GaussianSource, SyntheticSource, decode_frame
+from atgs.viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
 
 
 @dataclass
@@ -131,7 +131,7 @@ def bench_counts(cfg: BenchConfig, renderer: SplatRenderer, dtype: str) -> list[
 def untrained_model(num_points: int = 6_000, frames: int = 24) -> GaussianSource:
     """An initialised (untrained) ATGS model with the 'cpu' preset over a synthetic point set."""
     from atgs.model.atgs_model import ATGSModel
-    from atgs.model.config import preset
+    from atgs.train.config import preset
 
     mcfg, _ = preset("cpu")
     src = SyntheticSource(num_gaussians=num_points, frames=frames)

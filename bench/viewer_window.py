@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from viewer.app import PlayerApp, rest_until
-from viewer.loading import open_source
+from atgs.viewer.app import PlayerApp, rest_until
+from atgs.viewer.loading import load_source
 
 
 @dataclass
@@ -81,7 +81,7 @@ def run_rows(cfg: WindowBenchConfig) -> list[dict]:
     if cfg.checkpoint is not None:
         sources.append((str(cfg.checkpoint), str(cfg.checkpoint)))
     for spec, name in sources:
-        source = open_source(spec, 20000)
+        source = load_source(spec, 20000)
         app = PlayerApp(source, size=cfg.size)
         try:
             deadline = time.monotonic() + 120

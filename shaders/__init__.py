@@ -1,1 +1,1 @@
-"""GLSL splatting shaders, shipped as package data; read with importlib.resources.files("shaders")."""
+"""GLSL splatting shaders, shipped as package data; read with importlib.resources.files("atgs.shaders")."""

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from atgs.cameras import Camera, look_at
+from builders import side_camera
 from atgs.model.anchors import STATIC, split_static
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.config import DensifyConfig, preset
+from atgs.train.config import DensifyConfig, preset
+from atgs.timeline import evenly_spaced
 from atgs.train.densify import DensifyStats, prune_final
 
 
@@ -60,10 +61,8 @@ def _model(layout, K=6, F=31):
     m, _ = preset("tiny")
     m.anchor_layout, m.window, m.voxel_size = layout, 3, 0.1
     pts, kf, _ = _scene_points(K)
-    kfs = [round(j * (F - 1) / (K - 1)) for j in range(K)]
-    cam = Camera("c", 32, 24, np.array([[30, 0, 16], [0, 30, 12], [0, 0, 1.0]]),
-                 look_at(np.array([1.0, -4, 1.0]), np.array([1.0, 1.0, 0.5])))
-    return ATGSModel.from_points(m, pts, kf, kfs, F, 25.0, [cam], seed=0)
+    cam = side_camera(eye=(1.0, -4, 1.0), target=(1.0, 1.0, 0.5))
+    return ATGSModel.from_points(m, pts, kf, evenly_spaced(F, K), F, 25.0, [cam], seed=0)
 
 
 def test_split_layout_models_static_content_once():
@@ -127,7 +126,7 @@ def test_prune_final_drops_faint_and_unseen_anchors():
 
 def test_training_prunes_anchors_outside_every_view(tmp_path):
     """Anchors placed where no training camera looks are removed at the end of training."""
-    from atgs.train.toy import make_toy_scene
+    from builders import make_toy_scene
     from atgs.train.trainer import Trainer
 
     scene = make_toy_scene(num_frames=5, num_cameras=4, width=32, height=24, keyframes=3)

@@ -10,8 +10,10 @@ import pytest
 
 from atgs.auto_config import AutoRules, apply_overrides, choose_config, format_choice
 from atgs.data.motion import MotionStats
-from atgs.model.config import ModelConfig, preset, to_dict
-from atgs.model.timeline import Timeline
+from atgs.config_dict import to_dict
+from atgs.model.config import ModelConfig
+from atgs.train.config import preset
+from atgs.timeline import Timeline
 
 KNOBS = ("num_keyframes", "num_segments", "hash.log2_table_size", "spatial_resolution")
 FREE = AutoRules(respect_scene_keyframes=False, memory_mb=1e6)  # no caps: the pure motion rules

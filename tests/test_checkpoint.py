@@ -7,8 +7,8 @@ import torch
 
 import atgs
 from atgs.checkpoint import VERSION, CheckpointError, read_checkpoint, save_checkpoint
-from atgs.model.config import preset
-from atgs.train.toy import make_toy_scene
+from atgs.train.config import preset
+from builders import make_toy_scene
 from atgs.train.trainer import Trainer
 
 

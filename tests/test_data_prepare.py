@@ -14,13 +14,15 @@ from PIL import Image
 
 from atgs.cli.prepare import main as prepare_main
 from atgs.data.errors import DataError
-from atgs.data.layouts import write_colmap_frames_layout, write_easyvolcap_layout
-from atgs.data.prepare import PrepareConfig, keyframe_indices, parse_frame_range, prepare
+from atgs.errors import OutputError
+from layouts import write_colmap_frames_layout, write_easyvolcap_layout
+from atgs.data.prepare import PrepareConfig, parse_frame_range, prepare
 from atgs.data.scene import PreparedScene
 from atgs.data.synth import load_ground_truth, synthesize
 from atgs.data.synth_render import MeshRenderer
 from atgs.data.synth_scene import SynthConfig, distance_to_surfaces
-from atgs.data.video import VideoWriter, iter_frames
+from atgs.data.video import iter_frames
+from atgs.io.video import VideoWriter
 
 CFG = SynthConfig(frames=6, cameras=12, width=256, height=192, seed=1, preset="large-motion")
 
@@ -131,8 +133,6 @@ def test_frame_helpers() -> None:
         parse_frame_range("a:b", None, None, 10)
     with pytest.raises(DataError, match="empty"):
         parse_frame_range("20:30", None, None, 10)
-    assert keyframe_indices(120, 5) == [0, 30, 60, 89, 119]  # round(j*119/4): 29.75 -> 30, 89.25 -> 89
-    assert keyframe_indices(3, 10) == [0, 1, 2] and keyframe_indices(1, 4) == [0]
 
 
 # --- bad input ------------------------------------------------------------------------------
@@ -151,6 +151,15 @@ def _tiny_n3dv(root: Path, counts=(3, 3, 3)) -> Path:
         cams.append(Camera(f"cam{i:02d}", 32, 24, K, look_at(np.array([3.0, i, 1]), np.zeros(3))))
     np.save(root / "poses_bounds.npy", cameras_to_poses_bounds(cams, [0.5, 10]))
     return root
+
+
+def test_prepared_keyframes_are_the_models(tmp_path) -> None:
+    """6 frames, 3 keyframes: j (F-1)/(K-1) = 2.5 is a half; prepare and the model both take frame 3."""
+    from atgs.timeline import Timeline
+
+    scene = PreparedScene.load(prepare(PrepareConfig(src=_tiny_n3dv(tmp_path / "src", counts=(6, 6, 6)),
+                                                     out=tmp_path / "out", keyframes=3, progress=False)))
+    assert scene.keyframes == Timeline(6, 3, 0, 1).keyframe_frames() == [0, 3, 5]
 
 
 def _existing_output(tmp_path: Path) -> Path:
@@ -198,7 +207,7 @@ def test_bad_inputs_give_one_line_errors_naming_the_file(tmp_path) -> None:
 def test_trim_mismatch_and_overwrite_rules(tmp_path, capsys) -> None:
     src = _tiny_n3dv(tmp_path / "c", counts=(3, 2, 3))
     out = _existing_output(tmp_path)
-    with pytest.raises(DataError, match="already exists; pass --overwrite"):
+    with pytest.raises(OutputError, match="already exists; pass --overwrite"):
         _prep(src, out, trim_mismatch=True)
     assert (out / "keep.txt").is_file()
     _prep(src, out, trim_mismatch=True, overwrite=True)
@@ -229,7 +238,7 @@ def test_cli_prints_one_line_and_exits_2(tmp_path, capsys) -> None:
     out = _existing_output(tmp_path)
     code = prepare_main([str(tmp_path / "empty"), "--out", str(out), "--overwrite"])
     err = capsys.readouterr().err.strip()
-    assert code == 2 and err.count("\n") == 0 and err.startswith("error: ") and "empty" in err
+    assert code == 2 and err.count("\n") == 0 and err.startswith("atgs-prepare: error: ") and "empty" in err
     assert "Traceback" not in err and (out / "keep.txt").is_file()
     shutil.rmtree(tmp_path / "empty")
 
@@ -252,7 +261,7 @@ def test_ensure_default_scene_is_cached(tmp_path) -> None:
 def _hold_lock(path: str, marker: str, seconds: float) -> None:
     import time
 
-    from atgs.data.atomic import interprocess_lock
+    from atgs.io.atomic import interprocess_lock
 
     with interprocess_lock(Path(path)):
         Path(marker).write_text("locked")
@@ -263,7 +272,7 @@ def test_interprocess_lock_makes_another_process_wait(tmp_path) -> None:
     import multiprocessing as mp
     import time
 
-    from atgs.data.atomic import interprocess_lock
+    from atgs.io.atomic import interprocess_lock
 
     lock, marker = tmp_path / "x.lock", tmp_path / "held"
     child = mp.get_context("spawn").Process(target=_hold_lock, args=(str(lock), str(marker), 1.5))
@@ -330,7 +339,7 @@ def test_synth_cli(tmp_path, capsys) -> None:
     capsys.readouterr()
     assert synth_main(args) == 2  # refuses to overwrite
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "already exists" in err and err.count("\n") == 0
+    assert err.startswith("atgs-synth: error: ") and "already exists" in err and err.count("\n") == 0
 
 
 def test_calibration_at_other_resolution_is_rescaled_or_refused(synth, tmp_path) -> None:

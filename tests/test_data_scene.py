@@ -10,6 +10,7 @@ from plyfile import PlyData
 
 from atgs.cameras import Camera, look_at
 from atgs.data.errors import DataError
+from atgs.errors import OutputError
 from atgs.data.scene import PreparedScene, write_prepared_scene
 
 K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
@@ -66,7 +67,7 @@ def test_layout_and_reader(tmp_path) -> None:
 def test_refuses_to_overwrite_and_keeps_old_scene(tmp_path) -> None:
     out, *_ = _write(tmp_path / "s")
     before = (out / "scene.json").read_text()
-    with pytest.raises(DataError, match="already exists"):
+    with pytest.raises(OutputError, match="already exists"):
         _write(tmp_path / "s")
     with pytest.raises(RuntimeError):  # a failing frame source in the middle of a rewrite
 

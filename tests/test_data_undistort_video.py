@@ -8,11 +8,12 @@ import pytest
 
 from atgs.cameras import Camera, look_at
 from atgs.data.errors import DataError
-from atgs.data.layouts import write_colmap_frames_layout, write_easyvolcap_layout
+from layouts import write_colmap_frames_layout, write_easyvolcap_layout
 from atgs.data.prepare import PrepareConfig, prepare
 from atgs.data.scene import PreparedScene
 from atgs.data.undistort import apply_undistort_map, build_undistort_map, undistort_points_reference
-from atgs.data.video import VideoWriter, iter_frames, video_info
+from atgs.data.video import iter_frames, video_info
+from atgs.io.video import VideoWriter
 
 W, H = 96, 72
 

@@ -37,7 +37,7 @@ def write_scene(root: Path, cams, test: tuple[str, ...] = ("cam02",)) -> Path:
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    from atgs.model.config import preset
+    from atgs.train.config import preset
     from atgs.train.trainer import Trainer
 
     root = tmp_path_factory.mktemp("e2e")

@@ -7,14 +7,14 @@ quantities and stacks the decoder heads' first layers, so results agree up to fl
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import nn
 
-from atgs.cameras import Camera, look_at
+from builders import keyframe_point_model, randomize_features
 from atgs.gaussians import Gaussians
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.config import HashGridConfig, preset
+from atgs.model.config import HashGridConfig
+from atgs.train.config import preset
 from atgs.model.fast_decode import InferenceCache, plain_heads
 from atgs.model.grids import HashGrid4D
 
@@ -28,16 +28,8 @@ def _model(segments: int = 3, threshold: float = 0.0, F: int = 17, K: int = 5) -
     cfg.hash = HashGridConfig(levels=4, features_per_level=2, log2_table_size=8, base_resolution=2,
                               growth=2.0, max_time_resolution=5, mlp_hidden=16)
     gen = torch.Generator().manual_seed(1)
-    kfs = [round(j * (F - 1) / (K - 1)) for j in range(K)]
-    pts = torch.rand(30 * K, 3, generator=gen)
-    pk = torch.arange(K).repeat_interleave(30)
-    cam = Camera("c", 32, 24, np.array([[30, 0, 16], [0, 30, 12], [0, 0, 1.0]]),
-                 look_at(np.array([0.5, -3, 0.5]), np.array([0.5, 0.5, 0.5])))
-    model = ATGSModel.from_points(cfg, pts, pk, kfs, F, 25.0, [cam], seed=0)
-    # Trained-looking parameters: nonzero anchor features, F_s and larger hash values.
-    model.anchor_feature = torch.randn(model.anchor_feature.shape, generator=gen)
-    model.spatial.table = torch.randn(model.spatial.table.shape, generator=gen)
-    model.hash.table = torch.randn(model.hash.table.shape, generator=gen)
+    model = keyframe_point_model(cfg, F, K, 30, gen)
+    randomize_features(model, gen)  # trained-looking: nonzero anchor features, F_s, larger hash values
     # Shrink the box so that some anchors fall outside it (zero grid features there).
     lo, hi = model.bbox_min.clone(), model.bbox_max.clone()
     model.bbox_min, model.bbox_max = lo + 0.2 * (hi - lo), hi - 0.2 * (hi - lo)

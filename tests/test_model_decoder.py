@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from atgs.cameras import Camera, look_at
-from atgs.model.atgs_model import ATGSModel
-from atgs.model.config import preset
+from builders import keyframe_point_model
+from atgs.train.config import preset
 from atgs.model.decoder import GaussianDecoder
 
 
@@ -37,13 +36,7 @@ def _toy_model(window=3, static=True, K=4, F=13, **kw):
     m.window, m.static_keyframe0, m.anchor_layout = window, static, "per-keyframe"
     for k, v in kw.items():
         setattr(m, k, v)
-    gen = torch.Generator().manual_seed(0)
-    kfs = [round(j * (F - 1) / (K - 1)) for j in range(K)]
-    pts = torch.rand(40 * K, 3, generator=gen)
-    pk = torch.arange(K).repeat_interleave(40)
-    cam = Camera("c", 32, 24, np.array([[30, 0, 16], [0, 30, 12], [0, 0, 1.0]]),
-                 look_at(np.array([0.5, -3, 0.5]), np.array([0.5, 0.5, 0.5])))
-    return ATGSModel.from_points(m, pts, pk, kfs, F, 25.0, [cam], seed=0)
+    return keyframe_point_model(m, F, K, 40, torch.Generator().manual_seed(0))
 
 
 def test_active_anchors_follow_window_and_static_flag():

@@ -10,9 +10,9 @@ import pytest
 from atgs.auto_config import choose_config
 from atgs.cameras import Camera, look_at
 from atgs.data.motion import (MotionConfig, box_downsample, estimate_noise, frame_difference, lag_steps,
-                              measure_motion, point_spacing, sample_indices, turnover_time)
+                              measure_motion, point_spacing, turnover_time)
 from atgs.data.scene import PreparedScene, write_prepared_scene
-from atgs.model.config import preset
+from atgs.train.config import preset
 
 W, H = 64, 48
 KMAT = np.array([[50.0, 0, W / 2], [0, 50.0, H / 2], [0, 0, 1]])
@@ -63,13 +63,6 @@ def _write_scene(path, frames: int, cams: int = 2, square: dict | None = None, n
 
 
 # --- pure pieces ---------------------------------------------------------------------------------
-
-def test_sample_indices() -> None:
-    assert sample_indices(5, 64) == [0, 1, 2, 3, 4]
-    s = sample_indices(1000, 64)
-    assert s[0] == 0 and s[-1] == 999 and len(s) == 64 and s == sorted(set(s))
-    assert sample_indices(1, 64) == [0] and sample_indices(7, 1) == [0]
-
 
 def test_box_downsample_matches_slow_loop() -> None:
     img = np.random.default_rng(0).integers(0, 256, (23, 37, 3), dtype=np.uint8)

@@ -2,7 +2,7 @@
 precision decoding, non-finite values during training.
 
 Covered elsewhere (not repeated here): the exact frame <-> keyframe mapping of 10,000 frames and
-time validation (tests/test_model_timeline.py), rasterizer extremes on raw Gaussians
+time validation (tests/test_timeline.py), rasterizer extremes on raw Gaussians
 (tests/test_render_edge_cases.py), a NaN/inf loss leaving every parameter unchanged and the
 consecutive-bad-steps stop, and NaN decoder gradients being zeroed (tests/test_train_e2e.py).
 """
@@ -12,53 +12,30 @@ from __future__ import annotations
 import csv
 import math
 
-import numpy as np
 import pytest
 import torch
 
-from atgs.cameras import Camera, look_at
+from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
 from atgs.model import precision
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.config import HashGridConfig, ModelConfig, preset
-from atgs.render import rasterize
+from atgs.train.config import preset
+from atgs.render import rasterize_gaussians
 import atgs.train.trainer as trainer_mod
-from atgs.train.toy import make_toy_scene
+from builders import make_toy_scene, random_point_model, ring_cameras, tiny_config
 from atgs.train.trainer import Trainer
 
 
 def cameras(n: int = 3, size: tuple[int, int] = (32, 24)) -> list[Camera]:
-    W, H = size
-    K = np.array([[0.9 * W, 0, W / 2], [0, 0.9 * W, H / 2], [0, 0, 1]])
-    out = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        eye = np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0])
-        out.append(Camera(f"cam{i:02d}", W, H, K, look_at(eye, np.zeros(3), np.array([0, 0, 1.0]))))
-    return out
+    return ring_cameras(n, size)
 
 
 def build(F: int = 9, K: int = 3, M: int = 2, W: int = 3, n: int = 120, cull: bool = False,
           opacity_threshold: float = 0.0, randomize: bool = True, seed: int = 0) -> ATGSModel:
-    """A tiny model through the package API; ``randomize`` fills features/grids with non-trivial
-    values (an untrained model has zero features, which hides most numerical problems)."""
-    cfg = ModelConfig(
-        feature_dim=8, gaussians_per_anchor=2, num_keyframes=K, window=W, num_segments=M,
-        hash=HashGridConfig(levels=2, features_per_level=2, log2_table_size=8, base_resolution=4, mlp_hidden=8),
-        spatial_resolution=4, hidden_opacity=16, hidden_cov=16, hidden_color=16, hidden_offset=16,
-        frustum_cull=cull, opacity_threshold=opacity_threshold,
-    )  # fmt: skip
-    gen = torch.Generator().manual_seed(seed)
-    pts = torch.rand(n, 3, generator=gen) * 1.6 - 0.8
-    kf = torch.randint(0, K, (n,), generator=gen)
-    scene_kf = sorted({round(j * (F - 1) / max(1, K - 1)) for j in range(K)})
-    model = ATGSModel.from_points(cfg, pts, kf, scene_kf, F, 10.0, cameras(), seed=seed)
-    if randomize:
-        model.anchor_feature = torch.randn(model.anchor_feature.shape, generator=gen)
-        model.spatial.table = 0.5 * torch.randn(model.spatial.table.shape, generator=gen)
-        model.hash.table = 0.5 * torch.randn(model.hash.table.shape, generator=gen)
-    return model
+    """A tiny model through the package API with non-trivial features (builders.random_point_model)."""
+    cfg = tiny_config(K, W, M, hidden=16, frustum_cull=cull, opacity_threshold=opacity_threshold)
+    return random_point_model(cfg, F, n, cameras(), seed=seed, randomize=randomize)
 
 
 def assert_finite(g: Gaussians, what: str) -> None:
@@ -126,8 +103,7 @@ def render_backward(model: ATGSModel, cam: Camera, backend: str, frame: int = 4)
     dec = model.decode_frame(frame, cam, track=True)
     g = dec.gaussians
     assert len(g) > 0
-    out = rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
-                    cam.width, cam.height, background=torch.tensor([0.2, 0.3, 0.4]), backend=backend)
+    out = rasterize_gaussians(g, cam, background=torch.tensor([0.2, 0.3, 0.4]), backend=backend)
     out.means2d.retain_grad()
     target = torch.rand(out.image.shape, generator=torch.Generator().manual_seed(0))
     # the trainer's terms: L1 image loss and the volume regularizer (1e12 per Gaussian at scale 1e4)
@@ -282,8 +258,7 @@ def test_reduced_precision_decode_within_tolerance(dtype: torch.dtype) -> None:
     assert worst["colors"] > 0, "the reduced-precision path is actually used"
     # the rendered image stays close to float32 (bf16 moves sharp edges by a fraction of a pixel)
     cam = model.cameras[0]
-    img = [rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
-                     cam.width, cam.height, backend="cpu").image
+    img = [rasterize_gaussians(g, cam, backend="cpu").image
            for g in (model.gaussians_at(0.5), precision.gaussians_at(model, 0.5, dtype))]
     diff = img[0] - img[1]
     assert 10 * math.log10(1.0 / max(float(diff.pow(2).mean()), 1e-20)) > IMAGE_MIN_PSNR[dtype]
@@ -305,7 +280,7 @@ def test_training_survives_injected_nan_loss_and_inf_gradient(tmp_path, monkeypa
     m, t = preset("tiny")
     t.iterations, t.max_bad_steps = 10, 2
     t.densify.start, t.densify.interval = 2, 3  # densify after the injected steps see the statistics
-    real = trainer_mod.rasterize
+    real = trainer_mod.rasterize_gaussians
     calls = {"n": 0}
 
     def faulty(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
@@ -317,7 +292,7 @@ def test_training_survives_injected_nan_loss_and_inf_gradient(tmp_path, monkeypa
             out.image.register_hook(lambda g: torch.full_like(g, float("inf")))
         return out
 
-    monkeypatch.setattr(trainer_mod, "rasterize", faulty)
+    monkeypatch.setattr(trainer_mod, "rasterize_gaussians", faulty)
     tr = Trainer(scene, m, t, tmp_path)
     densify = tr._maybe_densify
 

@@ -1,8 +1,7 @@
-"""atgs-train argument handling (presets set the defaults of every flag)."""
+"""atgs-train argument handling (presets set the defaults of every flag); the promises about the
+run directory and Ctrl-C are in tests/test_cli_promises.py."""
 
-import pytest
-
-from atgs.cli.train import parse, run
+from atgs.cli.train import parse
 
 
 def test_preset_defaults_and_overrides():
@@ -13,15 +12,6 @@ def test_preset_defaults_and_overrides():
     assert a.train.lr.warmup_steps == 10, "the preset schedule is rescaled to --iterations"
     b = parse(["--preset=paper"])
     assert b.model.spatial_resolution == 128 and b.model.hash.log2_table_size == 16
-
-
-def test_existing_checkpoint_is_not_overwritten(tmp_path):
-    (tmp_path / "ckpt.pt").write_bytes(b"old")
-    with pytest.raises(SystemExit, match="--resume"):
-        run(parse(["--out", str(tmp_path), "--data", str(tmp_path)]))
-    assert (tmp_path / "ckpt.pt").read_bytes() == b"old"
-    with pytest.raises(SystemExit, match="not found"):
-        run(parse(["--out", str(tmp_path / "new"), "--resume"]))
 
 
 def test_auto_applies_scene_choices_and_keeps_explicit_flags(tmp_path, capsys):

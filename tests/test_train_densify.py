@@ -6,8 +6,8 @@ import torch
 
 from atgs.model.anchors import AnchorInit
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.config import DensifyConfig, preset
-from atgs.model.timeline import Timeline
+from atgs.train.config import DensifyConfig, preset
+from atgs.timeline import Timeline
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors
 from atgs.train.optim import SparseAdam
 

@@ -1,12 +1,13 @@
 """End-to-end training on a toy scene; non-finite handling."""
 
 import csv
+import json
 
 import pytest
 import torch
 
-from atgs.model.config import preset
-from atgs.train.toy import make_toy_scene
+from atgs.train.config import preset
+from builders import make_toy_scene
 from atgs.train.trainer import NonFiniteError, Trainer
 
 
@@ -29,7 +30,9 @@ def test_loss_decreases_on_toy_scene(scene, tmp_path):
     assert last < 0.7 * first, (first, last)
     assert result["eval"]["psnr"] > before["psnr"] + 1.0
     assert (tmp_path / "ckpt.pt").is_file()
-    assert len(list((tmp_path / "renders").glob("*.png"))) == result["eval"]["views"]
+    # the final evaluation (atgs.eval) with a comparison image of every evaluated view
+    assert len(list((tmp_path / "eval" / "images").rglob("*.png"))) == result["eval"]["views"]
+    assert json.loads((tmp_path / "eval" / "summary.json").read_text())["num_views"] == result["eval"]["views"]
 
 
 def test_nonfinite_loss_skips_step_and_keeps_state(scene, tmp_path):

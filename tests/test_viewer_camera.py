@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from atgs.cameras import Camera, look_at
-from viewer.camera_control import CameraControl, intrinsics, rotation
+from atgs.viewer.camera_control import CameraControl, intrinsics, rotation
 
 
 def _control(eye=(4.0, 0.0, 0.0), target=(0.0, 0.0, 0.0)) -> CameraControl:

@@ -11,8 +11,8 @@ import torch
 from PIL import Image
 
 from atgs.headless_gl import HeadlessGLError
-from viewer.cli import main, render_main
-from test_viewer_fixtures import write_tiny_checkpoint
+from atgs.viewer.cli import main, render_main
+from builders import write_tiny_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +79,7 @@ def test_bad_arguments_exit_2(ckpt: Path, tmp_path: Path, capsys: pytest.Capture
 
 
 def test_unavailable_opengl_is_a_clear_error(ckpt: Path, tmp_path: Path, monkeypatch, capsys) -> None:
-    import viewer.headless as vh
+    import atgs.viewer.headless as vh
 
     def no_gl(backend: str = "auto"):
         raise HeadlessGLError("no headless OpenGL 3.3 available; install Mesa: apt-get install libegl-mesa0 libosmesa6")
@@ -123,10 +123,10 @@ def test_render_video(ckpt: Path, tmp_path: Path, path: str) -> None:
 
 
 def test_cameras_path_passes_through_training_cameras() -> None:
-    from viewer.scene_utils import cameras_path, orbit_path
-    from test_viewer_fixtures import tiny_cameras
+    from atgs.viewer.scene_utils import cameras_path, orbit_path
+    from builders import ring_cameras
 
-    cams = tiny_cameras(3)
+    cams = ring_cameras(3, (96, 72), focal=80.0)
     path = cameras_path(cams, 5)  # 2 segments: samples 0, 2, 4 are the cameras
     for i, c in zip((0, 2, 4), cams):
         np.testing.assert_allclose(path[i].w2c, c.w2c, atol=1e-9)
@@ -142,7 +142,7 @@ def test_cameras_path_passes_through_training_cameras() -> None:
 
 
 def test_depth_video_uses_one_colormap_range(ckpt: Path, tmp_path: Path, monkeypatch) -> None:
-    import viewer.output as vo
+    import atgs.viewer.output as vo
 
     ranges: list = []
     real = vo.display_rgb
@@ -151,7 +151,7 @@ def test_depth_video_uses_one_colormap_range(ckpt: Path, tmp_path: Path, monkeyp
         ranges.append(zrange)
         return real(raw, mode, background, zrange)
 
-    monkeypatch.setattr("viewer.headless.display_rgb", spy)
+    monkeypatch.setattr("atgs.viewer.headless.display_rgb", spy)
     out = tmp_path / "depth.mp4"
     assert render_main([str(ckpt), "--mode", "depth", "--out", str(out), "--frames", "3", "--size", "32x24",
                         "--gl", "osmesa"]) == 0

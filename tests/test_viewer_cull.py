@@ -14,10 +14,10 @@ from atgs.gaussians import Gaussians
 from atgs.headless_gl import create_headless_context
 from scipy.spatial.transform import Rotation
 
-from viewer.adaptive import next_render_scale
-from viewer.packing import pack_gaussians
-from viewer.sorting import back_to_front
-from viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
+from atgs.viewer.adaptive import next_render_scale
+from atgs.viewer.packing import pack_gaussians
+from atgs.viewer.sorting import back_to_front
+from atgs.viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
 
 
 @pytest.fixture(scope="module")

@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from atgs.gaussians import Gaussians
-from viewer.packing import pack_gaussians
-from viewer.source import SyntheticSource
+from atgs.viewer.packing import pack_gaussians
+from atgs.viewer.source import SyntheticSource
 
 
 def _gaussians(n: int) -> Gaussians:

@@ -14,8 +14,8 @@ from atgs.gaussians import Gaussians
 from atgs.headless_gl import create_headless_context
 from scipy.spatial.transform import Rotation
 
-from viewer.packing import covariances, pack_gaussians
-from viewer.splat_renderer import RenderSettings, SplatRenderer
+from atgs.viewer.packing import covariances, pack_gaussians
+from atgs.viewer.splat_renderer import RenderSettings, SplatRenderer
 
 
 @pytest.fixture(scope="module")
@@ -231,7 +231,7 @@ def test_matches_rasterizer_through_egl(renderer: SplatRenderer) -> None:
 
 def test_constants_agree_with_rasterizer() -> None:
     import atgs.render.constants as rc
-    import viewer.splat_renderer as vs
+    import atgs.viewer.splat_renderer as vs
 
     for name in ("NEAR", "DILATION", "CLAMP_MARGIN", "RADIUS_SIGMAS", "ALPHA_MAX", "ALPHA_MIN"):
         assert getattr(vs, name) == getattr(rc, name), name
@@ -265,7 +265,7 @@ def test_packed_covariance_matches_scipy_rotation() -> None:
 
 
 def test_radix_sort_agrees_with_exact_sort() -> None:
-    from viewer.sorting import back_to_front, view_depths
+    from atgs.viewer.sorting import back_to_front, view_depths
 
     gen = np.random.default_rng(1)
     means = gen.normal(size=(5000, 3)).astype(np.float32) * 3
@@ -282,8 +282,8 @@ def test_radix_sort_agrees_with_exact_sort() -> None:
 def test_frustum_cull_is_conservative_and_culls(renderer: SplatRenderer) -> None:
     # Gaussians all around the camera, many off-screen or behind, some large and elongated,
     # some just outside the borders: culled drawing must equal drawing everything.
-    from viewer.sorting import FrustumCull, back_to_front
-    from viewer.splat_renderer import clamp_limits
+    from atgs.viewer.sorting import FrustumCull, back_to_front
+    from atgs.viewer.splat_renderer import clamp_limits
 
     gen = torch.Generator().manual_seed(7)
     n = 3000

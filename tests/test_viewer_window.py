@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from test_viewer_fixtures import write_tiny_checkpoint
+from builders import write_tiny_checkpoint
 
 
 def test_window_plays_scrubs_and_screenshots(tmp_path: Path) -> None:
@@ -22,8 +22,8 @@ def test_window_plays_scrubs_and_screenshots(tmp_path: Path) -> None:
     shot = tmp_path / "shot.png"
     cmd = [
         "xvfb-run", "-a", "-s", "-screen 0 640x480x24",
-        sys.executable, "-m", "viewer.cli", str(ckpt), "--camera", "1", "--size", "320x240",
-        "--autotest", str(shot), "--autotest-frames", "12",
+        sys.executable, str(Path(__file__).with_name("viewer_driver.py")), str(ckpt), str(shot),
+        "--camera", "1", "--size", "320x240", "--frames", "12",
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -59,7 +59,7 @@ def test_window_without_display_is_a_clear_error(tmp_path: Path) -> None:
 
     ckpt = write_tiny_checkpoint(tmp_path / "ckpt.pt")
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run([sys.executable, "-m", "viewer.cli", str(ckpt)], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "atgs.viewer.cli", str(ckpt)], capture_output=True, text=True,
                           timeout=120, env=env)
     assert proc.returncode == 2
     err = proc.stderr.strip()

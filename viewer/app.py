@@ -10,7 +10,6 @@ Mouse: left drag orbit (fly mode: look), right/middle drag or shift+left pan, wh
 from __future__ import annotations
 
 import ctypes
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -18,17 +17,18 @@ from pathlib import Path
 
 import numpy as np
 
-from viewer.adaptive import TARGET_MS, next_render_scale
-from viewer.camera_control import CameraControl
-from viewer.decode_cache import DecodeCache
-from viewer.errors import ViewerError
-from viewer.gl_sync import gil_free_finish
-from viewer.output import display_rgb, save_image, to_uint8
-from viewer.packing import PackedGaussians
-from viewer.playback import FrameFeeder, Playback
-from viewer.scene_utils import look_center, parse_size
-from viewer.source import GaussianSource, decode_frame, scene_up
-from viewer.splat_renderer import MODES, RenderSettings, SplatRenderer
+from atgs.errors import UserError
+from atgs.viewer.adaptive import TARGET_MS, next_render_scale
+from atgs.viewer.camera_control import CameraControl
+from atgs.viewer.decode_cache import DecodeCache
+from atgs.viewer.errors import ViewerError
+from atgs.viewer.gl_sync import gil_free_finish
+from atgs.viewer.output import display_rgb, save_image, to_uint8
+from atgs.viewer.packing import PackedGaussians
+from atgs.viewer.playback import FrameFeeder, Playback
+from atgs.viewer.scene_utils import look_center, parse_size, start_camera
+from atgs.viewer.source import GaussianSource, decode_frame, scene_up
+from atgs.viewer.splat_renderer import MODES, RenderSettings, SplatRenderer
 
 SPEEDS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
 # UI frame cap: an idle loop that spins holds the GIL and starves the decode thread (a decode
@@ -81,8 +81,6 @@ class PlayerApp:
         import glfw
         import moderngl
         from imgui_bundle import imgui
-
-        from viewer.cli import start_camera
 
         self.glfw, self.imgui = glfw, imgui
         self.source = source
@@ -324,7 +322,7 @@ class PlayerApp:
         raw = self.renderer.read()
         try:
             save_image(path, to_uint8(display_rgb(raw, self.settings.mode, self.settings.background)))
-        except (OSError, ViewerError) as exc:  # a full disk must not close the player
+        except (OSError, UserError) as exc:  # a full disk or a bad path must not close the player
             self.message = f"screenshot failed: {exc}"
             return Path(path)
         self.message = f"saved {path}"
@@ -459,139 +457,11 @@ class PlayerApp:
         self._terminate()
 
 
-def exercise_inputs(app: PlayerApp) -> dict:
-    """Feed keyboard and mouse events through imgui's input queue (as the glfw backend does) and
-    record what each did; used by the Xvfb test to check the shortcuts and mouse controls."""
-    io = app.imgui.get_io()
-    K = app.imgui.Key
-    pb, ctl = app.playback, app.control
-
-    def press(key) -> None:
-        io.add_key_event(key, True)
-        app.step(0.0)
-        io.add_key_event(key, False)
-        app.step(0.0)
-
-    out: dict = {}
-    f0 = pb.frame
-    press(K.right_arrow)
-    out["right_arrow_step"] = (pb.frame - f0) % pb.num_frames
-    press(K.left_arrow)
-    out["left_arrow_back"] = pb.frame == f0
-    press(K.space)
-    out["space_plays"] = pb.playing
-    press(K.space)
-    out["space_pauses"] = not pb.playing
-    press(K._2)
-    out["key2_mode"] = app.settings.mode
-    press(K._3)
-    out["key3_mode"] = app.settings.mode
-    press(K._1)
-    press(K.equal)
-    out["speed_after_equal"] = pb.speed
-    press(K.minus)
-    press(K.c)
-    out["camera_after_c"] = app.cam_index
-    press(K.r)
-    out["reset_restores_home"] = bool(np.allclose(ctl.state.eye, ctl.home.eye) and np.allclose(ctl.state.R, ctl.home.R))  # type: ignore[union-attr]
-    press(K.f)
-    out["fly_mode"] = app.fly_mode
-    eye, fwd = ctl.state.eye.copy(), ctl.forward
-    io.add_key_event(K.w, True)
-    for _ in range(3):
-        app.step(0.1)
-    io.add_key_event(K.w, False)
-    app.step(0.0)
-    out["w_moves_forward"] = float((ctl.state.eye - eye) @ fwd)
-    press(K.f)
-    press(K.r)
-    press(K.h)  # hide the panel so the mouse reaches the view
-    out["ui_hidden"] = not app.show_ui
-    w, h = app.glfw.get_window_size(app.window)
-    eye = ctl.state.eye.copy()
-    pivot = ctl.pivot.copy()
-    # The glfw backend polls the real cursor of a focused window every frame, so move that one.
-    app.glfw.set_cursor_pos(app.window, w / 2, h / 2)
-    io.add_mouse_pos_event(w / 2, h / 2)
-    app.step(0.0)
-    io.add_mouse_button_event(0, True)
-    app.step(0.0)
-    app.glfw.set_cursor_pos(app.window, w / 2 + 40, h / 2)
-    io.add_mouse_pos_event(w / 2 + 40, h / 2)
-    app.step(0.0)
-    io.add_mouse_button_event(0, False)
-    app.step(0.0)
-    out["drag_orbit_moved_eye"] = float(np.linalg.norm(ctl.state.eye - eye))
-    out["drag_orbit_kept_pivot"] = float(np.linalg.norm(ctl.pivot - pivot))
-    d0 = ctl.state.distance
-    io.add_mouse_wheel_event(0.0, 1.0)
-    app.step(0.0)
-    out["wheel_zoom_ratio"] = ctl.state.distance / d0
-    press(K.h)
-    out["ui_shown_again"] = app.show_ui
-    press(K.r)
-    return out
-
-
 def rest_until(t: float) -> None:
     """Sleep (GIL released) until perf_counter() reaches t; return at once if it has."""
     left = t - time.perf_counter()
     if left > 0:
         time.sleep(left)
-
-
-def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
-    """Scripted session: play ``frames`` UI frames, scrub to t = 0.75, orbit, screenshot.
-
-    Writes ``screenshot`` (the window: splats + UI) and ``<screenshot>.json`` with what happened.
-    """
-    pb = app.playback
-    dt = 1.0 / max(pb.fps, 1e-6)
-    deadline = time.monotonic() + 60.0
-    app.step(0.0)
-    while app.feeder.shown is None and time.monotonic() < deadline:  # startup: first frame decoded
-        app.step(0.0)
-    app.stats.shown_frames.clear()
-    pb.playing = True
-    steps = 0
-    # Play `frames` UI frames; on a loaded machine keep playing until the shown frame moved.
-    playhead: list[int] = [pb.frame]  # where the playhead was before each step, then after the last
-    while steps < frames or (len(set(app.stats.shown_frames)) < 2 and time.monotonic() < deadline):
-        t_step = time.perf_counter()
-        app.step(dt)
-        rest_until(t_step + dt)  # real-time pacing, as run() does, so decoding gets its share
-        playhead.append(pb.frame)  # step() advanced the playhead and then picked a frame to show
-        steps += 1
-    played = list(app.stats.shown_frames)
-    pb.playing = False
-    pb.seek_time(0.75)
-    target = pb.frame
-    deadline = time.monotonic() + 30.0
-    while (app.feeder.shown is None or app.feeder.shown.frame != target) and time.monotonic() < deadline:
-        app.step(0.0)
-    inputs = exercise_inputs(app)
-    app.control.orbit(0.3, 0.1)
-    app.step(0.0)
-    img = app.read_window()
-    save_image(screenshot, img)
-    splat = app.screenshot(screenshot.with_name(screenshot.stem + "_splats.png"))
-    report = {
-        "played_frames": played,
-        "play_steps": steps,
-        "playhead_frames": playhead,
-        "distinct_played": len(set(played)),
-        "scrub_target": target,
-        "scrub_shown": None if app.feeder.shown is None else app.feeder.shown.frame,
-        "window_size": list(app.glfw.get_framebuffer_size(app.window)),
-        "gl": app.gl_info,
-        "gaussians": 0 if app.renderer.gaussians is None else len(app.renderer.gaussians),
-        "fps": app.stats.fps,
-        "screenshot": str(screenshot),
-        "splats_screenshot": str(splat),
-        "inputs": inputs,
-    }
-    screenshot.with_suffix(".json").write_text(json.dumps(report, indent=2))
-    return report
 
 
 def preload_frames(source: GaussianSource, limit_mb: int) -> dict[int, PackedGaussians]:
@@ -610,24 +480,3 @@ def preload_frames(source: GaussianSource, limit_mb: int) -> dict[int, PackedGau
             out[f] = decode_frame(source, f)
             bar.update(1)
     return out
-
-
-def run_app(cfg) -> int:
-    """Entry point of the window from :mod:`viewer.cli` (``cfg`` is a ViewConfig)."""
-    from viewer.cli import _settings
-    from viewer.loading import open_source
-
-    settings = _settings(cfg)
-    source = open_source(cfg.checkpoint, cfg.demo_gaussians)
-    preloaded = preload_frames(source, cfg.preload_mb) if cfg.preload else None
-    app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
-                    cache_mb=cfg.cache_mb)
-    try:
-        if cfg.autotest is not None:
-            report = autotest(app, Path(cfg.autotest), cfg.autotest_frames)
-            print(json.dumps(report))
-        else:
-            app.run()
-    finally:
-        app.close()
-    return 0

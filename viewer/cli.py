@@ -1,4 +1,7 @@
-"""`atgs-view` (player window or one headless frame) and `atgs-render` (camera-path video)."""
+"""`atgs-view` (player window or one headless frame) and `atgs-render` (camera-path video).
+
+Both run through atgs.io.cli.run_cli: bad input (ViewerError, CheckpointError, no OpenGL, ...) is
+one line on stderr and exit code 2; Ctrl-C is exit code 130 and leaves no partial output."""
 
 from __future__ import annotations
 
@@ -9,12 +12,12 @@ from typing import Annotated, Literal
 
 import tyro
 
-from atgs.headless_gl import HeadlessGLError
-from viewer.errors import ViewerError
-from viewer.loading import open_source
-from viewer.scene_utils import cameras_path, default_camera, orbit_path, parse_size, resized
-from viewer.source import GaussianSource, frame_at
-from viewer.splat_renderer import RenderSettings
+from atgs.io.cli import run_cli
+from atgs.timeline import frame_at
+from atgs.viewer.errors import ViewerError
+from atgs.viewer.loading import load_source
+from atgs.viewer.scene_utils import cameras_path, orbit_path, parse_size, resized, start_camera
+from atgs.viewer.splat_renderer import RenderSettings
 
 
 @dataclass
@@ -43,10 +46,6 @@ class ViewConfig:
     min_alpha: float = 1 / 255
     """Alpha cutoff: 1/255 is the training rasterizer's rule; e.g. 4/255 = 0.0157 culls faint
     Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
-    autotest: Path | None = None
-    """Scripted window run (for tests): play, scrub, save a screenshot to this PNG, write a JSON report next to it, exit."""
-    autotest_frames: int = 20
-    """Frames to play in --autotest mode."""
     demo_gaussians: int = 20000
     """Gaussians of the built-in 'demo' scene."""
     preload: bool = False
@@ -82,7 +81,7 @@ class RenderConfig:
     """Alpha cutoff (see atgs-view --help)."""
 
 
-def _settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
+def render_settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
     if not cfg.scale_modifier > 0:
         raise ViewerError(f"--scale-modifier {cfg.scale_modifier}: must be > 0")
     if not 0.0 < cfg.min_alpha < 0.99:
@@ -91,24 +90,13 @@ def _settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
                           min_alpha=cfg.min_alpha)
 
 
-def start_camera(source: GaussianSource, index: int):
-    cams = list(source.cameras)
-    if not cams:
-        from viewer.source import decode_frame
-
-        return default_camera(decode_frame(source, 0).means)
-    if not 0 <= index < len(cams):
-        raise ViewerError(f"--camera {index}: the checkpoint has cameras 0..{len(cams) - 1}")
-    return cams[index]
-
-
 def run_headless(cfg: ViewConfig) -> Path:
-    from viewer.headless import HeadlessRenderer
-    from viewer.output import save_image
+    from atgs.viewer.headless import HeadlessRenderer
+    from atgs.viewer.output import save_image
 
-    settings = _settings(cfg)
+    settings = render_settings(cfg)
     size = parse_size(cfg.size)
-    source = open_source(cfg.checkpoint, cfg.demo_gaussians)
+    source = load_source(cfg.checkpoint, cfg.demo_gaussians)
     n = source.num_frames
     if cfg.frame is not None:
         if not 0 <= cfg.frame < n:
@@ -128,38 +116,40 @@ def run_headless(cfg: ViewConfig) -> Path:
     return cfg.out
 
 
-def run(cfg: ViewConfig) -> int:
-    if cfg.headless:
-        out = run_headless(cfg)
-        print(f"atgs-view: wrote {out}")
-        return 0
-    from viewer.app import run_app
+def run_window(cfg: ViewConfig) -> None:
+    """The player window until it is closed."""
+    from atgs.viewer.app import PlayerApp, preload_frames
 
-    return run_app(cfg)
-
-
-def _fail(prog: str, exc: BaseException) -> int:
-    print(f"{prog}: error: {exc}", file=sys.stderr)
-    return 2
+    settings = render_settings(cfg)
+    source = load_source(cfg.checkpoint, cfg.demo_gaussians)
+    preloaded = preload_frames(source, cfg.preload_mb) if cfg.preload else None
+    app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
+                    cache_mb=cfg.cache_mb)
+    try:
+        app.run()
+    finally:
+        app.close()
 
 
 def main(argv: list[str] | None = None) -> int:
     cfg = tyro.cli(ViewConfig, args=argv, prog="atgs-view")
-    try:
-        return run(cfg)
-    except (ViewerError, HeadlessGLError) as exc:
-        return _fail("atgs-view", exc)
-    except KeyboardInterrupt:
-        return 130
+
+    def body() -> None:
+        if cfg.headless:
+            print(f"atgs-view: wrote {run_headless(cfg)}")
+        else:
+            run_window(cfg)
+
+    return run_cli("atgs-view", body)
 
 
 def render_video(cfg: RenderConfig) -> Path:
-    from viewer.headless import HeadlessRenderer, render_sequence
-    from viewer.output import VideoWriter
+    from atgs.io.video import VideoWriter
     from atgs.progress import progress_bar
+    from atgs.viewer.headless import HeadlessRenderer, render_sequence
 
-    settings = _settings(cfg)
-    source = open_source(cfg.checkpoint)
+    settings = render_settings(cfg)
+    source = load_source(cfg.checkpoint)
     F = source.num_frames
     n = cfg.frames if cfg.frames is not None else F
     if n < 1:
@@ -171,36 +161,24 @@ def render_video(cfg: RenderConfig) -> Path:
     size = parse_size(cfg.size)
     if size is None:
         size = (cams[0].width - cams[0].width % 2, cams[0].height - cams[0].height % 2)
+    elif size[0] % 2 or size[1] % 2:
+        raise ViewerError(f"--size {size[0]}x{size[1]}: H.264 needs an even width and height")
     path = orbit_path(cams, n) if cfg.path == "orbit" else cameras_path(cams, n)
     path = [resized(c, size) for c in path]
     frames = [frame_at(0.0 if n == 1 else i / (n - 1), F) for i in range(n)]
-    writer = VideoWriter(cfg.out, size[0], size[1], fps)
-    hr = None
-    ok = False
-    try:
+    with VideoWriter(cfg.out, size[0], size[1], fps, codec="libx264", crf=18, pix_fmt="yuv420p", threads=0) as writer:
         hr = HeadlessRenderer(source, cfg.gl)
-        with progress_bar(n, "atgs-render", unit="frame") as bar:
-            render_sequence(hr, frames, path, settings, lambda i, img: writer.write(img), progress=bar)
-        writer.close()
-        ok = True
-    finally:
-        if hr is not None:
+        try:
+            with progress_bar(n, "atgs-render", unit="frame") as bar:
+                render_sequence(hr, frames, path, settings, lambda i, img: writer.write(img), progress=bar)
+        finally:
             hr.close()
-        if not ok:
-            writer.abort()
     return cfg.out
 
 
 def render_main(argv: list[str] | None = None) -> int:
     cfg = tyro.cli(RenderConfig, args=argv, prog="atgs-render")
-    try:
-        out = render_video(cfg)
-    except (ViewerError, HeadlessGLError) as exc:
-        return _fail("atgs-render", exc)
-    except KeyboardInterrupt:
-        return 130
-    print(f"atgs-render: wrote {out}")
-    return 0
+    return run_cli("atgs-render", lambda: print(f"atgs-render: wrote {render_video(cfg)}"))
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from viewer.packing import PackedGaussians
+from atgs.viewer.packing import PackedGaussians
 
 
 @dataclass
@@ -120,6 +120,13 @@ class DecodeCache:
             if frame in self._cache:
                 self._cache.move_to_end(frame)
             return self._cache.get(frame)
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until the worker has nothing left to do (no wanted or prefetch frame to decode,
+        none in progress); False on timeout."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._stop or (self._busy is None and self._next_job() is None),
+                                       timeout=timeout)
 
     def close(self) -> None:
         with self._cond:

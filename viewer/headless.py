@@ -10,11 +10,11 @@ import numpy as np
 
 from atgs.cameras import Camera
 from atgs.headless_gl import create_headless_context
-from viewer.decode_cache import DecodeCache
-from viewer.output import depth_range, display_rgb, to_uint8
-from viewer.packing import PackedGaussians
-from viewer.source import GaussianSource, decode_frame
-from viewer.splat_renderer import RenderSettings, SplatRenderer
+from atgs.viewer.decode_cache import DecodeCache
+from atgs.viewer.output import depth_range, display_rgb, to_uint8
+from atgs.viewer.packing import PackedGaussians
+from atgs.viewer.source import GaussianSource, decode_frame
+from atgs.viewer.splat_renderer import RenderSettings, SplatRenderer
 
 
 @dataclass

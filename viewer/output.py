@@ -1,15 +1,15 @@
-"""Images and videos on disk: display mapping of render modes, atomic PNG and MP4 writers."""
+"""What a render target shows: display mapping of the render modes, and screenshots on disk
+(atomic, through atgs.io.atomic; videos are atgs.io.video's)."""
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from viewer.errors import ViewerError
+from atgs.io.atomic import atomic_file
+from atgs.viewer.errors import ViewerError
 
 
 def colormap(x: np.ndarray) -> np.ndarray:
@@ -52,79 +52,11 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
 
 
-def _publish(tmp: str, path: Path) -> None:
-    """Rename a finished temp file into place with ordinary permissions (mkstemp makes 0600)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
-    os.replace(tmp, path)
-
-
-def _check_parent(path: Path, what: str) -> None:
-    if path.exists() and path.is_dir():
-        raise ViewerError(f"--out {path}: is a directory; give a {what} file name")
-    parent = path.parent if str(path.parent) else Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-
-
 def save_image(path: str | Path, rgb8: np.ndarray) -> None:
-    """Write atomically (temp file + rename): an existing file is replaced only when complete."""
+    """Write a PNG/JPEG atomically: an existing file is replaced only when complete."""
     path = Path(path)
-    _check_parent(path, "PNG/JPEG")
     fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(path.suffix.lower())
     if fmt is None:
         raise ViewerError(f"--out {path}: unsupported image type {path.suffix!r}; use .png or .jpg")
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".tmp-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            Image.fromarray(rgb8).save(fh, format=fmt)
-        _publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-class VideoWriter:
-    """H.264 MP4 through PyAV, written to a temp file renamed into place by :meth:`close`."""
-
-    def __init__(self, path: str | Path, width: int, height: int, fps: float, crf: int = 18) -> None:
-        import av
-        from fractions import Fraction
-
-        self.path = Path(path)
-        _check_parent(self.path, "video (.mp4)")
-        if self.path.suffix.lower() not in (".mp4", ".mkv", ".mov"):
-            raise ViewerError(f"--out {self.path}: use a .mp4, .mkv or .mov file name")
-        if width % 2 or height % 2:
-            raise ViewerError(f"--size {width}x{height}: H.264 needs an even width and height")
-        fd, self._tmp = tempfile.mkstemp(prefix=self.path.name + ".tmp-", suffix=self.path.suffix, dir=self.path.parent)
-        os.close(fd)
-        self._container = av.open(self._tmp, mode="w")
-        rate = Fraction(fps).limit_denominator(1001)
-        self._stream = self._container.add_stream("libx264", rate=rate)
-        self._stream.width, self._stream.height = width, height
-        self._stream.pix_fmt = "yuv420p"
-        self._stream.options = {"crf": str(crf), "preset": "veryfast"}
-        self._done = False
-
-    def write(self, rgb8: np.ndarray) -> None:
-        import av
-
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb8), format="rgb24")
-        for packet in self._stream.encode(frame):
-            self._container.mux(packet)
-
-    def close(self) -> None:
-        for packet in self._stream.encode():
-            self._container.mux(packet)
-        self._container.close()
-        _publish(self._tmp, self.path)
-        self._done = True
-
-    def abort(self) -> None:
-        try:
-            self._container.close()
-        finally:
-            if os.path.exists(self._tmp):
-                os.unlink(self._tmp)
+    with atomic_file(path) as tmp:
+        Image.fromarray(rgb8).save(tmp, format=fmt)

@@ -6,8 +6,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from viewer.decode_cache import DecodeCache
-from viewer.packing import PackedGaussians
+from atgs.timeline import frame_at, time_of_frame
+from atgs.viewer.decode_cache import DecodeCache
+from atgs.viewer.packing import PackedGaussians
 
 
 @dataclass
@@ -29,11 +30,10 @@ class Playback:
     @property
     def time(self) -> float:
         """Normalized time t in [0, 1] of the shown frame."""
-        return 0.0 if self.num_frames <= 1 else self.frame / (self.num_frames - 1)
+        return time_of_frame(self.frame, self.num_frames)
 
     def seek_time(self, t: float) -> None:
-        t = min(1.0, max(0.0, float(t)))
-        self.pos = float(math.floor(t * (self.num_frames - 1) + 0.5))
+        self.pos = float(frame_at(t, self.num_frames))
 
     def seek_frame(self, f: int) -> None:
         self.pos = float(min(self.num_frames - 1, max(0, int(f))))

@@ -7,8 +7,8 @@ import math
 import numpy as np
 
 from atgs.cameras import Camera, look_at
-from viewer.errors import ViewerError
-from viewer.source import scene_up
+from atgs.viewer.errors import ViewerError
+from atgs.viewer.source import GaussianSource, decode_frame, scene_up
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
@@ -67,6 +67,17 @@ def default_camera(means: np.ndarray, size: tuple[int, int] = (640, 480)) -> Cam
     return Camera("default", W, H, K, look_at(eye, center, np.array([0, 0, 1.0])))
 
 
+def start_camera(source: GaussianSource, index: int) -> Camera:
+    """Training camera ``index`` of the source (``--camera``), or a camera that frames frame 0
+    when the source has no cameras."""
+    cams = list(source.cameras)
+    if not cams:
+        return default_camera(decode_frame(source, 0).means)
+    if not 0 <= index < len(cams):
+        raise ViewerError(f"--camera {index}: the checkpoint has cameras 0..{len(cams) - 1}")
+    return cams[index]
+
+
 def orbit_path(cameras: list[Camera], n: int, center: np.ndarray | None = None) -> list[Camera]:
     """n cameras on one revolution around the rig's look center, at the rig's mean radius and
     height, with the first training camera's intrinsics."""
@@ -106,7 +117,7 @@ def _slerp_rot(R0: np.ndarray, R1: np.ndarray, s: float) -> np.ndarray:
         axis = vecs[:, np.argmax(vals)]
     else:
         axis = w / nrm
-    from viewer.camera_control import rotation
+    from atgs.viewer.camera_control import rotation
 
     return R0 @ rotation(axis, s * ang)
 

@@ -3,7 +3,6 @@ synthetic scene for tests and demos)."""
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
@@ -13,7 +12,8 @@ import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
-from viewer.packing import PackedGaussians, pack_gaussians
+from atgs.timeline import Timeline, frame_at, time_of_frame
+from atgs.viewer.packing import PackedGaussians, pack_gaussians
 
 
 @runtime_checkable
@@ -37,19 +37,6 @@ class GaussianSource(Protocol):
     def gaussians_at_frame(self, f: int) -> Gaussians: ...
 
     def window_at(self, t: float) -> tuple[int, int]: ...
-
-
-def time_of_frame(f: int, num_frames: int) -> float:
-    """Frame f of F sits at t = f / (F - 1) (t = 0 when F = 1), as in atgs.model.timeline."""
-    return 0.0 if num_frames <= 1 else min(max(f, 0), num_frames - 1) / (num_frames - 1)
-
-
-def frame_at(t: float, num_frames: int) -> int:
-    """Nearest frame of normalized time t (clamped to [0, 1]); halves round up like the model."""
-    if math.isnan(t):
-        raise ValueError("time t is NaN")
-    t = min(1.0, max(0.0, float(t)))
-    return int(math.floor(t * (num_frames - 1) + 0.5))
 
 
 def active_anchor_count(source: GaussianSource, frame: int) -> int:
@@ -151,12 +138,7 @@ class SyntheticSource:
         return self.keyframes
 
     def window_at(self, t: float) -> tuple[int, int]:
-        # The paper's rule, 0-based: kbar = nearest keyframe of t, window of half-width W // 2.
-        K = self.keyframes
-        f = frame_at(t, self.frames)
-        kbar = 0 if K == 1 or self.frames == 1 else (2 * f * (K - 1) + (self.frames - 1) - 1) // (2 * (self.frames - 1))
-        h = self.window // 2
-        return max(0, kbar - h), min(K - 1, kbar + h)
+        return Timeline(self.frames, self.keyframes, self.window, 1).window_at(t)
 
     def gaussians_at(self, t: float) -> Gaussians:
         return self.gaussians_at_frame(frame_at(t, self.frames))

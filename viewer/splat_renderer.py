@@ -20,8 +20,8 @@ import moderngl
 import numpy as np
 
 from atgs.cameras import Camera
-from viewer.packing import PackedGaussians
-from viewer.sorting import FrustumCull, back_to_front
+from atgs.viewer.packing import PackedGaussians
+from atgs.viewer.sorting import FrustumCull, back_to_front
 
 RenderMode = Literal["color", "depth", "alpha"]
 MODES: tuple[str, ...] = ("color", "depth", "alpha")
@@ -38,7 +38,7 @@ GAUSSIANS_PER_ROW = 1024  # texture row = 1024 Gaussians = 3072 texels
 
 
 def load_shader(name: str) -> str:
-    return files("shaders").joinpath(name).read_text(encoding="utf-8")
+    return files("atgs.shaders").joinpath(name).read_text(encoding="utf-8")
 
 
 def clamp_limits(K: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:

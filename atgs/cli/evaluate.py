@@ -1,7 +1,7 @@
 """``atgs-eval CKPT [--data DIR] [--out DIR] ...``: score a checkpoint on held-out cameras.
 
 Writes per_view.csv, summary.json and render|GT|error images (see :mod:`atgs.eval.evaluate`)
-and prints the mean metrics. Bad input gives one line on stderr and exit code 2.
+and prints the mean metrics. Bad input gives one line on stderr and exit code 2 (atgs.io.cli).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import Annotated, Any
 import tyro
 
 from atgs.eval.evaluate import METRICS, EvalConfig, EvalError, EvalResult, evaluate
+from atgs.io.cli import run_cli
 
 
 @dataclass
@@ -30,12 +31,10 @@ class EvalArgs:
 
 
 def checkpoint_data_dir(ckpt: dict[str, Any]) -> Path | None:
-    """The prepared-scene path the model was trained on, if the checkpoint recorded one."""
-    train_cfg = ckpt.get("train_config") or {}
-    for v in (ckpt.get("data_dir"), ckpt.get("data"), train_cfg.get("data_dir"), train_cfg.get("data")):
-        if isinstance(v, (str, Path)) and str(v):
-            return Path(v)
-    return None
+    """The prepared-scene path the model was trained on, if the checkpoint recorded one (the
+    trainer stores it as "data_dir"; "" when it trained on an in-memory scene)."""
+    v = ckpt.get("data_dir")
+    return Path(v) if isinstance(v, str) and v else None
 
 
 def run(args: EvalArgs) -> EvalResult:
@@ -75,17 +74,8 @@ def format_summary(result: EvalResult) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from atgs.checkpoint import CheckpointError
-    from atgs.data.errors import DataError
-
     args = tyro.cli(EvalArgs, args=argv)
-    try:
-        result = run(args)
-    except (EvalError, DataError, CheckpointError) as e:
-        print(f"atgs-eval: error: {e}", file=sys.stderr)
-        return 2
-    print(format_summary(result))
-    return 0
+    return run_cli("atgs-eval", lambda: print(format_summary(run(args))))
 
 
 if __name__ == "__main__":

@@ -4,24 +4,20 @@ plain videos/images without poses) -> a prepared ATGS scene (see docs/data.md)."
 from __future__ import annotations
 
 import sys
+
 import tyro
 
-from atgs.data.errors import DataError
 from atgs.data.prepare import PrepareConfig, prepare
+from atgs.io.cli import run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
     args = tyro.cli(PrepareConfig, args=argv, description=__doc__)
-    try:
-        out = prepare(args)
-    except DataError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted; nothing was written", file=sys.stderr)
-        return 130
-    print(f"prepared scene written to {out}")
-    return 0
+
+    def body() -> None:
+        print(f"prepared scene written to {prepare(args)}")
+
+    return run_cli("atgs-prepare", body)
 
 
 if __name__ == "__main__":

@@ -12,9 +12,9 @@ from typing import Annotated
 
 import tyro
 
-from atgs.data.errors import DataError
 from atgs.data.synth import EncodeConfig, synthesize
 from atgs.data.synth_scene import Preset, SynthConfig
+from atgs.io.cli import run_cli
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     a = tyro.cli(SynthArgs, args=argv, description=__doc__)
     cfg = SynthConfig(frames=a.frames, cameras=a.cameras, width=a.width, height=a.height, seed=a.seed,
                       preset=a.preset, fps=a.fps, arc_deg=a.arc_deg)
-    try:
+
+    def body() -> None:
         t = time.perf_counter()
         synthesize(a.out, cfg, EncodeConfig(a.codec, a.crf, a.pix_fmt), overwrite=a.overwrite)
         print(f"synthetic scene written to {a.out} in {time.perf_counter() - t:.1f} s")
@@ -65,10 +66,9 @@ def main(argv: list[str] | None = None) -> int:
             t = time.perf_counter()
             prepare(PrepareConfig(src=a.out, out=a.prepare, keyframes=a.keyframes, overwrite=a.overwrite))
             print(f"prepared scene written to {a.prepare} in {time.perf_counter() - t:.1f} s")
-    except (DataError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
+
+    # the scene and encoder settings reject bad values with ValueError (e.g. --cameras 1)
+    return run_cli("atgs-synth", body, user_errors=(ValueError,))
 
 
 if __name__ == "__main__":

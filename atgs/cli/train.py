@@ -3,33 +3,34 @@
     atgs-train --data DIR --out DIR [--preset cpu-fast|cpu|cpu-accurate|paper] [--iterations N] [--resume]
 
 Every model/trainer knob is a flag (``--model.*``, ``--train.*``; see ``atgs-train --help``);
-flag defaults come from the chosen preset.
+flag defaults come from the chosen preset. Nothing in an existing ``--out`` changes before the new
+run's first checkpoint (atgs.train.run_dir); Ctrl-C saves a checkpoint that ``--resume`` continues.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-import json
-import os
 from pathlib import Path
 import sys
 from typing import Literal
 
 import tyro
 
-from atgs.model.config import ModelConfig, TrainConfig, preset, to_dict
+from atgs.config_dict import to_dict
+from atgs.errors import OutputError
+from atgs.io.cache import cache_dir
+from atgs.io.cli import Interrupted, run_cli, stop_on_sigint
+from atgs.model.config import ModelConfig
+from atgs.train.config import TrainConfig, preset
 
 PresetName = Literal["cpu-fast", "cpu", "cpu-accurate", "paper", "tiny"]
-
-
-def default_cache_dir() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "atgs"
+PROG = "atgs-train"
 
 
 @dataclass
 class TrainArgs:
     out: Path = Path("runs/atgs")
-    """Output directory: ckpt.pt, train_log.csv, config.json, renders/."""
+    """Output directory: ckpt.pt, train_log.csv, config.json, result.json, eval/."""
     data: Path | None = None
     """Prepared scene directory (atgs-prepare); default: the built-in synthetic scene."""
     preset: PresetName = "cpu"
@@ -41,8 +42,8 @@ class TrainArgs:
     overwrite: bool = False
     """Start a new run even if --out already holds a checkpoint (it is replaced at the first save)."""
     progress: bool = True
-    cache_dir: Path = field(default_factory=default_cache_dir)
-    """Where the built-in synthetic scene is cached."""
+    cache_dir: Path = field(default_factory=cache_dir)
+    """Where the built-in synthetic scene is cached (default: $ATGS_CACHE_DIR, else ~/.cache/atgs)."""
     synth_keyframes: int = 6
     """Keyframes of the built-in synthetic scene (when --data is not given)."""
     auto: bool = False
@@ -79,7 +80,7 @@ def load_scene(args: TrainArgs):
     if args.data is None:
         from atgs.data.synth import ensure_default_scene
 
-        print(f"atgs-train: no --data given; using the built-in synthetic scene (cached in {args.cache_dir})")
+        print(f"{PROG}: no --data given; using the built-in synthetic scene (cached in {args.cache_dir})", flush=True)
         path = ensure_default_scene(args.cache_dir, keyframes=args.synth_keyframes, progress=args.progress)
     else:
         path = args.data
@@ -103,62 +104,70 @@ def apply_auto(args: TrainArgs, scene, explicit: set[str]) -> None:
     stats = measure_motion(scene)
     choice = choose_config(stats, args.model)
     kept = {k: v for k, v in choice.overrides.items() if k not in explicit}
-    print("atgs-train: --auto chose (from the measured motion):")
+    print(f"{PROG}: --auto chose (from the measured motion):")
     print(format_choice(choice))
     for k in sorted(set(choice.overrides) - set(kept)):
         print(f"  (--model.{k.replace('_', '-')} given on the command line: kept the given value)")
     args.model = apply_overrides(args.model, kept)
 
 
-def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
+def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
+    """The trainer of a new run (config staged for its first checkpoint) or of a resumed one.
+    Refuses, before any work, to start over a run that --out already holds."""
     from atgs.train.trainer import Trainer
 
     ckpt = args.out / "ckpt.pt"
     if args.resume:
         if not ckpt.is_file():
-            raise SystemExit(f"atgs-train: --resume: {ckpt} not found; start without --resume")
-        scene = load_scene(args)
-        trainer = Trainer.resume(scene, ckpt, args.out, iterations=args.iterations)
-        print(f"atgs-train: resuming at step {trainer.step} of {trainer.cfg.iterations}")
-    else:
-        if ckpt.exists() and not args.overwrite:
-            raise SystemExit(f"atgs-train: {ckpt} already exists; pass --resume to continue it, "
-                             "--overwrite to start over, or choose another --out")
-        if args.iterations is not None:
-            args.train.iterations = args.iterations
-        scene = load_scene(args)
-        if args.auto:
-            apply_auto(args, scene, explicit)
-        trainer = Trainer(scene, args.model, args.train, args.out)
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "config.json").write_text(json.dumps(
-            {"preset": args.preset, "data": str(args.data) if args.data else None,
-             "model": to_dict(args.model), "train": to_dict(args.train)}, indent=1))
-        print(f"atgs-train: {trainer.model.num_anchors} anchors, {trainer.model.num_keyframes} keyframes, "
-              f"{trainer.model.num_segments} temporal grids, {scene.num_frames} frames, "
-              f"{len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras")
-    result = trainer.train(progress=args.progress)
-    (args.out / "result.json").write_text(json.dumps(result, indent=1))
+            raise OutputError(f"--resume: {ckpt} not found; start without --resume")
+        trainer = Trainer.resume(load_scene(args), ckpt, args.out, iterations=args.iterations)
+        print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations}")
+        return trainer
+    if ckpt.exists() and not args.overwrite:
+        raise OutputError(f"{ckpt} already exists; pass --resume to continue it, --overwrite to start over, "
+                          "or choose another --out")
+    if args.iterations is not None:
+        args.train.iterations = args.iterations
+    scene = load_scene(args)
+    if args.auto:
+        apply_auto(args, scene, explicit)
+    trainer = Trainer(scene, args.model, args.train, args.out)
+    trainer.run.stage_config({"preset": args.preset, "data": str(args.data) if args.data else None,
+                              "model": to_dict(args.model), "train": to_dict(args.train)})
+    m = trainer.model
+    print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
+          f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras")
+    return trainer
+
+
+def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
+    """Train; the first Ctrl-C finishes the current step, saves ckpt.pt and raises Interrupted."""
+    trainer = make_trainer(args, explicit)
+    with stop_on_sigint(f"{PROG}: stopping after this step and saving a checkpoint (Ctrl-C again to abort)") as stop:
+        result = trainer.train(progress=args.progress, should_stop=stop)
+    ckpt = trainer.run.ckpt_path
+    if "stopped_early" in result:
+        if not result["steps"]:
+            raise Interrupted(f"stopped before the first step; nothing was written to {args.out}")
+        raise Interrupted(f"checkpoint of step {trainer.step} saved to {ckpt}; continue with "
+                          f"atgs-train --out {args.out} --resume")
+    trainer.run.write_result(result)
     ev = result.get("eval", {})
-    print(f"atgs-train: done, {result['steps']} steps in {result['seconds']:.0f} s; "
+    print(f"{PROG}: done, {result['steps']} steps in {result['seconds']:.0f} s; "
           f"test PSNR {ev.get('psnr', float('nan')):.2f} dB, SSIM {ev.get('ssim', float('nan')):.4f}; "
           f"checkpoint {ckpt}")
     return result
 
 
-def main(argv: list[str] | None = None) -> None:
-    from atgs.checkpoint import CheckpointError
-
-    from atgs.data.errors import DataError
-
+def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parse(argv)
-    try:
+
+    def body() -> None:
         run(args, explicit_model_flags(argv))
-    except (CheckpointError, DataError) as e:
-        print(f"atgs-train: error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
+
+    return run_cli(PROG, body)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -33,6 +33,7 @@ import numpy as np
 from atgs.data.errors import DataError
 from atgs.data.scene import PreparedScene
 from atgs.progress import progress_bar
+from atgs.timeline import evenly_spaced
 
 
 @dataclass(frozen=True)
@@ -119,17 +120,6 @@ class MotionStats:
 
 
 # --- pieces (pure functions, tested on their own) -----------------------------------------------
-
-def sample_indices(n: int, k: int) -> list[int]:
-    """At most ``k`` indices evenly spread over range(n), first and last included, ascending."""
-    if n <= 0:
-        return []
-    if n <= k:
-        return list(range(n))
-    if k == 1:
-        return [0]
-    return sorted({int(round(i * (n - 1) / (k - 1))) for i in range(k)})
-
 
 def box_downsample(img: np.ndarray, max_side: int) -> np.ndarray:
     """(H,W,C) uint8 -> channel-first (C,h,w) float32 in [0,1], averaged over s x s blocks so that
@@ -232,7 +222,7 @@ def _choose_cameras(scene: PreparedScene, max_cameras: int) -> list[int]:
     # one size only (the first camera's): frames are stacked
     size = (scene.cameras[train[0]].width, scene.cameras[train[0]].height)
     same = [i for i in train if (scene.cameras[i].width, scene.cameras[i].height) == size]
-    return [same[i] for i in sample_indices(len(same), max_cameras)]
+    return [same[i] for i in evenly_spaced(len(same), max_cameras)]
 
 
 def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> MotionStats:
@@ -241,7 +231,7 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
     t0 = time.perf_counter()
     F = int(scene.num_frames)
     cams = _choose_cameras(scene, cfg.max_cameras)
-    frames = sample_indices(F, cfg.max_frames)
+    frames = evenly_spaced(F, cfg.max_frames)
     imgs = _load_frames(scene, cams, frames, cfg)
     C, P, _, h, w = imgs.shape
     fr = np.asarray(frames, dtype=np.float64)

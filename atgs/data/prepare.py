@@ -24,12 +24,13 @@ import tyro
 from PIL import Image
 
 from atgs.cameras import Camera
-from atgs.data.atomic import atomic_dir, check_output_dir
+from atgs.io.atomic import atomic_dir, check_output_dir
 from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras, triangulate_known_poses
 from atgs.data.errors import DataError
 from atgs.data.scene import save_frame, write_scene_metadata
 from atgs.data.sources import Source, SourceFormat, open_source
 from atgs.data.undistort import apply_undistort_map, build_undistort_map
+from atgs.timeline import evenly_spaced
 
 
 @dataclass(frozen=True)
@@ -101,14 +102,6 @@ def parse_frame_range(spec: str | None, start: int | None, end: int | None, n: i
     if not 0 <= s < e:
         raise DataError(f"frame range {s}:{e} is empty; the source has {n} frames per camera")
     return range(s, e, step)
-
-
-def keyframe_indices(num_frames: int, k: int) -> list[int]:
-    """K evenly spaced frames: keyframe j at round(j (F-1) / (K-1)) (the model's timeline convention)."""
-    k = max(1, min(int(k), num_frames))
-    if k == 1:
-        return [0]
-    return sorted({int(round(j * (num_frames - 1) / (k - 1))) for j in range(k)})
 
 
 def resolve_test_cams(spec: tuple[str, ...] | None, names: list[str], default: list[str]) -> list[str]:
@@ -191,7 +184,7 @@ def prepare(cfg: PrepareConfig) -> Path:
                     bar.update(1)
         timings["frames"] = time.perf_counter() - t
         t = time.perf_counter()
-        kfs = keyframe_indices(num_frames, cfg.keyframes)
+        kfs = evenly_spaced(num_frames, cfg.keyframes)  # the model's keyframe rule
         pts, cols, pkf = _keyframe_points(tmp, out_cams, test, kfs, ext, work, colmap_opts, cfg.progress)
         timings["points"] = time.perf_counter() - t
         shutil.rmtree(work, ignore_errors=True)

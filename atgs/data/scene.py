@@ -24,7 +24,7 @@ import numpy as np
 from PIL import Image
 
 from atgs.cameras import Camera
-from atgs.data.atomic import atomic_dir
+from atgs.io.atomic import atomic_dir
 from atgs.data.errors import DataError
 
 SCENE_FORMAT = "atgs-scene"
@@ -143,6 +143,14 @@ class PreparedScene:
         if arr.shape[:2] != (cam.height, cam.width):
             raise DataError(f"{path}: size {arr.shape[1]}x{arr.shape[0]} differs from camera {cam.name} ({cam.width}x{cam.height})")
         return arr
+
+
+def resize_frame(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A uint8 (H,W,3) frame at ``width`` x ``height`` (Lanczos): how training and evaluation see
+    the ground truth at a reduced ``resolution_scale``. Returned as is when the size matches."""
+    if img.shape[:2] == (height, width):
+        return img
+    return np.asarray(Image.fromarray(img).resize((width, height), Image.Resampling.LANCZOS))
 
 
 # --- points.ply -----------------------------------------------------------------------------

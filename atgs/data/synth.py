@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from atgs.data.atomic import atomic_dir, interprocess_lock
+from atgs.io.atomic import atomic_dir, interprocess_lock
 from atgs.data.camera_formats import cameras_to_poses_bounds
 from atgs.data.synth_scene import SynthConfig, SynthScene, sample_surface
 
@@ -39,7 +39,7 @@ def synthesize(out: str | Path, cfg: SynthConfig = SynthConfig(), enc: EncodeCon
     from tqdm import tqdm
 
     from atgs.data.synth_render import MeshRenderer
-    from atgs.data.video import VideoWriter
+    from atgs.io.video import VideoWriter
 
     if cfg.frames < 1 or cfg.cameras < 2 or cfg.width < 16 or cfg.height < 16:
         raise ValueError("need frames >= 1, cameras >= 2 and a resolution of at least 16x16")

@@ -1,4 +1,5 @@
-"""Video input/output through PyAV (FFmpeg). Frames stream one at a time; nothing is buffered."""
+"""Video input through PyAV (FFmpeg). Frames stream one at a time; nothing is buffered.
+Writing videos is :mod:`atgs.io.video`'s job."""
 
 from __future__ import annotations
 
@@ -144,49 +145,3 @@ def iter_frames(path: Path, start: int = 0, end: int | None = None, step: int = 
                 break
             if i >= start and (i - start) % step == 0:
                 yield i, frame.to_ndarray(format="rgb24")
-
-
-def read_frame(path: Path, index: int) -> np.ndarray:
-    for i, img in iter_frames(path, index, index + 1):
-        return img
-    raise DataError(f"{path}: has no frame {index}")
-
-
-class VideoWriter:
-    """Streaming encoder. Default ``libx264rgb`` with crf 0 is lossless RGB (exact ground truth);
-    ``libx264`` + ``yuv444p``/``yuv420p`` gives the usual lossy files."""
-
-    def __init__(self, path: Path, width: int, height: int, fps: float, codec: str = "libx264rgb",
-                 crf: int = 0, pix_fmt: str | None = None, preset: str = "veryfast") -> None:
-        import av
-        from fractions import Fraction
-
-        self.path = Path(path)
-        self.container = av.open(str(self.path), mode="w")
-        rate = Fraction(fps).limit_denominator(1001)
-        self.stream = self.container.add_stream(codec, rate=rate)
-        self.stream.width, self.stream.height = int(width), int(height)
-        self.stream.pix_fmt = pix_fmt or ("rgb24" if codec == "libx264rgb" else "yuv444p")
-        if codec.startswith("libx264"):
-            self.stream.options = {"crf": str(int(crf)), "preset": preset}
-        self.stream.thread_count = 1  # several writers run side by side; 1 thread each
-        self.frames = 0
-
-    def write(self, rgb: np.ndarray) -> None:
-        import av
-
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb[..., :3], dtype=np.uint8), format="rgb24")
-        for packet in self.stream.encode(frame):
-            self.container.mux(packet)
-        self.frames += 1
-
-    def close(self) -> None:
-        for packet in self.stream.encode():
-            self.container.mux(packet)
-        self.container.close()
-
-    def __enter__(self) -> "VideoWriter":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -1,10 +1,10 @@
-"""Evaluation of a model on the held-out cameras of a prepared scene.
+"""Evaluation of a model on the held-out cameras of a prepared scene: the one evaluation path.
 
-:func:`evaluate` is a library function (the trainer calls it for periodic and final
-evaluation; ``atgs-eval`` wraps it): for every selected camera and frame it renders
-``model.gaussians_at_frame(frame)`` with :func:`atgs.render.rasterize` from that camera,
-compares with the ground-truth image and returns per-view rows and a summary. With an output
-directory it also writes::
+:func:`evaluate` is a library function (``Trainer.evaluate`` calls it with a frame subset for
+periodic and final evaluation; ``atgs-eval`` wraps it): for every selected camera and frame it
+renders ``model.gaussians_at_frame(frame)`` with :func:`atgs.render.rasterize_gaussians` from
+that camera, compares with the ground-truth image and returns per-view rows and a summary. With
+an output directory it also writes::
 
     OUT/
       per_view.csv           camera, frame, psnr, ssim, dssim1, dssim2, ms_ssim, dssim_ms, lpips
@@ -31,12 +31,15 @@ import torch
 from PIL import Image
 
 from atgs.cameras import Camera
-from atgs.data.errors import DataError
-from atgs.data.atomic import atomic_dir
+from atgs.data.scene import resize_frame
+from atgs.errors import UserError
+from atgs.io.atomic import atomic_dir
 from atgs.eval.lpips import LPIPS, load_lpips
 from atgs.eval.metrics import all_metrics, ms_ssim_levels
 from atgs.gaussians import Gaussians
 from atgs.progress import progress_bar
+from atgs.render import rasterize_gaussians
+from atgs.timeline import evenly_spaced
 
 METRICS = ("psnr", "ssim", "dssim1", "dssim2", "ms_ssim", "dssim_ms", "lpips")
 METRIC_DEFINITIONS = {
@@ -53,7 +56,7 @@ METRIC_DEFINITIONS = {
 UNAVAILABLE = "unavailable"
 
 
-class EvalError(Exception):
+class EvalError(UserError):
     """Bad evaluation input (cameras, frames, files); the message is one line for the user."""
 
 
@@ -167,22 +170,14 @@ def select_frames(model: EvalModel, scene: EvalScene, frames: Sequence[int], eve
 
 def image_frames(frames: Sequence[int], count: int) -> set[int]:
     """``count`` evenly spaced entries of ``frames`` (first and last included)."""
-    if count <= 0 or not frames:
-        return set()
-    pos = np.unique(np.round(np.linspace(0, len(frames) - 1, min(count, len(frames)))).astype(int))
-    return {frames[p] for p in pos}
+    return {frames[p] for p in evenly_spaced(len(frames), count)}
 
 
 # --- rendering and images --------------------------------------------------------------------------
 
 def render_view(g: Gaussians, cam: Camera, background: torch.Tensor | None, backend: str) -> torch.Tensor:
     """(H,W,3) render of ``g`` from ``cam``, clamped to [0,1]."""
-    from atgs.render import rasterize
-
-    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors,
-                    torch.as_tensor(cam.w2c, dtype=g.means.dtype), torch.as_tensor(cam.K, dtype=g.means.dtype),
-                    cam.width, cam.height, background=background, backend=backend)
-    return out.image.detach().clamp(0.0, 1.0)
+    return rasterize_gaussians(g, cam, background=background, backend=backend).image.detach().clamp(0.0, 1.0)
 
 
 def comparison_image(render: np.ndarray, gt: np.ndarray, gain: float) -> np.ndarray:
@@ -291,17 +286,16 @@ def _ground_truth(scene: EvalScene, ci: int, f: int, cam: Camera) -> np.ndarray:
     full = scene.cameras[ci]
     try:
         img = np.asarray(scene.image(ci, f), dtype=np.float32)
-    except DataError as e:  # already one line naming the file
+    except UserError as e:  # already one line naming the file
         raise EvalError(str(e)) from None
     except (OSError, IndexError) as e:
         raise EvalError(f"ground truth of camera {cam.name!r} frame {f}: {e}") from None
     if img.shape != (full.height, full.width, 3):
         raise EvalError(f"ground truth of camera {cam.name!r} frame {f} has shape {img.shape}, "
                         f"expected ({full.height}, {full.width}, 3)")
-    if (cam.width, cam.height) != (full.width, full.height):
+    if (cam.width, cam.height) != (full.width, full.height):  # as the trainer sees it (uint8, Lanczos)
         u8 = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
-        small = Image.fromarray(u8).resize((cam.width, cam.height), Image.Resampling.LANCZOS)
-        img = np.asarray(small, dtype=np.float32) / 255.0
+        img = resize_frame(u8, cam.width, cam.height).astype(np.float32) / 255.0
     return img
 
 

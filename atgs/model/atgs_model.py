@@ -20,7 +20,7 @@ from atgs.model.config import ModelConfig
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
-from atgs.model.timeline import Timeline
+from atgs.timeline import Timeline
 
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
 ANCHOR_TABLES = ("anchor_feature", "anchor_log_scale")

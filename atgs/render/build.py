@@ -5,13 +5,14 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib.util
-import os
 import platform
 import sys
 from pathlib import Path
 from types import ModuleType
 
 import torch
+
+from atgs.io.cache import cache_dir
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("rasterize.cpp",)
@@ -36,10 +37,8 @@ def compile_flags() -> tuple[str, ...]:
 
 
 def cache_root() -> Path:
-    """$ATGS_CACHE_DIR/torch_extensions, or ~/.cache/atgs/torch_extensions."""
-    base = os.environ.get("ATGS_CACHE_DIR")
-    root = Path(base) if base else Path.home() / ".cache" / "atgs"
-    return root / "torch_extensions"
+    """``torch_extensions`` in the ATGS cache (atgs.io.cache: $ATGS_CACHE_DIR, else ~/.cache/atgs)."""
+    return cache_dir() / "torch_extensions"
 
 
 def build_key() -> str:

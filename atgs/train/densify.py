@@ -18,7 +18,7 @@ import math
 import torch
 
 from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
-from atgs.model.config import DensifyConfig
+from atgs.train.config import DensifyConfig
 from atgs.train.optim import SparseAdam
 
 

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from atgs.model.timeline import Timeline
+from atgs.timeline import Timeline
 
 
 class SegmentSampler:

@@ -1,9 +1,10 @@
 """The training loop: balanced view sampling, sparse/dense Adam, schedules, densification,
-robustness to non-finite values, periodic evaluation, CSV log, checkpoints and resume."""
+robustness to non-finite values, periodic evaluation (through atgs.eval), checkpoints and resume.
+What is written to the output directory, and when, is :class:`atgs.train.run_dir.RunDir`'s job."""
 
 from __future__ import annotations
 
-import csv
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 import math
 from pathlib import Path
@@ -11,22 +12,25 @@ import time
 from typing import Protocol
 
 import numpy as np
-from PIL import Image
 import torch
 from tqdm import tqdm
 
 from atgs.cameras import Camera
-from atgs.checkpoint import read_checkpoint, save_checkpoint
+from atgs.checkpoint import CheckpointError, model_from_checkpoint, read_checkpoint, save_checkpoint
+from atgs.config_dict import from_dict, to_dict
+from atgs.data.scene import resize_frame
+from atgs.errors import UserError
 from atgs.model.atgs_model import ATGSModel, Decoded
-from atgs.model.config import ModelConfig, TrainConfig, from_dict, to_dict
-from atgs.render import rasterize
+from atgs.model.config import ModelConfig
+from atgs.render import rasterize_gaussians
+from atgs.timeline import evenly_spaced
+from atgs.train.config import TrainConfig
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.losses import image_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
 from atgs.train.sampling import ImageCache, SegmentSampler
+from atgs.train.run_dir import RunDir
 from atgs.train.schedule import exp_decay, warmup
-
-CSV_FIELDS = ("step", "loss", "psnr", "anchors", "gaussians", "seconds", "skipped", "eval_psnr", "eval_ssim")
 
 
 class SceneData(Protocol):
@@ -46,6 +50,8 @@ class SceneData(Protocol):
     @property
     def test_indices(self) -> list[int]: ...
 
+    def image(self, cam_index: int, frame: int) -> np.ndarray: ...
+
     def image_uint8(self, cam_index: int, frame: int) -> np.ndarray: ...
 
 
@@ -54,8 +60,8 @@ def _bounds(scene: SceneData) -> torch.Tensor | None:
     return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32)).reshape(2, 3)
 
 
-class NonFiniteError(RuntimeError):
-    pass
+class NonFiniteError(UserError, RuntimeError):
+    """Training diverged (too many non-finite steps in a row); the message names the fix."""
 
 
 @dataclass
@@ -71,6 +77,7 @@ class Trainer:
                  model: ATGSModel | None = None) -> None:
         self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
         self.out = Path(out_dir)
+        self.run = RunDir(self.out)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)
         s = cfg.resolution_scale
@@ -100,22 +107,14 @@ class Trainer:
 
     # --- data -------------------------------------------------------------------------------
     def _load_image(self, cam: int, frame: int) -> np.ndarray:
-        arr = self.scene.image_uint8(cam, frame)
         c = self.cams[cam]
-        if arr.shape[:2] != (c.height, c.width):
-            arr = np.asarray(Image.fromarray(arr).resize((c.width, c.height), Image.Resampling.LANCZOS))
-        return arr
+        return resize_frame(self.scene.image_uint8(cam, frame), c.width, c.height)
 
     def _background(self) -> torch.Tensor:
         if self.cfg.random_background:
             return torch.rand(3, generator=self.gen)
         return torch.tensor(self.cfg.background, dtype=torch.float32)
 
-    def render(self, dec: Decoded, cam: Camera, background: torch.Tensor):
-        g = dec.gaussians
-        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors,
-                         torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
-                         cam.width, cam.height, background=background, backend=self.cfg.render_backend)
 
     # --- learning rates -----------------------------------------------------------------------
     def _expected_visits(self) -> int:
@@ -177,7 +176,7 @@ class Trainer:
             if len(dec.gaussians) == 0:  # nothing of the model in this view: nothing to learn
                 continue
             bg = self._background()
-            out = self.render(dec, cam, bg)
+            out = rasterize_gaussians(dec.gaussians, cam, background=bg, backend=self.cfg.render_backend)
             out.means2d.retain_grad()
             loss = self.compute_loss(dec, out, gt)
             if not bool(torch.isfinite(loss)):
@@ -246,9 +245,8 @@ class Trainer:
             return
         if not d.enabled or self.step < d.start or self.step > stop or self.step % d.interval:
             return
-        n_add = grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
-        n_del = prune_anchors(self.model, self.stats, d, self.sparse_opt)
-        self.last_densify = (n_add, n_del)
+        grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
+        prune_anchors(self.model, self.stats, d, self.sparse_opt)
 
     def _final_prune(self, stop: int) -> None:
         d = self.cfg.densify
@@ -262,32 +260,25 @@ class Trainer:
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
-        F, n = self.model.num_frames, max(1, self.cfg.eval_max_frames)
-        return sorted({round(i * (F - 1) / max(1, n - 1)) for i in range(n)}) if n > 1 else [0]
+        """The frames of periodic and final evaluation: ``eval_max_frames`` evenly spaced."""
+        return evenly_spaced(self.model.num_frames, max(1, self.cfg.eval_max_frames))
 
-    @torch.no_grad()
-    def render_view(self, cam_index: int, frame: int) -> torch.Tensor:
-        cam = self.cams[cam_index]
-        dec = self.model.decode_frame(frame, cam, track=False)
-        bg = torch.tensor(self.cfg.background, dtype=torch.float32)
-        return self.render(dec, cam, bg).image.clamp(0, 1)
-
-    @torch.no_grad()
-    def evaluate(self, save_dir: Path | None = None) -> dict[str, float]:
-        from atgs.eval.metrics import psnr as m_psnr, ssim as m_ssim
+    def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
+                 resolution_scale: float | None = None) -> dict:
+        """PSNR and SSIM on the test cameras (or the first training camera when there are none)
+        through :func:`atgs.eval.evaluate.evaluate`, over ``frames`` (default :meth:`eval_frames`)
+        at ``resolution_scale`` (default the training resolution). ``out``: also write that
+        evaluation directory (per_view.csv, summary.json, comparison images of every frame)."""
+        from atgs.eval.evaluate import EvalConfig, evaluate
 
         cams = self.test_idx or self.train_idx[:1]
-        ps, ss = [], []
-        for ci in cams:
-            for f in self.eval_frames():
-                img, gt = self.render_view(ci, f), self.images.get(ci, f)
-                ps.append(float(m_psnr(img, gt)))
-                ss.append(float(m_ssim(img, gt)))
-                if save_dir is not None:
-                    save_dir.mkdir(parents=True, exist_ok=True)
-                    both = torch.cat([img, gt], dim=1).mul(255).round().byte().numpy()
-                    Image.fromarray(both).save(save_dir / f"{self.cams[ci].name}_{f:06d}.png")
-        return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "views": len(ps),
+        frames = tuple(self.eval_frames() if frames is None else frames)
+        cfg = EvalConfig(frames=frames, cameras=tuple(self.scene.cameras[i].name for i in cams),
+                         images_per_camera=len(frames) if out is not None else 0, lpips=False,
+                         resolution_scale=self.cfg.resolution_scale if resolution_scale is None else resolution_scale,
+                         backend=self.cfg.render_backend, progress=False)
+        res = evaluate(self.model, self.scene, cfg, out, background=self.cfg.background)
+        return {"psnr": res.mean("psnr"), "ssim": res.mean("ssim"), "views": res.summary["num_views"],
                 "on_test_cameras": bool(self.test_idx)}
 
     # --- checkpoints ----------------------------------------------------------------------------
@@ -309,15 +300,16 @@ class Trainer:
         }
 
     def save(self, path: Path | None = None) -> Path:
-        path = path or self.out / "ckpt.pt"
+        """Write the resumable checkpoint: by default the run's ``ckpt.pt`` (the first one also
+        commits config.json and the log, see RunDir), or a copy at ``path``."""
+        if path is None:
+            return self.run.save_checkpoint(self.checkpoint_payload())
         save_checkpoint(path, self.checkpoint_payload())
-        return path
+        return Path(path)
 
     @classmethod
     def resume(cls, scene: SceneData, path: str | Path, out_dir: str | Path,
                iterations: int | None = None) -> "Trainer":
-        from atgs.checkpoint import CheckpointError, model_from_checkpoint
-
         data = read_checkpoint(path)
         if data.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
@@ -339,29 +331,25 @@ class Trainer:
         tr.gen.set_state(st["generator"])
         tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
         tr.step = int(data["step"])
+        tr.run = RunDir(tr.out, resume_step=tr.step)
         return tr
 
     # --- the loop -------------------------------------------------------------------------------------
-    def train(self, progress: bool = True, final_renders: bool = True, stop_at: int | None = None) -> dict:
-        """Train until ``cfg.iterations`` (or ``stop_at``, as if killed there: checkpoint written,
-        no final evaluation), then save ``ckpt.pt`` and evaluate."""
+    def train(self, progress: bool = True, final_renders: bool = True, stop_at: int | None = None,
+              should_stop: Callable[[], bool] | None = None) -> dict:
+        """Train until ``cfg.iterations``, then save ``ckpt.pt`` and evaluate (writing the
+        evaluation to ``eval/`` with ``final_renders``). Training stops early, as if killed there
+        (checkpoint written, no final evaluation, ``result["stopped_early"]``), at step
+        ``stop_at`` or after the step at which ``should_stop()`` turns true (e.g. Ctrl-C)."""
         cfg = self.cfg
         end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
-        self.out.mkdir(parents=True, exist_ok=True)
-        log_path = self.out / "train_log.csv"
-        new_log = not log_path.exists() or self.step == 0
-        log = open(log_path, "w" if new_log else "a", newline="")
-        writer = csv.DictWriter(log, fieldnames=CSV_FIELDS)
-        if new_log:
-            writer.writeheader()
         t0 = time.perf_counter()
         start = self.step
         bar = tqdm(total=cfg.iterations, initial=start, disable=not progress, desc="atgs-train",
                    dynamic_ncols=True)
-        last_eval: dict = {}
         ema_loss = ema_psnr = None
         try:
-            while self.step < end:
+            while self.step < end and not (should_stop is not None and should_stop()):
                 r = self.train_step()
                 if not r.skipped and math.isfinite(r.loss):
                     ema_loss = r.loss if ema_loss is None else 0.9 * ema_loss + 0.1 * r.loss
@@ -371,9 +359,9 @@ class Trainer:
                        "seconds": f"{time.perf_counter() - t0:.2f}", "skipped": self.skipped,
                        "eval_psnr": "", "eval_ssim": ""}
                 if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iterations:
-                    last_eval = self.evaluate()
-                    row["eval_psnr"], row["eval_ssim"] = f"{last_eval['psnr']:.3f}", f"{last_eval['ssim']:.4f}"
-                writer.writerow(row)
+                    ev = self.evaluate()
+                    row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
+                self.run.log(row)
                 if cfg.save_every > 0 and self.step % cfg.save_every == 0 and self.step < cfg.iterations:
                     self.save()
                 bar.update(1)
@@ -382,11 +370,14 @@ class Trainer:
                                     anchors=self.model.num_anchors, gs=r.gaussians, refresh=False)
         finally:
             bar.close()
-            log.close()
         seconds = time.perf_counter() - t0
-        self.save()
+        stopped_early = self.step < cfg.iterations
+        if self.step > start or not stopped_early:  # a stop before any step has nothing new to save
+            self.save()
         result = {"steps": self.step - start, "seconds": seconds, "anchors": self.model.num_anchors,
                   "skipped": self.skipped, "final_pruned": self.final_pruned}
-        if stop_at is None and (final_renders or cfg.eval_every > 0):
-            result["eval"] = self.evaluate(self.out / "renders" if final_renders else None)
+        if stopped_early:
+            result["stopped_early"] = self.step
+        elif final_renders or cfg.eval_every > 0:
+            result["eval"] = self.evaluate(self.out / "eval" if final_renders else None)
         return result

@@ -1,9 +1,12 @@
-"""Time <-> frame <-> keyframe window <-> temporal segment (contract: docs/ARCHITECTURE.md).
+"""The one owner of time and frame-index rules (contract: docs/ARCHITECTURE.md).
 
-Frame f of F sits at t = f / (F - 1). Keyframe j of K sits at frame round(j (F - 1) / (K - 1)).
-All frame-based mappings use integer arithmetic so that long sequences map exactly; the
-float path ``*_at(t)`` snaps t to its nearest frame for the discrete choices (window, segment)
-so that ``gaussians_at(f / (F - 1))`` and ``gaussians_at_frame(f)`` agree.
+Frame f of F sits at t = f / (F - 1). "k evenly spaced indices of n" are round(j (n - 1) / (k - 1))
+for j = 0..k-1 with halves rounded up (:func:`evenly_spaced`): the keyframes of a prepared scene
+and of the model, the frames sampled by motion measurement, the frames of periodic evaluation and
+the comparison images of ``atgs-eval`` all use it, so they agree by construction. All frame-based
+mappings use integer arithmetic so that long sequences map exactly; the float path ``*_at(t)``
+snaps t to its nearest frame for the discrete choices (window, segment) so that
+``gaussians_at(f / (F - 1))`` and ``gaussians_at_frame(f)`` agree.
 """
 
 from __future__ import annotations
@@ -20,6 +23,39 @@ def _round_half_up(num: int, den: int) -> int:
 def _round_half_down(num: int, den: int) -> int:
     """round(num / den) for integers, halves rounded down (argmin picks the first index)."""
     return (2 * num + den - 1) // (2 * den)
+
+
+def evenly_spaced(n: int, k: int) -> list[int]:
+    """``min(k, n)`` indices of range(n), evenly spread, first and last included, ascending and
+    distinct: index j is round(j (n - 1) / (k - 1)) with halves rounded up (the model's keyframe
+    rule, so existing checkpoints keep their keyframes). [] for n <= 0 or k <= 0."""
+    n, k = int(n), int(k)
+    if n <= 0 or k <= 0:
+        return []
+    k = min(k, n)
+    if k == 1:
+        return [0]
+    # spacing (n-1)/(k-1) >= 1: rounding never maps two j onto one index
+    return [_round_half_up(j * (n - 1), k - 1) for j in range(k)]
+
+
+def clamp_time(t: float) -> float:
+    t = float(t)
+    if math.isnan(t):
+        raise ValueError("time t is NaN")
+    return min(1.0, max(0.0, t))
+
+
+def time_of_frame(f: int, num_frames: int) -> float:
+    """Normalized time of frame f (clamped into the sequence); 0 for a single frame."""
+    if num_frames <= 1:
+        return 0.0
+    return min(max(int(f), 0), num_frames - 1) / (num_frames - 1)
+
+
+def frame_at(t: float, num_frames: int) -> int:
+    """Nearest frame of normalized time t (clamped to [0, 1]); halves round up."""
+    return int(math.floor(clamp_time(t) * (num_frames - 1) + 0.5))
 
 
 @dataclass(frozen=True)
@@ -41,13 +77,11 @@ class Timeline:
 
     # --- time <-> frame ------------------------------------------------------------
     def time_of_frame(self, f: int) -> float:
-        f = self._check_frame(f)
-        return 0.0 if self.num_frames == 1 else f / (self.num_frames - 1)
+        return time_of_frame(self._check_frame(f), self.num_frames)
 
     def frame_at(self, t: float) -> int:
         """Nearest frame of normalized time t (clamped to [0, 1])."""
-        t = clamp_time(t)
-        return int(math.floor(t * (self.num_frames - 1) + 0.5))
+        return frame_at(t, self.num_frames)
 
     def _check_frame(self, f: int) -> int:
         f = int(f)
@@ -57,7 +91,8 @@ class Timeline:
 
     # --- keyframes -------------------------------------------------------------------
     def keyframe_frame(self, j: int) -> int:
-        """Frame index of keyframe j (0-based)."""
+        """Frame index of keyframe j (0-based); K > F repeats frames (the prepared scene's
+        :func:`evenly_spaced` caps K at F instead)."""
         K, F = self.num_keyframes, self.num_frames
         if not 0 <= j < K:
             raise ValueError(f"keyframe {j} out of range 0..{K - 1}")
@@ -118,10 +153,3 @@ class Timeline:
         lo = -((-m * (F - 1)) // M)  # ceil(m (F-1) / M)
         hi = F if m == M - 1 else -((-(m + 1) * (F - 1)) // M)
         return range(min(lo, F), min(hi, F))
-
-
-def clamp_time(t: float) -> float:
-    t = float(t)
-    if math.isnan(t):
-        raise ValueError("time t is NaN")
-    return min(1.0, max(0.0, t))

@@ -1,11 +1,12 @@
-"""Timeline vs brute force over exact rationals (paper formulas, 1-based as written)."""
+"""Timeline and evenly_spaced vs brute force over exact rationals (paper formulas, 1-based as
+written), and the keyframe rule shared by atgs-prepare and the model."""
 
 from fractions import Fraction
 
 import numpy as np
 import pytest
 
-from atgs.model.timeline import Timeline
+from atgs.timeline import Timeline, evenly_spaced, frame_at, time_of_frame
 
 
 def paper_window(t: Fraction, K: int, W: int) -> tuple[int, int]:
@@ -78,3 +79,38 @@ def test_single_frame_and_more_segments_than_frames():
     tl = Timeline(3, 2, 3, 8)  # some segments have no frame
     parts = [list(tl.frames_of_segment(m)) for m in range(8)]
     assert sum(parts, []) == [0, 1, 2]
+
+
+def _half_up(x: Fraction) -> int:
+    return int(x + Fraction(1, 2))  # floor(x + 1/2) for x >= 0
+
+
+def test_evenly_spaced_against_exact_rationals():
+    for n in range(1, 61):
+        for k in range(1, n + 3):
+            got = evenly_spaced(n, k)
+            kk = min(k, n)
+            want = [0] if kk == 1 else [_half_up(Fraction(j * (n - 1), kk - 1)) for j in range(kk)]
+            assert got == want, (n, k)
+            assert len(set(got)) == kk and got == sorted(got) and got[-1] == (n - 1 if kk > 1 else 0)
+    assert evenly_spaced(6, 3) == [0, 3, 5]  # the half rounds up (round-half-even gave [0, 2, 5])
+    assert evenly_spaced(0, 4) == [] and evenly_spaced(5, 0) == []
+
+
+def test_prepared_keyframes_agree_with_the_model_for_every_short_sequence():
+    """atgs-prepare writes evenly_spaced(F, K) as the scene's keyframes; the model places keyframe
+    j at Timeline.keyframe_frame(j). They must agree for every F <= 300 and K <= F."""
+    for F in range(1, 301):
+        for K in range(1, F + 1):
+            assert evenly_spaced(F, K) == Timeline(F, K, 0, 1).keyframe_frames(), (F, K)
+
+
+def test_module_level_time_helpers_match_the_timeline():
+    for F in (1, 2, 7, 300, 10000):
+        tl = Timeline(F, min(F, 15), 7, 2)
+        for f in {0, F // 3, F // 2, F - 1}:
+            assert time_of_frame(f, F) == tl.time_of_frame(f)
+            assert frame_at(time_of_frame(f, F), F) == f
+        for t in np.linspace(0, 1, 37):
+            assert frame_at(float(t), F) == tl.frame_at(float(t))
+    assert time_of_frame(12, 10) == 1.0 and time_of_frame(-3, 10) == 0.0  # clamped into the sequence

@@ -1,0 +1,149 @@
+"""Typed configuration of the trainer, and the presets that fill it and the model's.
+
+Every field is a command-line flag of ``atgs-train`` (tyro): ``--train.*`` here, ``--model.*`` in
+:class:`atgs.model.config.ModelConfig`. :func:`preset` maps a preset name to a (model, train)
+pair: ``paper`` uses the paper's sizes (GPU scale), the ``cpu-*`` presets trade quality for
+speed on a small CPU, ``tiny`` is for tests.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from atgs.model.config import HashGridConfig, ModelConfig
+
+
+@dataclass
+class DensifyConfig:
+    enabled: bool = True
+    start: int = 500
+    stop_fraction: float = 0.6  # stop growing/pruning after this fraction of iterations
+    interval: int = 100
+    grad_threshold: float = 2e-4  # on NDC-scaled screen-space gradient norms (as 3DGS)
+    levels: int = 3
+    init_factor: int = 16
+    hierarchy_factor: int = 4
+    success_threshold: float = 0.8
+    min_opacity: float = 0.005
+    max_anchors: int = 200_000
+    # After the last step, drop anchors that never contributed since densification stopped.
+    final_prune: bool = True
+
+
+@dataclass
+class LRConfig:
+    anchor_feature: float = 0.0075
+    spatial_grid: float = 0.0075
+    anchor_scaling: float = 0.007
+    offset_init: float = 8e-3
+    offset_final: float = 5e-5
+    opacity_init: float = 2e-3
+    opacity_final: float = 2e-5
+    cov: float = 4e-3
+    color_init: float = 8e-3
+    color_final: float = 5e-5
+    # Temporal grids: lr * scene extent; each grid decays with its own visit count.
+    temporal_init: float = 2e-4
+    temporal_final: float = 2e-6
+    temporal_mlp_init: float = 2e-3
+    temporal_mlp_final: float = 2e-5
+    warmup_steps: int = 1000
+    warmup_start: float = 0.1
+
+
+@dataclass
+class TrainConfig:
+    iterations: int = 30_000
+    views_per_step: int = 1  # balanced: views of one step cycle over the temporal segments
+    resolution_scale: float = 1.0  # image downscale for training (0.5 = half resolution)
+    lambda_ssim: float = 0.2
+    lambda_volume: float = 0.001
+    volume_reduction: str = "sum"  # "sum" (paper) or "mean" (authors' code)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    random_background: bool = False
+    grad_clip: float = 10.0
+    adam_eps: float = 1e-15
+    max_bad_steps: int = 50  # consecutive non-finite losses before giving up
+    lr: LRConfig = field(default_factory=LRConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    eval_every: int = 1000
+    eval_max_frames: int = 8  # frames per test camera in periodic evaluation
+    save_every: int = 1000
+    image_cache_mb: int = 1024  # uint8 LRU cache of training images
+    seed: int = 0
+    threads: int = 0  # torch threads; 0 = leave torch's default
+    render_backend: str = "auto"
+
+
+def _cpu_model(**kw) -> ModelConfig:
+    base = dict(
+        feature_dim=32,
+        gaussians_per_anchor=5,
+        num_segments=2,
+        spatial_resolution=32,
+        hash=HashGridConfig(levels=8, features_per_level=2, log2_table_size=14, base_resolution=8,
+                            growth=1.5, max_time_resolution=16, mlp_hidden=64),
+        hidden_opacity=64, hidden_cov=64, hidden_color=64, hidden_offset=128,
+        opacity_threshold=0.005,
+        random_anchors=3000,
+    )
+    base.update(kw)
+    return ModelConfig(**base)
+
+
+def _cpu_train(iterations: int, **kw) -> TrainConfig:
+    d = DensifyConfig(start=max(100, iterations // 20), interval=max(50, iterations // 60))
+    lr = LRConfig(warmup_steps=max(1, iterations // 30))
+    base = dict(iterations=iterations, densify=d, lr=lr, eval_every=max(500, iterations // 4),
+                save_every=max(500, iterations // 6))
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def preset(name: str, iterations: int | None = None) -> tuple[ModelConfig, TrainConfig]:
+    """(model, train) configuration of a named preset; see :data:`PRESET_NAMES`. ``iterations``
+    rescales the iteration-dependent schedule (warm-up, densification, eval/save intervals)."""
+    model, train = _preset(name)
+    if iterations is not None and iterations != train.iterations:
+        if iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {iterations}")
+        if name == "paper":
+            train.iterations = iterations
+        else:
+            fresh = _cpu_train(iterations)
+            train.iterations, train.densify, train.lr = iterations, fresh.densify, fresh.lr
+            train.eval_every, train.save_every = fresh.eval_every, fresh.save_every
+    return model, train
+
+
+def _preset(name: str) -> tuple[ModelConfig, TrainConfig]:
+    if name == "paper":
+        return ModelConfig(), TrainConfig()
+    if name == "cpu-fast":
+        return _cpu_model(), _cpu_train(2000)
+    if name == "cpu":
+        return (_cpu_model(feature_dim=48, gaussians_per_anchor=8, spatial_resolution=48,
+                           hash=HashGridConfig(levels=12, features_per_level=2, log2_table_size=15,
+                                               base_resolution=8, growth=1.5, max_time_resolution=16,
+                                               mlp_hidden=64),
+                           hidden_opacity=96, hidden_cov=96, hidden_color=96, hidden_offset=192),
+                _cpu_train(5000))
+    if name == "cpu-accurate":
+        return (_cpu_model(feature_dim=64, gaussians_per_anchor=10, spatial_resolution=64,
+                           hash=HashGridConfig(levels=16, features_per_level=4, log2_table_size=17,
+                                               base_resolution=8, growth=1.5, max_time_resolution=32,
+                                               mlp_hidden=128),
+                           hidden_opacity=128, hidden_cov=128, hidden_color=128, hidden_offset=256),
+                _cpu_train(15000))
+    if name == "tiny":  # unit tests: a few seconds end to end
+        return (_cpu_model(feature_dim=8, gaussians_per_anchor=3, spatial_resolution=8,
+                           hash=HashGridConfig(levels=2, features_per_level=2, log2_table_size=10,
+                                               base_resolution=4, growth=2.0, max_time_resolution=4,
+                                               mlp_hidden=16),
+                           hidden_opacity=16, hidden_cov=16, hidden_color=16, hidden_offset=16,
+                           random_anchors=0),
+                _cpu_train(40, eval_every=0, save_every=0, threads=1))
+    raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESET_NAMES)}")
+
+
+PRESET_NAMES = ("cpu-fast", "cpu", "cpu-accurate", "paper", "tiny")

@@ -1,0 +1,99 @@
+"""The files of a training run in its output directory, and when they change.
+
+    OUT/ckpt.pt         the resumable checkpoint (atomic)
+    OUT/config.json     preset, data and the full configuration of a fresh run (atomic)
+    OUT/train_log.csv   one row per step, up to the last checkpoint
+    OUT/result.json     the final summary (atomic)
+    OUT/eval/           the final evaluation (atgs.eval, atomic)
+
+Promise (README): nothing in OUT changes until this process has written its first checkpoint.
+Until then the config and the log rows wait in memory, so a refused, failed or interrupted
+start leaves an existing run byte-identical. The first checkpoint commits the run: config.json
+is written and train_log.csv is rewritten to hold the rows this run continues from (a resumed
+run keeps the old rows up to its checkpoint's step) and the new ones; a fresh run that replaces
+an earlier run (``--overwrite``) also drops that run's result.json and eval/. Later checkpoints append the rows logged since, so the log
+always ends at the step of ckpt.pt or later.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import shutil
+from pathlib import Path
+
+from atgs.checkpoint import save_checkpoint
+from atgs.io.atomic import write_json_atomic, write_text_atomic
+
+LOG_FIELDS = ("step", "loss", "psnr", "anchors", "gaussians", "seconds", "skipped", "eval_psnr", "eval_ssim")
+
+
+class RunDir:
+    def __init__(self, out: str | Path, resume_step: int | None = None) -> None:
+        """``resume_step``: the step of the checkpoint a resumed run continues from (None: fresh)."""
+        self.out = Path(out)
+        self.resume_step = resume_step
+        self.replaces_run = resume_step is None and self.ckpt_path.exists()
+        self.committed = False
+        self._config: dict | None = None
+        self._rows: list[dict] = []
+
+    @property
+    def ckpt_path(self) -> Path:
+        return self.out / "ckpt.pt"
+
+    def stage_config(self, config: dict) -> None:
+        """config.json of a fresh run, written with the first checkpoint."""
+        self._config = config
+
+    def log(self, row: dict) -> None:
+        self._rows.append(row)
+
+    def save_checkpoint(self, payload: dict) -> Path:
+        save_checkpoint(self.ckpt_path, payload)
+        if self.committed:
+            self._append_rows()
+        else:
+            self._commit()
+        return self.ckpt_path
+
+    def write_result(self, result: dict) -> Path:
+        path = self.out / "result.json"
+        write_json_atomic(path, result)
+        return path
+
+    # --- internals ---------------------------------------------------------------------------------
+    def _commit(self) -> None:
+        log = self.out / "train_log.csv"
+        kept = self._old_rows(log) if self.resume_step is not None else []
+        if self.replaces_run:
+            (self.out / "result.json").unlink(missing_ok=True)
+            shutil.rmtree(self.out / "eval", ignore_errors=True)
+        if self._config is not None:
+            write_json_atomic(self.out / "config.json", self._config)
+        write_text_atomic(log, _csv_text(kept + self._rows, header=True))
+        self._rows.clear()
+        self.committed = True
+
+    def _append_rows(self) -> None:
+        if self._rows:
+            with open(self.out / "train_log.csv", "a", newline="") as fh:
+                fh.write(_csv_text(self._rows, header=False))
+            self._rows.clear()
+
+    def _old_rows(self, log: Path) -> list[dict]:
+        """Rows of the log being continued, up to the resumed checkpoint's step (a run killed
+        after its last checkpoint logged steps that the resumed run does again)."""
+        if not log.is_file():
+            return []
+        with open(log, newline="") as fh:
+            return [r for r in csv.DictReader(fh) if r.get("step", "").isdigit() and int(r["step"]) <= self.resume_step]
+
+
+def _csv_text(rows: list[dict], header: bool) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=LOG_FIELDS, lineterminator="\r\n")
+    if header:
+        writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()

@@ -1,0 +1,177 @@
+"""Test scaffolding: tiny cameras, tiny models through the package API, a tiny checkpoint, and an
+in-memory dynamic toy scene. Imported by the test files (``from builders import ...``); nothing
+here ships with the package."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from atgs.cameras import Camera, look_at
+from atgs.model.atgs_model import ATGSModel
+from atgs.model.config import HashGridConfig, ModelConfig
+from atgs.render import rasterize_gaussians
+from atgs.gaussians import Gaussians
+from atgs.timeline import evenly_spaced
+
+UP_Z = np.array([0.0, 0.0, 1.0])
+
+
+# --- cameras -------------------------------------------------------------------------------------
+
+def ring_cameras(n: int = 3, size: tuple[int, int] = (32, 24), focal: float | None = None,
+                 radius: float = 3.0, height: float = 1.0) -> list[Camera]:
+    """``n`` cameras on a ring around the origin, looking at it (z up); focal 0.9 W by default."""
+    W, H = size
+    f = 0.9 * W if focal is None else focal
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        eye = np.array([radius * np.cos(a), radius * np.sin(a), height])
+        cams.append(Camera(f"cam{i:02d}", W, H, K, look_at(eye, np.zeros(3), UP_Z)))
+    return cams
+
+
+def side_camera(eye=(0.5, -3.0, 0.5), target=(0.5, 0.5, 0.5)) -> Camera:
+    """One 32x24 camera (focal 30) looking at the unit cube from the side."""
+    return Camera("c", 32, 24, np.array([[30, 0, 16], [0, 30, 12], [0, 0, 1.0]]),
+                  look_at(np.array(eye, dtype=np.float64), np.array(target, dtype=np.float64)))
+
+
+# --- models --------------------------------------------------------------------------------------
+
+def tiny_config(K: int = 3, W: int = 3, M: int = 2, hidden: int = 16, **overrides) -> ModelConfig:
+    """The smallest model configuration with every part present (2 hash levels, 4^3 grid)."""
+    cfg = ModelConfig(
+        feature_dim=8, gaussians_per_anchor=2, num_keyframes=K, window=W, num_segments=M,
+        hash=HashGridConfig(levels=2, features_per_level=2, log2_table_size=8, base_resolution=4, mlp_hidden=8),
+        spatial_resolution=4, hidden_opacity=hidden, hidden_cov=hidden, hidden_color=hidden, hidden_offset=hidden,
+    )  # fmt: skip
+    for k, v in overrides.items():
+        setattr(cfg, k, v)
+    return cfg
+
+
+def random_point_model(cfg: ModelConfig, F: int, n: int, cameras: list[Camera], fps: float = 10.0,
+                       seed: int = 0, randomize: bool = False) -> ATGSModel:
+    """A model over ``n`` random points in [-0.8, 0.8]^3 spread over the scene keyframes
+    ``evenly_spaced(F, cfg.num_keyframes)``. ``randomize`` fills features and grids with
+    non-trivial values (an untrained model has zero features, which hides most numerical problems)."""
+    K = cfg.num_keyframes
+    gen = torch.Generator().manual_seed(seed)
+    pts = torch.rand(n, 3, generator=gen) * 1.6 - 0.8
+    kf = torch.randint(0, K, (n,), generator=gen)
+    model = ATGSModel.from_points(cfg, pts, kf, evenly_spaced(F, K), F, fps, cameras, seed=seed)
+    if randomize:
+        randomize_features(model, gen, grid_scale=0.5)
+    return model
+
+
+def keyframe_point_model(cfg: ModelConfig, F: int, K: int, per_keyframe: int, gen: torch.Generator,
+                         camera: Camera | None = None) -> ATGSModel:
+    """A model over ``per_keyframe`` random points in the unit cube at each of K scene keyframes,
+    seen by :func:`side_camera` at 25 fps."""
+    pts = torch.rand(per_keyframe * K, 3, generator=gen)
+    pk = torch.arange(K).repeat_interleave(per_keyframe)
+    return ATGSModel.from_points(cfg, pts, pk, evenly_spaced(F, K), F, 25.0, [camera or side_camera()], seed=0)
+
+
+def randomize_features(model: ATGSModel, gen: torch.Generator, grid_scale: float = 1.0) -> None:
+    """Trained-looking parameters: nonzero anchor features, F_s and hash values."""
+    model.anchor_feature = torch.randn(model.anchor_feature.shape, generator=gen)
+    model.spatial.table = grid_scale * torch.randn(model.spatial.table.shape, generator=gen)
+    model.hash.table = grid_scale * torch.randn(model.hash.table.shape, generator=gen)
+
+
+def write_tiny_checkpoint(path: Path, num_frames: int = 9, points: int = 300) -> Path:
+    """An untrained 3-camera (96x72) checkpoint of :func:`tiny_config`, without optimizer state."""
+    from atgs.checkpoint import save_checkpoint
+    from atgs.config_dict import to_dict
+
+    cfg = tiny_config(K=3, W=3, M=2, hidden=8, frustum_cull=False)
+    cams = ring_cameras(3, (96, 72), focal=80.0)
+    model = random_point_model(cfg, num_frames, points, cams)
+    payload = {
+        "model_config": to_dict(cfg), "cameras": [c.to_dict() for c in cams], "test_cameras": [],
+        "num_frames": num_frames, "fps": 10.0, "time_range": [0.0, (num_frames - 1) / 10.0],
+        "keyframes": model.timeline.keyframe_frames(), "step": 0, "model": model.state_dict(),
+    }  # fmt: skip
+    save_checkpoint(path, payload)
+    return path
+
+
+# --- an in-memory dynamic scene ----------------------------------------------------------------
+
+@dataclass
+class ToyScene:
+    """A few coloured static Gaussians and a blob that moves, seen by cameras on a ring. Ground
+    truth is rendered with the rasterizer itself, so a model can fit it exactly in principle.
+    Has the attributes of ``PreparedScene`` that training and evaluation read."""
+
+    cameras: list[Camera]
+    num_frames: int
+    fps: float
+    keyframes: list[int]
+    points: np.ndarray
+    point_keyframes: np.ndarray
+    test_cameras: list[str]
+    frames: dict = field(default_factory=dict)  # (cam, frame) -> uint8 image
+
+    @property
+    def train_indices(self) -> list[int]:
+        return [i for i, c in enumerate(self.cameras) if c.name not in self.test_cameras]
+
+    @property
+    def test_indices(self) -> list[int]:
+        return [i for i, c in enumerate(self.cameras) if c.name in self.test_cameras]
+
+    def image_uint8(self, cam_index: int, frame: int) -> np.ndarray:
+        return self.frames[(cam_index, frame)]
+
+    def image(self, cam_index: int, frame: int) -> np.ndarray:
+        return self.image_uint8(cam_index, frame).astype(np.float32) / 255.0
+
+
+def make_toy_scene(num_frames: int = 6, num_cameras: int = 5, width: int = 40, height: int = 32,
+                   keyframes: int = 3, seed: int = 0) -> ToyScene:
+    gen = torch.Generator().manual_seed(seed)
+    n_static = 24
+    static = (torch.rand(n_static, 3, generator=gen) - 0.5) * torch.tensor([1.6, 1.6, 0.4])
+    static_col = torch.rand(n_static, 3, generator=gen) * 0.8 + 0.1
+    cams = []
+    for i in range(num_cameras):
+        a = 2 * np.pi * i / num_cameras
+        eye = np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.2])
+        f = 0.9 * width
+        K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
+        cams.append(Camera(f"cam{i:02d}", width, height, K, look_at(eye, np.zeros(3))))
+
+    def blob(frame: int) -> torch.Tensor:
+        s = frame / max(1, num_frames - 1)
+        return torch.tensor([[-0.6 + 1.2 * s, 0.0, 0.3]])
+
+    frames = {}
+    for fr in range(num_frames):
+        means = torch.cat([static, blob(fr)])
+        n = means.shape[0]
+        g = Gaussians(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4).contiguous(),
+                      scales=torch.cat([torch.full((n_static, 3), 0.12), torch.full((1, 3), 0.2)]),
+                      opacities=torch.full((n,), 0.9), colors=torch.cat([static_col, torch.tensor([[1.0, 0.2, 0.1]])]))
+        for ci, c in enumerate(cams):
+            out = rasterize_gaussians(g, c, backend="auto")
+            frames[(ci, fr)] = (out.image.clamp(0, 1) * 255).round().byte().numpy()
+    kf_frames = evenly_spaced(num_frames, keyframes)
+    # every keyframe re-observes the static points (with triangulation noise), as real captures do
+    pts, pk = [], []
+    for j in range(len(kf_frames)):
+        pts.append(static + 0.02 * torch.randn(n_static, 3, generator=gen))
+        pk.append(torch.full((n_static,), j, dtype=torch.int64))
+    for j, fr in enumerate(kf_frames):
+        pts.append(blob(fr) + 0.08 * torch.randn(4, 3, generator=gen))
+        pk.append(torch.full((4,), j, dtype=torch.int64))
+    return ToyScene(cams, num_frames, 30.0, kf_frames, torch.cat(pts).numpy(), torch.cat(pk).numpy(),
+                    [cams[-1].name], frames)
