@@ -21,7 +21,7 @@ from atgs.data.errors import DataError
 from atgs.eval import metrics as M
 from atgs.eval.evaluate import EvalConfig, EvalError, evaluate, image_frames
 from atgs.gaussians import Gaussians
-from atgs.render import rasterize
+from atgs.render import rasterize_gaussians
 
 W, H = 32, 24
 
@@ -54,9 +54,8 @@ def moving(g: Gaussians, frame: int) -> Gaussians:
 
 
 def render(g: Gaussians, cam: Camera, background: tuple[float, float, float] | None = None) -> torch.Tensor:
-    out = rasterize(*g.as_tuple(), torch.tensor(cam.w2c, dtype=torch.float32),
-                    torch.tensor(cam.K, dtype=torch.float32), cam.width, cam.height,
-                    background=None if background is None else torch.tensor(background), backend="torch")
+    out = rasterize_gaussians(g, cam, background=None if background is None else torch.tensor(background),
+                              backend="torch")
     return out.image.clamp(0, 1)
 
 

@@ -64,6 +64,41 @@ def test_reference_gradients_match_finite_differences() -> None:
     assert all(float(gk.abs().sum()) > 0 for gk in grads)  # every input really receives gradient
 
 
+def test_reference_camera_gradients_match_finite_differences() -> None:
+    """viewmat (4x4) and K (3x3), differentiated only by the "torch" backend: autograd vs central
+    differences in float64 for every element they use, through image, alpha, depth and means2d."""
+    means, quats, scales, opac, colors, viewmat, K = tiny_scene(seed=2)
+    R = torch.linalg.matrix_exp(torch.tensor([[0, -0.1, 0.05], [0.1, 0, -0.08], [-0.05, 0.08, 0]], dtype=torch.float64))
+    viewmat[:3, :3] = R  # a general pose, so that every rotation entry matters
+    K[0, 1] = 0.3  # skew: the projection uses the full first row
+    g = torch.Generator().manual_seed(4)
+    w_img, w_alpha, w_depth = (torch.randn(*s, generator=g, dtype=torch.float64) for s in ((10, 12, 3), (10, 12), (10, 12)))
+    w_m2 = torch.randn(4, 2, generator=g, dtype=torch.float64)
+
+    def loss(vm: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        out = rasterize(means, quats, scales, opac, colors, vm, k, 12, 10, backend="torch")
+        return (out.image * w_img).sum() + (out.alpha * w_alpha).sum() + (out.depth * w_depth).sum() + (
+            out.means2d * w_m2
+        ).sum()
+
+    inputs = [viewmat.clone().requires_grad_(True), K.clone().requires_grad_(True)]
+    grads = torch.autograd.grad(loss(*inputs), inputs)
+    eps = 1e-6
+    for k, (x, gk) in enumerate(zip(inputs, grads)):
+        used = x.numel() - x.shape[1]  # the constant last rows ([0 0 0 1], [0 0 1]) are not read
+        assert not gk[-1].any()
+        for j in range(used):
+            args = [t.detach().clone() for t in inputs]
+            args[k].view(-1)[j] += eps
+            lp = float(loss(*args))
+            args[k].view(-1)[j] -= 2 * eps
+            fd = (lp - float(loss(*args))) / (2 * eps)
+            assert abs(fd - float(gk.view(-1)[j])) <= 1e-5 * (1 + abs(fd)), (("viewmat", "K")[k], j, fd, float(gk.view(-1)[j]))
+    # the pose's rotation and translation, and fx, fy, cx, cy all receive gradient
+    assert (grads[0][:3, :].abs() > 1e-6).all()
+    assert all(abs(float(grads[1][i, j])) > 1e-6 for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+
+
 def test_reference_composites_sequentially() -> None:
     """Dense torch blending equals a literal per-pixel loop written from SPEC section 2."""
     s = random_scene(40, 9, 7, seed=3, min_px=2, max_px=6, dtype=torch.float64)

@@ -191,12 +191,11 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 @pytest.mark.parametrize("exact_sort", [True, False])
 def test_matches_training_rasterizer(renderer: SplatRenderer, exact_sort: bool) -> None:
-    from atgs.render import rasterize
+    from atgs.render import rasterize_gaussians
 
     g, cam = _random_scene(400, seed=3)
     bg = (0.3, 0.1, 0.2)
-    out = rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
-                    cam.width, cam.height, background=torch.tensor(bg), backend="torch")
+    out = rasterize_gaussians(g, cam, background=torch.tensor(bg), backend="torch")
     renderer.set_gaussians(pack_gaussians(g))
     color = renderer.render_image(cam, RenderSettings(background=bg, exact_sort=exact_sort))
     alpha = renderer.render_image(cam, RenderSettings(mode="alpha", exact_sort=exact_sort))
@@ -211,14 +210,13 @@ def test_matches_training_rasterizer(renderer: SplatRenderer, exact_sort: bool) 
 
 
 def test_matches_rasterizer_through_egl(renderer: SplatRenderer) -> None:
-    from atgs.render import rasterize
+    from atgs.render import rasterize_gaussians
 
     ctx = create_headless_context("egl")
     r = SplatRenderer(ctx)
     try:
         g, cam = _random_scene(300, seed=5)
-        out = rasterize(*g.as_tuple(), torch.from_numpy(cam.w2c).float(), torch.from_numpy(cam.K).float(),
-                        cam.width, cam.height, backend="torch")
+        out = rasterize_gaussians(g, cam, backend="torch")
         r.set_gaussians(pack_gaussians(g))
         assert psnr(r.render_image(cam), out.image.detach().numpy()) >= 35.0
     finally:

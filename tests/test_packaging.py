@@ -1,0 +1,136 @@
+"""Package boundaries: no import cycle anywhere in atgs (atgs.viewer and atgs.shaders included),
+nothing imports the repository folders viewer/ or shaders/ under their bare names, and
+pyproject.toml installs every package (viewer/ and shaders/ under the atgs namespace)."""
+
+from __future__ import annotations
+
+import ast
+import tomllib
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+# package name -> folder, as pyproject.toml maps them
+ROOTS = {"atgs": REPO / "atgs", "atgs.viewer": REPO / "viewer", "atgs.shaders": REPO / "shaders"}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg, folder in ROOTS.items():
+        for path in folder.rglob("*.py"):
+            rel = path.relative_to(folder).with_suffix("").parts
+            if rel[-1] == "__init__":
+                rel = rel[:-1]
+            name = ".".join((pkg, *rel))
+            if name.startswith("atgs.viewer") and pkg == "atgs" or name.startswith("atgs.shaders") and pkg == "atgs":
+                continue
+            out[name] = path
+    return out
+
+
+def _runtime_imports(tree: ast.AST) -> list[tuple[str, list[str], int]]:
+    """(module, imported names, level) of every import outside ``if TYPE_CHECKING:`` blocks,
+    at any depth (an import inside a function is still a dependency)."""
+    found = []
+
+    def visit(node: ast.AST) -> None:
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            for child in node.orelse:
+                visit(child)
+            return
+        if isinstance(node, ast.Import):
+            found.extend((a.name, [], 0) for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            found.append((node.module or "", [a.name for a in node.names], node.level))
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(tree)
+    return found
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the package modules it imports (``from pkg import sub`` counts as ``pkg.sub``
+    when ``sub`` is a module; importing a module does not count as importing its parents)."""
+    mods = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for name, path in mods.items():
+        is_pkg = path.name == "__init__.py"
+        for module, names, level in _runtime_imports(ast.parse(path.read_text(), str(path))):
+            if level:
+                base = name.split(".") if is_pkg else name.split(".")[:-1]
+                module = ".".join(base[: len(base) - level + 1] + ([module] if module else []))
+            targets = [f"{module}.{n}" for n in names if f"{module}.{n}" in mods] or [module]
+            graph[name].update(t for t in targets if t in mods and t != name)
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}  # 1 = on the current path, 2 = done
+    stack: list[str] = []
+
+    def dfs(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state:
+                found = dfs(nxt)
+                if found:
+                    return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            found = dfs(node)
+            if found:
+                return found
+    return None
+
+
+def test_cycle_finder_finds_cycles() -> None:
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
+
+
+def test_the_package_import_graph_has_no_cycle() -> None:
+    graph = import_graph()
+    assert "atgs.viewer.cli" in graph and "atgs.viewer.app" in graph["atgs.viewer.cli"]
+    assert "atgs.timeline" in graph["atgs.model.atgs_model"]
+    cycle = find_cycle(graph)
+    assert cycle is None, " -> ".join(cycle)
+
+
+def test_nothing_imports_the_bare_viewer_or_shaders_folders() -> None:
+    """They install as atgs.viewer / atgs.shaders; a bare ``import viewer`` works only from the
+    repository root and would load a second copy of each module."""
+    offenders = []
+    for folder in (REPO / "atgs", REPO / "viewer", REPO / "shaders", REPO / "bench", REPO / "tests"):
+        for path in folder.rglob("*.py"):
+            for module, _, level in _runtime_imports(ast.parse(path.read_text(), str(path))):
+                if level == 0 and module.split(".")[0] in ("viewer", "shaders"):
+                    offenders.append(f"{path.relative_to(REPO)}: {module}")
+    assert not offenders, offenders
+
+
+def test_pyproject_installs_every_package_under_atgs() -> None:
+    cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    dirs = cfg["package-dir"]
+    assert dirs == {"atgs": "atgs", "atgs.viewer": "viewer", "atgs.shaders": "shaders"}
+    on_disk = {name for name, path in _modules().items() if path.name == "__init__.py"}
+    assert set(cfg["packages"]) == on_disk
+    assert all(p == "atgs" or p.startswith("atgs.") for p in cfg["packages"])
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    assert all(target.startswith("atgs.") for target in scripts.values())
+
+
+def test_shaders_are_found_through_the_atgs_namespace() -> None:
+    from importlib.resources import files
+
+    import atgs.viewer.splat_renderer as sr
+
+    names = sorted(p.name for p in files("atgs.shaders").iterdir() if p.name.endswith((".vert", ".frag", ".geom")))
+    assert names == sorted(p.name for p in (REPO / "shaders").glob("*.*") if p.suffix in (".vert", ".frag", ".geom"))
+    assert Path(sr.__file__).resolve().parent == REPO / "viewer"
