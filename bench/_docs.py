@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+
+from atgs.io.atomic import write_json_atomic as _write_json, write_text_atomic
 
 
 def markers(name: str) -> tuple[str, str]:
@@ -22,19 +23,13 @@ def update_docs_table(path: Path, name: str, table: str, create_section: str | N
         text = text.rstrip() + f"\n\n## {create_section}\n\n{start}\n{end}\n"
     head, rest = text.split(start, 1)
     _, tail = rest.split(end, 1)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(f"{head}{start}\n{table}\n{end}{tail}")
-    os.replace(tmp, path)
+    write_text_atomic(path, f"{head}{start}\n{table}\n{end}{tail}")
     return True
 
 
 def write_json_atomic(path: Path, data) -> None:
-    import json
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
+    """Results JSON (indent 2, as the committed bench/results files)."""
+    _write_json(path, data, indent=2)
 
 
 def publish(result, json_out: Path, table: str, docs: Path | None, name: str) -> None:

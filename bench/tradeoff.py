@@ -29,23 +29,12 @@ import time
 
 import tyro
 
+from _docs import update_docs_table, write_json_atomic  # bench/_docs.py (the script's own folder is on sys.path)
+
+from atgs.io.atomic import atomic_file
+from atgs.io.cache import cache_dir
+
 ROOT = Path(__file__).resolve().parent.parent
-# Python puts bench/ on sys.path, where bench/viewer.py would shadow the viewer package: drop it
-# and load the shared helper bench/_docs.py by path.
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT / "bench"]
-
-
-def _load_docs_helper():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("_bench_docs", ROOT / "bench" / "_docs.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-_docs = _load_docs_helper()
-update_docs_table, write_json_atomic = _docs.update_docs_table, _docs.write_json_atomic
 
 GROUPS = ("presets", "auto", "layout", "sweep", "layout-full")
 
@@ -68,7 +57,7 @@ class TradeoffArgs:
     jobs: int = 2
     threads: int = 1  # torch threads per run
     draw_size: tuple[int, int] = (640, 480)
-    cache_dir: Path = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "atgs"
+    cache_dir: Path = field(default_factory=cache_dir)  # $ATGS_CACHE_DIR, else ~/.cache/atgs
     work_dir: Path = Path("/tmp/atgs-bench-tradeoff")
     out: Path = ROOT / "bench" / "results" / "tradeoff.json"
     docs: Path = ROOT / "docs" / "tradeoff.md"
@@ -205,6 +194,7 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
 
     import torch
 
+    from atgs.timeline import evenly_spaced
     from atgs.train.config import preset
     from atgs.train.trainer import Trainer
 
@@ -226,15 +216,13 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
     out = work_dir / spec.scene / spec.name.replace(" ", "_").replace("/", "_")
     trainer = Trainer(scene, m, t, out)
     res = trainer.train(progress=False, final_renders=False)
-    trainer.cams = list(scene.cameras)  # evaluate at full resolution whatever the training resolution
-    ev = trainer.evaluate()
+    ev = trainer.evaluate(resolution_scale=1.0)  # full resolution whatever the training resolution
     model = trainer.model
     payload = trainer.checkpoint_payload()
     payload["trainer"] = None
     buf = io.BytesIO()
     torch.save(payload, buf)
-    F = model.num_frames
-    frames = sorted({round(i * (F - 1) / 7) for i in range(8)})
+    frames = evenly_spaced(model.num_frames, 8)
     vt = viewer_times(model, scene.cameras[scene.test_indices[0]], tuple(spec.draw_size), frames)
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     static = int((model.anchor_keyframe < 0).sum())
@@ -314,10 +302,8 @@ def plot(rows: list[dict], path: Path) -> None:
     handles = [plt.Line2D([], [], marker=m, color=c, linestyle="", label=g) for g, (m, c) in style.items()]
     fig.legend(handles=handles, loc="upper center", ncol=4)
     fig.tight_layout(rect=(0, 0, 1, 0.96))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    os.replace(tmp, path)
+    with atomic_file(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
     print(f"wrote {path}")
 
 

@@ -22,6 +22,9 @@ import time
 
 import tyro
 
+from atgs.io.cache import cache_dir
+from atgs.io.atomic import write_json_atomic
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -37,7 +40,7 @@ class BenchArgs:
     only: tuple[str, ...] = ("main", "ablations", "memory")
     """Parts to run; "layout" (not in the default) repeats the main run with the paper's
     per-keyframe anchor layout, stored with the ablations."""
-    cache_dir: Path = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "atgs"
+    cache_dir: Path = field(default_factory=cache_dir)  # $ATGS_CACHE_DIR, else ~/.cache/atgs
     work_dir: Path = Path("/tmp/atgs-bench-train")
     out: Path = ROOT / "bench" / "results" / "train.json"
     threads: int = 0
@@ -155,9 +158,7 @@ def main() -> None:
             elif k == "main":
                 merged[k] = v
         merged.setdefault("machine", results["machine"])
-        tmp = args.out.with_suffix(f".tmp{os.getpid()}")
-        tmp.write_text(json.dumps(merged, indent=1))
-        os.replace(tmp, args.out)
+        write_json_atomic(args.out, merged)
 
     if "main" in args.only:
         results["main"] = run_subprocess(RunSpec("main", args.preset, args.iterations, **base), args)

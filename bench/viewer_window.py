@@ -14,16 +14,9 @@ same 2 cores).
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path as _Path
-
-from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
-
-# This folder holds bench/viewer.py, named like the `viewer` package: drop it from the path.
-sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
-
 import json
 import os
+import sys
 import shutil
 import subprocess
 import time
@@ -32,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import tyro
+from _docs import publish  # bench/_docs.py (the script's own folder is on sys.path)
 
 from atgs.viewer.app import PlayerApp, rest_until
 from atgs.viewer.loading import load_source
