@@ -26,10 +26,9 @@ import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
-from atgs.data.motion import MotionConfig, MotionStats, format_stats, measure_motion
 from atgs.config_dict import from_dict
+from atgs.data.motion import MotionStats, format_stats
 from atgs.model.config import ModelConfig
 
 _BYTES = 4  # float32
@@ -260,12 +259,3 @@ def apply_overrides(cfg, overrides: dict[str, int | float | bool]):
             raise ValueError(f"unknown config field {key!r}")
         setattr(obj, parts[-1], value)
     return out
-
-
-def auto_configure(scene_dir: str | Path, base: ModelConfig | dict, motion: MotionConfig = MotionConfig(),
-                   rules: AutoRules = AutoRules()) -> tuple[AutoChoice, MotionStats]:
-    """Load a prepared scene, measure it and choose; the one call ``atgs-train --auto`` needs."""
-    from atgs.data.scene import PreparedScene
-
-    stats = measure_motion(PreparedScene.load(scene_dir), motion)
-    return choose_config(stats, base, rules), stats

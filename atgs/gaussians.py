@@ -30,9 +30,6 @@ class Gaussians:
     def detach(self) -> "Gaussians":
         return self.map(lambda x: x.detach())
 
-    def select(self, index: torch.Tensor) -> "Gaussians":
-        return self.map(lambda x: x[index])
-
     @staticmethod
     def cat(parts: list["Gaussians"]) -> "Gaussians":
         return Gaussians(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Gaussians)})

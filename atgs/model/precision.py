@@ -1,4 +1,5 @@
-"""Reduced-precision (bfloat16 / float16) decoding for the viewer.
+"""Reduced-precision (bfloat16 / float16) decoding: an opt-in library path for callers that trade
+a little accuracy for decode speed (``atgs-view`` and evaluation decode in float32).
 
 The four decoder MLPs (the bulk of the decode FLOPs) run in ``dtype``; the feature grids, the
 per-segment temporal MLP, the output activations (sigmoid, exp, normalize) and the mean
