@@ -11,22 +11,12 @@ import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
-from atgs.headless_gl import create_headless_context
 from scipy.spatial.transform import Rotation
 
 from atgs.viewer.adaptive import next_render_scale
 from atgs.viewer.packing import pack_gaussians
 from atgs.viewer.sorting import back_to_front
 from atgs.viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
-
-
-@pytest.fixture(scope="module")
-def renderer():
-    ctx = create_headless_context("osmesa")
-    r = SplatRenderer(ctx)
-    yield r
-    r.release()
-    ctx.release()
 
 
 def _scene(n: int, seed: int) -> tuple[Gaussians, Camera]:

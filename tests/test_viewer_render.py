@@ -18,15 +18,6 @@ from atgs.viewer.packing import covariances, pack_gaussians
 from atgs.viewer.splat_renderer import RenderSettings, SplatRenderer
 
 
-@pytest.fixture(scope="module")
-def renderer():
-    ctx = create_headless_context("osmesa")
-    r = SplatRenderer(ctx)
-    yield r
-    r.release()
-    ctx.release()
-
-
 def _one_gaussian() -> Gaussians:
     return Gaussians(
         means=torch.tensor([[0.05, -0.03, 2.0]]),
