@@ -23,6 +23,7 @@ from atgs.data.synth import EncodeConfig, synthesize
 from atgs.data.synth_render import MeshRenderer
 from atgs.data.synth_scene import SynthConfig, SynthScene, distance_to_surfaces
 from atgs.data.video import iter_frames
+from atgs.io.atomic import write_json_atomic
 
 
 def video_psnr(raw: Path, scene: SynthScene, cam_index: int = 1, max_frames: int = 30) -> float:
@@ -85,7 +86,7 @@ def main() -> None:
                                                   "pos_mean_rel": float(pos.mean() / sfm_cfg.scene_size)}
     path = Path(__file__).parent / "results" / "data.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(res, indent=1))
+    write_json_atomic(path, res)
     print(json.dumps(res, indent=1))
 
 

@@ -25,6 +25,7 @@ import tyro
 import atgs
 from atgs.model.fast_decode import InferenceCache
 from atgs.progress import progress_bar
+from atgs.timeline import evenly_spaced
 from _docs import publish  # bench/_docs.py (the script's own folder is on sys.path)
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
@@ -64,7 +65,7 @@ def run(cfg: BenchConfig, threads: int) -> dict:
     load_before = os.getloadavg()
     model = atgs.load(cfg.checkpoint)
     F = model.num_frames
-    sample = sorted({round(i * (F - 1) / max(1, cfg.reference_frames - 1)) for i in range(cfg.reference_frames)})
+    sample = evenly_spaced(F, cfg.reference_frames)
     ref = _timed(model.gaussians_at_frame_reference, sample, "reference decode")
     model.inference_cache = InferenceCache()
     t0 = time.perf_counter()

@@ -191,7 +191,7 @@ def point_spacing(points: np.ndarray, point_keyframes: np.ndarray, max_points: i
         p = np.unique(points[point_keyframes == k].astype(np.float64), axis=0)
         if len(p) < 2:
             continue
-        q = p[np.linspace(0, len(p) - 1, min(max_points, len(p))).round().astype(np.int64)]
+        q = p[evenly_spaced(len(p), max_points)]
         d, _ = cKDTree(p).query(q, k=2)
         vals.append(float(np.median(d[:, 1])))
     return float(np.median(vals)) if vals else 0.0
