@@ -25,6 +25,7 @@ from PIL import Image
 
 from atgs.cameras import Camera
 from atgs.io.atomic import atomic_dir
+from atgs.progress import progress_bar
 from atgs.data.errors import DataError
 
 SCENE_FORMAT = "atgs-scene"
@@ -232,8 +233,6 @@ def write_prepared_scene(
     ``frames_fn(cam_index, frame)`` returns an (H,W,3) image (uint8, or float in [0,1]); it is
     called once per file so the frames never need to be in memory together.
     """
-    from tqdm import tqdm
-
     out = Path(out)
     cameras = list(cameras)
     if any(c.dist is not None for c in cameras):
@@ -246,7 +245,7 @@ def write_prepared_scene(
     keyframes = [0] if keyframes is None else sorted({int(k) for k in keyframes})
     with atomic_dir(out, overwrite) as tmp:
         total = len(cameras) * num_frames
-        with tqdm(total=total, desc="write frames", unit="img", disable=not progress) as bar:
+        with progress_bar(total, "write frames", unit="img", enabled=progress) as bar:
             for ci, cam in enumerate(cameras):
                 (tmp / "images" / cam.name).mkdir(parents=True)
                 for f in range(num_frames):

@@ -13,7 +13,6 @@ from typing import Protocol
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from atgs.cameras import Camera
 from atgs.checkpoint import CheckpointError, model_from_checkpoint, read_checkpoint, save_checkpoint
@@ -22,6 +21,7 @@ from atgs.data.scene import resize_frame
 from atgs.errors import UserError
 from atgs.model.atgs_model import ATGSModel, Decoded
 from atgs.model.config import ModelConfig
+from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians
 from atgs.timeline import evenly_spaced
 from atgs.train.config import TrainConfig
@@ -345,8 +345,7 @@ class Trainer:
         end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
         t0 = time.perf_counter()
         start = self.step
-        bar = tqdm(total=cfg.iterations, initial=start, disable=not progress, desc="atgs-train",
-                   dynamic_ncols=True)
+        bar = progress_bar(cfg.iterations, "atgs-train", unit="step", enabled=progress, initial=start)
         ema_loss = ema_psnr = None
         try:
             while self.step < end and not (should_stop is not None and should_stop()):
