@@ -141,16 +141,18 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
 
 
 def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
-    """Train; the first Ctrl-C finishes the current step, saves ckpt.pt and raises Interrupted."""
+    """Train; the first Ctrl-C during the steps finishes the current one, saves ckpt.pt and raises
+    Interrupted. Then the final evaluation (a Ctrl-C there leaves the complete checkpoint)."""
     trainer = make_trainer(args, explicit)
     with stop_on_sigint(f"{PROG}: stopping after this step and saving a checkpoint (Ctrl-C again to abort)") as stop:
-        result = trainer.train(progress=args.progress, should_stop=stop)
+        result = trainer.run_steps(progress=args.progress, should_stop=stop)
     ckpt = trainer.run.ckpt_path
     if "stopped_early" in result:
         if not result["steps"]:
             raise Interrupted(f"stopped before the first step; nothing was written to {args.out}")
         raise Interrupted(f"checkpoint of step {trainer.step} saved to {ckpt}; continue with "
                           f"atgs-train --out {args.out} --resume")
+    result["eval"] = trainer.evaluate(args.out / "eval")
     trainer.run.write_result(result)
     ev = result.get("eval", {})
     print(f"{PROG}: done, {result['steps']} steps in {result['seconds']:.0f} s; "

@@ -337,10 +337,19 @@ class Trainer:
     # --- the loop -------------------------------------------------------------------------------------
     def train(self, progress: bool = True, final_renders: bool = True, stop_at: int | None = None,
               should_stop: Callable[[], bool] | None = None) -> dict:
-        """Train until ``cfg.iterations``, then save ``ckpt.pt`` and evaluate (writing the
-        evaluation to ``eval/`` with ``final_renders``). Training stops early, as if killed there
-        (checkpoint written, no final evaluation, ``result["stopped_early"]``), at step
-        ``stop_at`` or after the step at which ``should_stop()`` turns true (e.g. Ctrl-C)."""
+        """:meth:`run_steps`, then the final evaluation (``result["eval"]``; written to ``eval/``
+        with ``final_renders``) unless the run stopped early."""
+        result = self.run_steps(progress, stop_at, should_stop)
+        if "stopped_early" not in result and (final_renders or self.cfg.eval_every > 0):
+            result["eval"] = self.evaluate(self.out / "eval" if final_renders else None)
+        return result
+
+    def run_steps(self, progress: bool = True, stop_at: int | None = None,
+                  should_stop: Callable[[], bool] | None = None) -> dict:
+        """Train until ``cfg.iterations`` with periodic evaluation and checkpoints, then save
+        ``ckpt.pt``. It stops early, as if killed there (checkpoint written,
+        ``result["stopped_early"]`` = the step), at step ``stop_at`` or after the step at which
+        ``should_stop()`` turns true (Ctrl-C)."""
         cfg = self.cfg
         end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
         t0 = time.perf_counter()
@@ -377,6 +386,4 @@ class Trainer:
                   "skipped": self.skipped, "final_pruned": self.final_pruned}
         if stopped_early:
             result["stopped_early"] = self.step
-        elif final_renders or cfg.eval_every > 0:
-            result["eval"] = self.evaluate(self.out / "eval" if final_renders else None)
         return result
