@@ -28,8 +28,8 @@ from atgs.train.config import TrainConfig
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.losses import image_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
-from atgs.train.sampling import ImageCache, SegmentSampler
 from atgs.train.run_dir import RunDir
+from atgs.train.sampling import ImageCache, SegmentSampler
 from atgs.train.schedule import exp_decay, warmup
 
 
@@ -114,7 +114,6 @@ class Trainer:
         if self.cfg.random_background:
             return torch.rand(3, generator=self.gen)
         return torch.tensor(self.cfg.background, dtype=torch.float32)
-
 
     # --- learning rates -----------------------------------------------------------------------
     def _expected_visits(self) -> int:
