@@ -20,10 +20,7 @@ def _modules() -> dict[str, Path]:
             rel = path.relative_to(folder).with_suffix("").parts
             if rel[-1] == "__init__":
                 rel = rel[:-1]
-            name = ".".join((pkg, *rel))
-            if name.startswith("atgs.viewer") and pkg == "atgs" or name.startswith("atgs.shaders") and pkg == "atgs":
-                continue
-            out[name] = path
+            out[".".join((pkg, *rel))] = path
     return out
 
 
