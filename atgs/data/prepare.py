@@ -11,7 +11,6 @@ Steps (each long one shows a progress bar):
 
 from __future__ import annotations
 
-import json
 import shutil
 import sys
 import time
@@ -277,8 +276,3 @@ def gross_outlier_mask(pts: np.ndarray, margin: float = 0.5) -> np.ndarray:
     lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
     ext = (hi - lo) * margin
     return np.all((pts >= lo - ext) & (pts <= hi + ext), axis=1)
-
-
-def load_source_summary(path: Path) -> dict:
-    """Metadata of a prepared scene's source (what was prepared from where)."""
-    return json.loads((Path(path) / "scene.json").read_text()).get("source", {})
