@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 import tyro
 
 from atgs.headless_gl import HeadlessGLError
+from viewer.device import place_source, resolve_device
 from viewer.errors import ViewerError
 from viewer.loading import open_source
 from viewer.scene_utils import cameras_path, default_camera, orbit_path, parse_size, resized
@@ -49,6 +50,8 @@ class ViewConfig:
     """Frames to play in --autotest mode."""
     demo_gaussians: int = 20000
     """Gaussians of the built-in 'demo' scene."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
     preload: bool = False
     """Decode every frame before opening the window (smooth playback when decoding is slower than the video)."""
     preload_mb: int = 2048
@@ -80,6 +83,8 @@ class RenderConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     min_alpha: float = 1 / 255
     """Alpha cutoff (see atgs-view --help)."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
 
 
 def _settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
@@ -96,7 +101,7 @@ def start_camera(source: GaussianSource, index: int):
     if not cams:
         from viewer.source import decode_frame
 
-        return default_camera(decode_frame(source, 0).means)
+        return default_camera(decode_frame(source, 0).means.cpu().numpy())
     if not 0 <= index < len(cams):
         raise ViewerError(f"--camera {index}: the checkpoint has cameras 0..{len(cams) - 1}")
     return cams[index]
@@ -108,7 +113,8 @@ def run_headless(cfg: ViewConfig) -> Path:
 
     settings = _settings(cfg)
     size = parse_size(cfg.size)
-    source = open_source(cfg.checkpoint, cfg.demo_gaussians)
+    device = resolve_device(cfg.device)
+    source = place_source(open_source(cfg.checkpoint, cfg.demo_gaussians), device)
     n = source.num_frames
     if cfg.frame is not None:
         if not 0 <= cfg.frame < n:
@@ -119,7 +125,7 @@ def run_headless(cfg: ViewConfig) -> Path:
             raise ViewerError(f"--time {cfg.time}: normalized time must be within [0, 1]")
         frame = frame_at(cfg.time, n)
     cam = resized(start_camera(source, cfg.camera), size)
-    hr = HeadlessRenderer(source, cfg.gl)
+    hr = HeadlessRenderer(source, cfg.gl, device)
     try:
         img = hr.frame_rgb8(frame, cam, settings)
     finally:
@@ -159,7 +165,8 @@ def render_video(cfg: RenderConfig) -> Path:
     from atgs.progress import progress_bar
 
     settings = _settings(cfg)
-    source = open_source(cfg.checkpoint)
+    device = resolve_device(cfg.device)
+    source = place_source(open_source(cfg.checkpoint), device)
     F = source.num_frames
     n = cfg.frames if cfg.frames is not None else F
     if n < 1:
@@ -178,7 +185,7 @@ def render_video(cfg: RenderConfig) -> Path:
     hr = None
     ok = False
     try:
-        hr = HeadlessRenderer(source, cfg.gl)
+        hr = HeadlessRenderer(source, cfg.gl, device)
         with progress_bar(n, "atgs-render", unit="frame") as bar:
             render_sequence(hr, frames, path, settings, lambda i, img: writer.write(img), progress=bar)
         writer.close()

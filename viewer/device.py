@@ -1,0 +1,42 @@
+"""Where the viewer decodes, packs and sorts: ``--device auto|cpu|cuda``.
+
+Everything downstream (viewer.packing, viewer.sorting) is written with torch ops that run on
+either device, so the CPU tests exercise the code that runs on CUDA. A source that can move
+itself (has ``to(device)``) decodes on the device; one that cannot decodes on the CPU and its
+Gaussians are moved to the device for packing and sorting.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+from viewer.errors import ViewerError
+
+DeviceName = Literal["auto", "cpu", "cuda"]
+DEVICE_NAMES: tuple[str, ...] = ("auto", "cpu", "cuda")
+
+
+def resolve_device(name: str) -> torch.device:
+    """"auto" -> CUDA when torch sees a CUDA device, else the CPU; "cuda" without one is an error."""
+    if name not in DEVICE_NAMES:
+        raise ViewerError(f"--device {name}: choose one of {', '.join(DEVICE_NAMES)}")
+    if name == "cpu":
+        return torch.device("cpu")
+    if torch.cuda.is_available():
+        return torch.device("cuda")
+    if name == "cuda":
+        raise ViewerError("--device cuda: torch sees no CUDA device (a CPU-only torch, or no GPU/driver); "
+                          "use --device cpu or auto")
+    return torch.device("cpu")
+
+
+def place_source(source, device: torch.device):
+    """The source moved to ``device`` when it supports ``to(device)``, else the source as it is
+    (it then decodes on the CPU and :func:`viewer.source.decode_frame` moves its output)."""
+    mover = getattr(source, "to", None)
+    if device.type == "cpu" or mover is None:
+        return source
+    moved = mover(device)
+    return source if moved is None else moved
