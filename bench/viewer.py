@@ -3,10 +3,13 @@ this machine's software OpenGL (llvmpipe through EGL).
 
     python bench/viewer.py                       # writes bench/results/viewer.json
     python bench/viewer.py --checkpoint ckpt.pt  # playback of a real model at 640x480
+    python bench/viewer.py --parts counts        # part 1 only (with its before/after comparison)
 
-Part 1: N random Gaussians (10k, 50k, 200k) seen by a 1280x720 camera: per-stage times of a
-frame whose Gaussians change (decode + sort + upload + draw) and of a static frame with a
-moving camera (sort + draw).
+Part 1: N random Gaussians (10k, 50k, 200k, 1M) seen by a 1280x720 camera: per-stage times of a
+frame whose Gaussians change (pack + sort + upload + draw) and of a static frame with a
+moving camera (sort + draw); the same measurement of the code at ``--before`` (a git commit:
+its viewer, shaders and atgs packages are exported to a temporary folder and timed by this
+script in a subprocess, right after the current code, on the same machine and load).
 Part 2: playback at 640x480 through the real player pipeline (background decode cache ->
 upload -> sort -> draw) for a model-sized scene: the given checkpoint, else an untrained
 ATGS model with the "cpu" preset (decoding a real network; its Gaussians have the sizes an
@@ -21,6 +24,7 @@ from pathlib import Path as _Path
 # This file is named like the `viewer` package; drop its own directory from the import path
 # so that `import viewer` finds the package, not this script.
 from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
+from _viewer_scenes import bench_camera, random_gaussians, untrained_model  # noqa: E402  (bench/)
 
 sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
 
@@ -29,6 +33,8 @@ import math
 import os
 import platform
 import statistics
+import subprocess
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,8 +43,7 @@ import numpy as np
 import torch
 import tyro
 
-from atgs.cameras import Camera, look_at
-from atgs.gaussians import Gaussians
+from atgs.cameras import Camera
 from atgs.headless_gl import create_headless_context, gl_description
 from atgs.progress import progress_bar
 from viewer.adaptive import next_render_scale
@@ -52,7 +57,7 @@ from viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
 
 @dataclass
 class BenchConfig:
-    counts: tuple[int, ...] = (10_000, 50_000, 200_000)
+    counts: tuple[int, ...] = (10_000, 50_000, 200_000, 1_000_000)
     size: tuple[int, int] = (1280, 720)
     repeats: int = 3
     playback_size: tuple[int, int] = (640, 480)
@@ -68,28 +73,11 @@ class BenchConfig:
     cutoffs: tuple[int, ...] = (1, 2, 4, 8)
     """Alpha cutoffs (in 1/255) of the speed / quality table (1 = the rasterizer's rule)."""
     cutoff_repeats: int = 5
-
-
-def random_gaussians(n: int, seed: int = 0) -> Gaussians:
-    """N Gaussians in a 2x2x2 box with a fixed size distribution (independent of N): seen by
-    the 1280x720 bench camera a typical splat has sigma ~3 px, i.e. a ~20 px wide 3-sigma quad
-    (the SPEC's reference size), so the per-frame work can be compared across N."""
-    gen = torch.Generator().manual_seed(seed)
-    typical = 0.0125
-    return Gaussians(
-        means=torch.rand(n, 3, generator=gen) * 2 - 1,
-        quats=torch.randn(n, 4, generator=gen),
-        scales=typical * torch.exp(torch.randn(n, 3, generator=gen) * 0.3),
-        opacities=torch.rand(n, generator=gen) * 0.8 + 0.1,
-        colors=torch.rand(n, 3, generator=gen),
-    )
-
-
-def bench_camera(width: int, height: int, angle: float = 0.0) -> Camera:
-    f = 0.5 * height / math.tan(math.radians(25))
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    eye = np.array([3.2 * math.cos(angle), 3.2 * math.sin(angle), 1.0])
-    return Camera("bench", width, height, K, look_at(eye, np.zeros(3), np.array([0, 0, 1.0])))
+    parts: tuple[str, ...] = ("counts", "before", "playback", "cutoffs")
+    """What to measure: counts (part 1), before (part 1 with the code at --before), playback
+    (part 2), cutoffs (part 3)."""
+    before: str = "4f73495"
+    """Git commit of the code to compare with in part 1 (the viewer before the compact GPU layout)."""
 
 
 def _median(xs: list[float]) -> float:
@@ -120,26 +108,13 @@ def bench_counts(cfg: BenchConfig, renderer: SplatRenderer, dtype: str) -> list[
             "gaussians": n, "target": dtype, "size": f"{W}x{H}",
             "pack_ms": _median(decode), "sort_ms": _median(sort), "upload_ms": _median(upload),
             "draw_ms": _median(draw), "camera_move_ms": _median(static_sort) + _median(static_draw),
+            "loadavg": os.getloadavg(),
         }  # fmt: skip
         row["fps_new_frame"] = 1000.0 / (row["pack_ms"] + row["sort_ms"] + row["upload_ms"] + row["draw_ms"])
         row["fps_camera_move"] = 1000.0 / row["camera_move_ms"]
         rows.append(row)
         print(json.dumps(row))
     return rows
-
-
-def untrained_model(num_points: int = 6_000, frames: int = 24) -> GaussianSource:
-    """An initialised (untrained) ATGS model with the 'cpu' preset over a synthetic point set."""
-    from atgs.model.atgs_model import ATGSModel
-    from atgs.model.config import preset
-
-    mcfg, _ = preset("cpu")
-    src = SyntheticSource(num_gaussians=num_points, frames=frames)
-    pts = src.gaussians_at_frame(0).means
-    gen = torch.Generator().manual_seed(0)
-    kf = torch.randint(0, 4, (pts.shape[0],), generator=gen)
-    scene_kf = [round(j * (frames - 1) / 3) for j in range(4)]
-    return ATGSModel.from_points(mcfg, pts, kf, scene_kf, frames, 30.0, src.cameras)
 
 
 def preload_all(source: GaussianSource) -> dict[int, PackedGaussians]:
@@ -275,6 +250,50 @@ def bench_cutoffs(source: GaussianSource, name: str, cfg: BenchConfig, renderer:
     return rows
 
 
+def bench_before(cfg: BenchConfig) -> list[dict]:
+    """Part 1 timed on the code of commit ``cfg.before``: its atgs, viewer and shaders packages
+    exported with ``git archive`` into a temporary folder that goes first on PYTHONPATH, and this
+    script run there with ``--parts counts`` (its part 1 uses only APIs both versions have)."""
+    root = Path(__file__).resolve().parent.parent
+    with tempfile.TemporaryDirectory(prefix="atgs-viewer-before-") as tmp:
+        archive = subprocess.run(["git", "-C", str(root), "archive", cfg.before, "atgs", "viewer", "shaders"],
+                                 check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        out = Path(tmp) / "before.json"
+        args = [sys.executable, str(Path(__file__).resolve()), "--parts", "counts", "--out", str(out),
+                "--docs", "None", "--gl", cfg.gl, "--repeats", str(cfg.repeats),
+                "--counts", *map(str, cfg.counts), "--target-dtypes", *cfg.target_dtypes]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([tmp, str(root)])}
+        subprocess.run(args, check=True, env=env)
+        rows = json.loads(out.read_text())["per_count"]
+    for r in rows:
+        r["code"] = cfg.before
+    return rows
+
+
+def markdown_counts(result: dict) -> list[str]:
+    """Part 1: before -> after per stage, and the speed-up of pack + sort + upload."""
+    before = {(r["gaussians"], r["target"]): r for r in result.get("per_count_before", [])}
+    lines = ["| Gaussians | target | pack ms | sort ms | upload ms | pack + sort + upload ms | draw ms "
+             "| new frame FPS | camera move FPS |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in result["per_count"]:
+        b = before.get((r["gaussians"], r["target"]))
+        psu = r["pack_ms"] + r["sort_ms"] + r["upload_ms"]
+
+        def cell(key: str, fmt: str) -> str:
+            return f"{b[key]:{fmt}} -> {r[key]:{fmt}}" if b else f"{r[key]:{fmt}}"
+
+        if b:
+            bpsu = b["pack_ms"] + b["sort_ms"] + b["upload_ms"]
+            total = f"{bpsu:.0f} -> **{psu:.0f}** ({bpsu / psu:.1f}x)"
+        else:
+            total = f"**{psu:.0f}**"
+        lines.append(f"| {r['gaussians']:,} | {r['target']} | {cell('pack_ms', '.1f')} | {cell('sort_ms', '.1f')} "
+                     f"| {cell('upload_ms', '.1f')} | {total} | {cell('draw_ms', '.0f')} "
+                     f"| {cell('fps_new_frame', '.2f')} | {cell('fps_camera_move', '.2f')} |")
+    return lines
+
+
 def markdown_table(result: dict) -> str:
     m = result["machine"]
     la = ", ".join(f"{x:.1f}" for x in m["loadavg_before"])
@@ -282,14 +301,14 @@ def markdown_table(result: dict) -> str:
         f"Measured {result['date']} on {m['cpus']} CPUs, {m['gl']}; load average before the run: {la}"
         f" (after: {', '.join(f'{x:.1f}' for x in m['loadavg_after'])}).",
         "",
-        "| Gaussians | target | pack ms | sort ms | upload ms | draw ms | new frame FPS | camera move FPS |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in result["per_count"]:
-        lines.append(
-            f"| {r['gaussians']:,} | {r['target']} | {r['pack_ms']:.1f} | {r['sort_ms']:.1f} | {r['upload_ms']:.1f} "
-            f"| {r['draw_ms']:.0f} | {r['fps_new_frame']:.1f} | {r['fps_camera_move']:.1f} |"
-        )
+    if result.get("per_count_before"):
+        lines += [f"Part 1, before -> after: the code at commit {result['before']} (texture of CPU-packed "
+                  "covariances, numpy sort) -> this code (vertex columns, covariance in the shader, torch sort); "
+                  f"load average before part 1: {', '.join(f'{x:.1f}' for x in result['counts_loadavg'])}.", ""]
+    lines += markdown_counts(result)
+    if not result.get("playback") and not result.get("cutoffs"):
+        return "\n".join(lines)
     lines += ["", "| playback scene | size | Gaussians | cutoff | res. factor | decode ms | sort ms | draw ms | FPS "
               "| distinct frames shown | load before / after |",
               "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
@@ -317,44 +336,47 @@ def main(cfg: BenchConfig) -> None:
     renderer = SplatRenderer(ctx)
     renderer.set_gaussians(pack_gaussians(random_gaussians(1000)))
     renderer.render(bench_camera(64, 64))  # compile shaders / warm up
-    rows: list[dict] = []
-    with progress_bar(len(cfg.target_dtypes), "viewer bench", unit="config") as bar:
-        for dt in cfg.target_dtypes:
-            rows += bench_counts(cfg, renderer, dt)
-            bar.update(1)
-    playback = []
-    if cfg.checkpoint is not None:
-        import atgs
+    result: dict = {"per_count": [], "playback": [], "cutoffs": []}
+    if "counts" in cfg.parts:
+        result["counts_loadavg"] = os.getloadavg()
+        with progress_bar(len(cfg.target_dtypes), "viewer bench", unit="config") as bar:
+            for dt in cfg.target_dtypes:
+                result["per_count"] += bench_counts(cfg, renderer, dt)
+                bar.update(1)
+    if "before" in cfg.parts:
+        result["per_count_before"] = bench_before(cfg)
+        result["before"] = cfg.before
+    if "playback" in cfg.parts or "cutoffs" in cfg.parts:
+        if cfg.checkpoint is not None:
+            import atgs
 
-        model = atgs.load(cfg.checkpoint)
-        name = f"{cfg.checkpoint} ({model.num_frames} frames)"
-    else:
-        model = untrained_model()
-        name = "untrained ATGS model, cpu preset"
-    demo = SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480), num_cameras=6)
-    demo_name = "built-in demo scene (atgs-view demo)"
-    # The built-in scene first: it is the aim's subject (25 FPS at 640x480).
-    playback.append(bench_playback(demo, demo_name, cfg, renderer))
-    playback.append(bench_playback(demo, demo_name, cfg, renderer, min_alpha=4 / 255))
-    playback.append(bench_playback(demo, demo_name, cfg, renderer, adaptive=True))
-    playback.append(bench_playback(model, name, cfg, renderer))
-    pinned = preload_all(model)
-    playback.append(bench_playback(model, name, cfg, renderer, preload=True, pinned=pinned))
-    playback.append(bench_playback(model, name, cfg, renderer, preload=True, min_alpha=4 / 255, pinned=pinned))
-    playback.append(bench_playback(model, name, cfg, renderer, preload=True, adaptive=True, pinned=pinned))
-    del pinned
-    cutoffs = bench_cutoffs(demo, demo_name, cfg, renderer) + bench_cutoffs(model, name, cfg, renderer)
-    result = {
-        "machine": {
-            "gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
-            "torch_threads": torch.get_num_threads(),
-            "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
-        },
-        "per_count": rows,
-        "playback": playback,
-        "cutoffs": cutoffs,
-        "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+            model = atgs.load(cfg.checkpoint)
+            name = f"{cfg.checkpoint} ({model.num_frames} frames)"
+        else:
+            model = untrained_model()
+            name = "untrained ATGS model, cpu preset"
+        demo = SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480), num_cameras=6)
+        demo_name = "built-in demo scene (atgs-view demo)"
+    if "playback" in cfg.parts:
+        playback = result["playback"]
+        # The built-in scene first: it is the aim's subject (25 FPS at 640x480).
+        playback.append(bench_playback(demo, demo_name, cfg, renderer))
+        playback.append(bench_playback(demo, demo_name, cfg, renderer, min_alpha=4 / 255))
+        playback.append(bench_playback(demo, demo_name, cfg, renderer, adaptive=True))
+        playback.append(bench_playback(model, name, cfg, renderer))
+        pinned = preload_all(model)
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True, pinned=pinned))
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True, min_alpha=4 / 255, pinned=pinned))
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True, adaptive=True, pinned=pinned))
+        del pinned
+    if "cutoffs" in cfg.parts:
+        result["cutoffs"] = bench_cutoffs(demo, demo_name, cfg, renderer) + bench_cutoffs(model, name, cfg, renderer)
+    result["machine"] = {
+        "gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
+        "torch_threads": torch.get_num_threads(),
+        "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
     }  # fmt: skip
+    result["date"] = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     renderer.release()
     ctx.release()
     publish(result, cfg.out, markdown_table(result), cfg.docs, "viewer")

@@ -41,3 +41,18 @@ def test_decode_frame_on_the_cpu_is_the_default() -> None:
     for device in (None, "cpu", torch.device("cpu")):
         packed = decode_frame(src, 1, device)
         assert packed.device.type == "cpu" and len(packed) == 50 and packed.frame == 1
+
+
+def test_cpu_threads_is_scoped_to_cpu_work() -> None:
+    from viewer.device import cpu_threads
+
+    before = torch.get_num_threads()
+    with cpu_threads(torch.device("cpu"), threads=1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with cpu_threads(torch.device("meta"), threads=1):  # another device: torch's setting is left alone
+        assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError):
+        with cpu_threads(torch.device("cpu"), threads=1):
+            raise RuntimeError("restored even on errors")
+    assert torch.get_num_threads() == before

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from viewer.device import cpu_threads
+
 DEPTH_LEVELS = 65535  # visible Gaussians get 16-bit keys 0..65534; 65535 marks culled ones
 
 
@@ -79,6 +81,12 @@ def back_to_front(means: torch.Tensor | np.ndarray, w2c: np.ndarray, near: float
     shader discards alphas below ``min_alpha``, so a Gaussian with ``opacity < min_alpha``
     cannot change any pixel; dropping it here only saves its vertex and setup work."""
     means = torch.as_tensor(means)
+    with cpu_threads(means.device):
+        return _back_to_front(means, w2c, near, exact, extent, cull, opacity, min_alpha)
+
+
+def _back_to_front(means: torch.Tensor, w2c: np.ndarray, near: float, exact: bool, extent, cull, opacity,
+                   min_alpha: float) -> torch.Tensor:
     w = np.asarray(w2c, dtype=np.float64)
     A, b = w[2:3, :3], w[2, 3:]
     if cull is not None and extent is not None:

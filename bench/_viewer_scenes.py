@@ -1,0 +1,52 @@
+"""Scenes shared by the viewer benchmarks (bench/viewer.py, bench/gpu.py): random Gaussians of
+a fixed size distribution, the camera that sees them, and untrained ATGS models."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from atgs.cameras import Camera, look_at
+from atgs.gaussians import Gaussians
+
+
+def random_gaussians(n: int, seed: int = 0, device: str | torch.device = "cpu") -> Gaussians:
+    """N Gaussians in a 2x2x2 box with a fixed size distribution (independent of N): seen by
+    the 1280x720 bench camera a typical splat has sigma ~3 px, i.e. a ~20 px wide 3-sigma quad
+    (the SPEC's reference size), so the per-frame work can be compared across N."""
+    gen = torch.Generator().manual_seed(seed)
+    typical = 0.0125
+    g = Gaussians(
+        means=torch.rand(n, 3, generator=gen) * 2 - 1,
+        quats=torch.randn(n, 4, generator=gen),
+        scales=typical * torch.exp(torch.randn(n, 3, generator=gen) * 0.3),
+        opacities=torch.rand(n, generator=gen) * 0.8 + 0.1,
+        colors=torch.rand(n, 3, generator=gen),
+    )
+    return g if torch.device(device).type == "cpu" else g.to(device)
+
+
+def bench_camera(width: int, height: int, angle: float = 0.0) -> Camera:
+    """A camera 3.2 units from the box centre with a 50 degree vertical field of view."""
+    f = 0.5 * height / math.tan(math.radians(25))
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    eye = np.array([3.2 * math.cos(angle), 3.2 * math.sin(angle), 1.0])
+    return Camera("bench", width, height, K, look_at(eye, np.zeros(3), np.array([0, 0, 1.0])))
+
+
+def untrained_model(preset_name: str = "cpu", num_points: int = 6_000, frames: int = 24):
+    """An initialised (untrained) ATGS model of a preset over the points of the synthetic scene
+    (4 keyframes); its anchors and Gaussians have the count and sizes an initialised model has."""
+    from atgs.model.atgs_model import ATGSModel
+    from atgs.model.config import preset
+    from viewer.source import SyntheticSource
+
+    mcfg, _ = preset(preset_name)
+    src = SyntheticSource(num_gaussians=num_points, frames=frames)
+    pts = src.gaussians_at_frame(0).means
+    gen = torch.Generator().manual_seed(0)
+    kf = torch.randint(0, 4, (pts.shape[0],), generator=gen)
+    scene_kf = [round(j * (frames - 1) / 3) for j in range(4)]
+    return ATGSModel.from_points(mcfg, pts, kf, scene_kf, frames, 30.0, src.cameras)
