@@ -4,6 +4,8 @@ a fixed size distribution, the camera that sees them, and untrained ATGS models.
 from __future__ import annotations
 
 import math
+import statistics
+import time
 
 import numpy as np
 import torch
@@ -50,3 +52,46 @@ def untrained_model(preset_name: str = "cpu", num_points: int = 6_000, frames: i
     kf = torch.randint(0, 4, (pts.shape[0],), generator=gen)
     scene_kf = [round(j * (frames - 1) / 3) for j in range(4)]
     return ATGSModel.from_points(mcfg, pts, kf, scene_kf, frames, 30.0, src.cameras)
+
+
+def warm_renderer(gl: str):
+    """(context, SplatRenderer) on a headless context, its shaders compiled by a first draw."""
+    from atgs.headless_gl import create_headless_context
+    from viewer.packing import pack_gaussians
+    from viewer.splat_renderer import SplatRenderer
+
+    ctx = create_headless_context(gl)
+    renderer = SplatRenderer(ctx)
+    renderer.set_gaussians(pack_gaussians(random_gaussians(1000)))
+    renderer.render(bench_camera(64, 64))
+    return ctx, renderer
+
+
+def time_frames(renderer, g: Gaussians, width: int, height: int, repeats: int) -> dict:
+    """Median ms of the stages of a new video frame (pack: tensors -> columns in host memory,
+    upload, sort, draw) and of a camera move (sort + draw), over ``repeats`` frames, with the
+    FPS they make. The Gaussians stay where they are (CUDA: packed and sorted there)."""
+    from viewer.packing import pack_gaussians
+    from viewer.splat_renderer import RenderSettings
+
+    t = {k: [] for k in ("pack_ms", "upload_ms", "sort_ms", "draw_ms", "move_sort_ms", "move_draw_ms")}
+    for r in range(repeats):
+        if g.means.is_cuda:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        packed = pack_gaussians(g)
+        t["pack_ms"].append((time.perf_counter() - t0) * 1e3)
+        t["upload_ms"].append(renderer.set_gaussians(packed))
+        renderer.render(bench_camera(width, height, 0.1 * r), RenderSettings(), sync=True)
+        t["sort_ms"].append(renderer.timings.sort_ms)
+        t["draw_ms"].append(renderer.timings.draw_ms)
+        # same Gaussians, moved camera: the sort is redone, nothing else is uploaded
+        renderer.render(bench_camera(width, height, 0.1 * r + 0.05), RenderSettings(), sync=True)
+        t["move_sort_ms"].append(renderer.timings.sort_ms)
+        t["move_draw_ms"].append(renderer.timings.draw_ms)
+    m = {k: float(statistics.median(v)) for k, v in t.items()}
+    row = {k: m[k] for k in ("pack_ms", "upload_ms", "sort_ms", "draw_ms")}
+    row["camera_move_ms"] = m["move_sort_ms"] + m["move_draw_ms"]
+    row["fps_new_frame"] = 1000.0 / sum(row[k] for k in ("pack_ms", "upload_ms", "sort_ms", "draw_ms"))
+    row["fps_camera_move"] = 1000.0 / row["camera_move_ms"]
+    return row

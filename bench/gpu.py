@@ -19,7 +19,7 @@ import sys
 from pathlib import Path as _Path
 
 from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
-from _viewer_scenes import bench_camera, random_gaussians, untrained_model  # noqa: E402  (bench/)
+from _viewer_scenes import random_gaussians, time_frames, untrained_model, warm_renderer  # noqa: E402
 
 # This folder holds bench/viewer.py, named like the `viewer` package: drop it from the path.
 sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
@@ -36,11 +36,10 @@ from pathlib import Path
 import torch
 import tyro
 
-from atgs.headless_gl import create_headless_context, gl_description
+from atgs.headless_gl import gl_description
 from atgs.progress import progress_bar
-from viewer.packing import pack_gaussians
 from viewer.source import decode_frame
-from viewer.splat_renderer import RenderSettings, SplatRenderer
+from viewer.splat_renderer import SplatRenderer
 
 NOT_MEASURED = "not measured"
 
@@ -88,28 +87,9 @@ def viewer_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> li
     rows = []
     renderer.target_dtype = "f1"  # the window's RGBA8 target
     for n in cfg.counts:
-        g = random_gaussians(n, device=device)
-        pack, upload, sort, draw, move_sort, move_draw = [], [], [], [], [], []
-        for r in range(cfg.repeats):
-            if device == "cuda":
-                torch.cuda.synchronize()
-            t0 = time.perf_counter()
-            packed = pack_gaussians(g)  # ends with the copy to host memory
-            pack.append((time.perf_counter() - t0) * 1e3)
-            upload.append(renderer.set_gaussians(packed))
-            renderer.render(bench_camera(W, H, 0.1 * r), RenderSettings(), sync=True)
-            sort.append(renderer.timings.sort_ms)
-            draw.append(renderer.timings.draw_ms)
-            renderer.render(bench_camera(W, H, 0.1 * r + 0.05), RenderSettings(), sync=True)
-            move_sort.append(renderer.timings.sort_ms)
-            move_draw.append(renderer.timings.draw_ms)
         row = {"part": "viewer", "device": device, "device_name": device_name(device), "gaussians": n,
-               "size": f"{W}x{H}", "pack_ms": _median(pack), "upload_ms": _median(upload),
-               "sort_ms": _median(sort), "draw_ms": _median(draw),
-               "camera_move_ms": _median(move_sort) + _median(move_draw), "loadavg": os.getloadavg()}
-        new_frame_ms = row["pack_ms"] + row["upload_ms"] + row["sort_ms"] + row["draw_ms"]
-        row["fps_new_frame"] = 1000.0 / new_frame_ms
-        row["fps_camera_move"] = 1000.0 / row["camera_move_ms"]
+               "size": f"{W}x{H}", **time_frames(renderer, random_gaussians(n, device=device), W, H, cfg.repeats),
+               "loadavg": os.getloadavg()}
         rows.append(row)
         print(json.dumps(row))
     return rows
@@ -145,41 +125,42 @@ PARTS: dict[str, Callable[[GpuBenchConfig, str, SplatRenderer], list[dict]]] = {
 }
 
 
+def part_table(rows: list[dict], head: list[str], key: str, cells: Callable[[dict], list[str]]) -> list[str]:
+    """Markdown rows of one part: device, its name, ``key`` (what the row measures), then
+    ``cells(row)``; a row with a ``status`` (not measured) gets that text instead."""
+    if not rows:
+        return []
+    lines = ["", "| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
+    for r in rows:
+        first = [r["device"], r["device_name"], f"{r[key]:,}" if isinstance(r[key], int) else str(r[key])]
+        rest = [r["status"]] + [""] * (len(head) - 4) if "status" in r else cells(r)
+        lines.append("| " + " | ".join(first + rest) + " |")
+    return lines
+
+
 def markdown_table(result: dict) -> str:
     m = result["machine"]
     lines = [f"Measured {result['date']}: {m['cpus']} CPUs, OpenGL {m['gl']}, torch {m['torch']}; "
-             f"load average before: {', '.join(f'{x:.1f}' for x in m['loadavg_before'])}.", ""]
-    viewer = [r for r in result["rows"] if r["part"] == "viewer"]
-    if viewer:
-        lines += ["| viewer at 1920x1080: device | name | Gaussians | pack ms | upload ms | sort ms | draw ms "
-                  "| new frame FPS | camera move FPS |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-        for r in viewer:
-            if "status" in r:
-                lines.append(f"| {r['device']} | {r['device_name']} | {r['gaussians']:,} | {r['status']} | | | | | |")
-                continue
-            lines.append(f"| {r['device']} | {r['device_name']} | {r['gaussians']:,} | {r['pack_ms']:.1f} "
-                         f"| {r['upload_ms']:.1f} | {r['sort_ms']:.1f} | {r['draw_ms']:.0f} "
-                         f"| **{r['fps_new_frame']:.2f}** | **{r['fps_camera_move']:.2f}** |")
-    decode = [r for r in result["rows"] if r["part"] == "decode"]
-    if decode:
-        lines += ["", "| decode + pack, untrained model: device | name | preset | anchors | Gaussians "
-                  "| first frame ms | ms per frame |", "|---|---|---|---:|---:|---:|---:|"]
-        for r in decode:
-            if "status" in r:
-                lines.append(f"| {r['device']} | {r['device_name']} | {r['preset']} | {r['status']} | | | |")
-                continue
-            lines.append(f"| {r['device']} ({r['decoded_on']}) | {r['device_name']} | {r['preset']} "
-                         f"| {r['anchors']:,} | {r['gaussians']:,} | {r['first_frame_ms']:.0f} "
-                         f"| **{r['decode_ms']:.1f}** |")
+             f"load average before: {', '.join(f'{x:.1f}' for x in m['loadavg_before'])}."]
+    rows = result["rows"]
+    lines += part_table(
+        [r for r in rows if r["part"] == "viewer"],
+        ["viewer at 1920x1080: device", "name", "Gaussians", "pack ms", "upload ms", "sort ms", "draw ms",
+         "new frame FPS", "camera move FPS"], "gaussians",
+        lambda r: [f"{r['pack_ms']:.1f}", f"{r['upload_ms']:.1f}", f"{r['sort_ms']:.1f}", f"{r['draw_ms']:.0f}",
+                   f"**{r['fps_new_frame']:.2f}**", f"**{r['fps_camera_move']:.2f}**"])
+    lines += part_table(
+        [r for r in rows if r["part"] == "decode"],
+        ["decode + pack, untrained model: device", "name", "preset", "decoded on", "anchors", "Gaussians",
+         "first frame ms", "ms per frame"], "preset",
+        lambda r: [r["decoded_on"], f"{r['anchors']:,}", f"{r['gaussians']:,}", f"{r['first_frame_ms']:.0f}",
+                   f"**{r['decode_ms']:.1f}**"])
     return "\n".join(lines)
 
 
 def main(cfg: GpuBenchConfig) -> None:
     load_before = os.getloadavg()
-    ctx = create_headless_context(cfg.gl)
-    renderer = SplatRenderer(ctx)
-    renderer.set_gaussians(pack_gaussians(random_gaussians(1000)))
-    renderer.render(bench_camera(64, 64))  # compile shaders / warm up
+    ctx, renderer = warm_renderer(cfg.gl)
     rows: list[dict] = []
     # what an unmeasured part's rows would have covered (one "not measured" row each)
     row_keys = {"viewer": ("gaussians", cfg.counts), "decode": ("preset", cfg.presets)}

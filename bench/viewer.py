@@ -24,7 +24,7 @@ from pathlib import Path as _Path
 # This file is named like the `viewer` package; drop its own directory from the import path
 # so that `import viewer` finds the package, not this script.
 from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
-from _viewer_scenes import bench_camera, random_gaussians, untrained_model  # noqa: E402  (bench/)
+from _viewer_scenes import bench_camera, random_gaussians, time_frames, untrained_model, warm_renderer  # noqa: E402
 
 sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
 
@@ -44,12 +44,12 @@ import torch
 import tyro
 
 from atgs.cameras import Camera
-from atgs.headless_gl import create_headless_context, gl_description
+from atgs.headless_gl import gl_description
 from atgs.progress import progress_bar
 from viewer.adaptive import next_render_scale
 from viewer.decode_cache import DecodeCache
 from viewer.gl_sync import gil_free_finish
-from viewer.packing import PackedGaussians, pack_gaussians
+from viewer.packing import PackedGaussians
 from viewer.playback import FrameFeeder, Playback
 from viewer.source import GaussianSource, SyntheticSource, decode_frame
 from viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
@@ -89,29 +89,8 @@ def bench_counts(cfg: BenchConfig, renderer: SplatRenderer, dtype: str) -> list[
     rows = []
     W, H = cfg.size
     for n in cfg.counts:
-        g = random_gaussians(n)
-        decode, sort, upload, draw, static_sort, static_draw = [], [], [], [], [], []
-        for r in range(cfg.repeats):
-            t0 = time.perf_counter()
-            # "decode" here is the CPU part the player does per new frame: tensor -> packed
-            packed = pack_gaussians(g)
-            decode.append((time.perf_counter() - t0) * 1e3)
-            upload.append(renderer.set_gaussians(packed))
-            renderer.render(bench_camera(W, H, 0.1 * r), RenderSettings(), sync=True)
-            sort.append(renderer.timings.sort_ms)
-            draw.append(renderer.timings.draw_ms)
-            # same Gaussians, moved camera: the sort is redone, nothing is uploaded
-            renderer.render(bench_camera(W, H, 0.1 * r + 0.05), RenderSettings(), sync=True)
-            static_sort.append(renderer.timings.sort_ms)
-            static_draw.append(renderer.timings.draw_ms)
-        row = {
-            "gaussians": n, "target": dtype, "size": f"{W}x{H}",
-            "pack_ms": _median(decode), "sort_ms": _median(sort), "upload_ms": _median(upload),
-            "draw_ms": _median(draw), "camera_move_ms": _median(static_sort) + _median(static_draw),
-            "loadavg": os.getloadavg(),
-        }  # fmt: skip
-        row["fps_new_frame"] = 1000.0 / (row["pack_ms"] + row["sort_ms"] + row["upload_ms"] + row["draw_ms"])
-        row["fps_camera_move"] = 1000.0 / row["camera_move_ms"]
+        row = {"gaussians": n, "target": dtype, "size": f"{W}x{H}",
+               **time_frames(renderer, random_gaussians(n), W, H, cfg.repeats), "loadavg": os.getloadavg()}
         rows.append(row)
         print(json.dumps(row))
     return rows
@@ -332,10 +311,7 @@ def markdown_table(result: dict) -> str:
 
 def main(cfg: BenchConfig) -> None:
     load_before = os.getloadavg()
-    ctx = create_headless_context(cfg.gl)
-    renderer = SplatRenderer(ctx)
-    renderer.set_gaussians(pack_gaussians(random_gaussians(1000)))
-    renderer.render(bench_camera(64, 64))  # compile shaders / warm up
+    ctx, renderer = warm_renderer(cfg.gl)
     result: dict = {"per_count": [], "playback": [], "cutoffs": []}
     if "counts" in cfg.parts:
         result["counts_loadavg"] = os.getloadavg()

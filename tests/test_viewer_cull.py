@@ -11,22 +11,18 @@ import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
-from atgs.headless_gl import create_headless_context
 from scipy.spatial.transform import Rotation
 
 from viewer.adaptive import next_render_scale
 from viewer.packing import pack_gaussians
 from viewer.sorting import back_to_front
 from viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
+from test_viewer_fixtures import osmesa_renderer
 
 
 @pytest.fixture(scope="module")
 def renderer():
-    ctx = create_headless_context("osmesa")
-    r = SplatRenderer(ctx)
-    yield r
-    r.release()
-    ctx.release()
+    yield from osmesa_renderer()
 
 
 def _scene(n: int, seed: int) -> tuple[Gaussians, Camera]:

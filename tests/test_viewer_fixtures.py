@@ -10,6 +10,19 @@ import torch
 from atgs.cameras import Camera, look_at
 
 
+def osmesa_renderer():
+    """A SplatRenderer on its own OSMesa context, released afterwards (``yield from`` it in a
+    module-scoped fixture)."""
+    from atgs.headless_gl import create_headless_context
+    from viewer.splat_renderer import SplatRenderer
+
+    ctx = create_headless_context("osmesa")
+    r = SplatRenderer(ctx)
+    yield r
+    r.release()
+    ctx.release()
+
+
 def tiny_cameras(n: int = 3, size: tuple[int, int] = (96, 72)) -> list[Camera]:
     W, H = size
     K = np.array([[80.0, 0, W / 2], [0, 80.0, H / 2], [0, 0, 1]])

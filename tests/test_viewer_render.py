@@ -16,15 +16,12 @@ from scipy.spatial.transform import Rotation
 
 from viewer.packing import pack_gaussians
 from viewer.splat_renderer import RenderSettings, SplatRenderer
+from test_viewer_fixtures import osmesa_renderer
 
 
 @pytest.fixture(scope="module")
 def renderer():
-    ctx = create_headless_context("osmesa")
-    r = SplatRenderer(ctx)
-    yield r
-    r.release()
-    ctx.release()
+    yield from osmesa_renderer()
 
 
 def _one_gaussian() -> Gaussians:

@@ -11,20 +11,16 @@ import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
-from atgs.headless_gl import create_headless_context
 from atgs.render import rasterize
 from atgs.sh import num_sh_coeffs, rgb_to_sh0, sh_colors
 from viewer.packing import pack_gaussians
 from viewer.splat_renderer import RenderSettings, SplatRenderer
+from test_viewer_fixtures import osmesa_renderer
 
 
 @pytest.fixture(scope="module")
 def renderer():
-    ctx = create_headless_context("osmesa")
-    r = SplatRenderer(ctx)
-    yield r
-    r.release()
-    ctx.release()
+    yield from osmesa_renderer()
 
 
 def _scene(n: int, degree: int, seed: int) -> tuple[Gaussians, torch.Tensor, Camera]:
