@@ -89,3 +89,17 @@ def test_bad_sh_shape_is_refused() -> None:
         pack_gaussians(g, sh=coeffs[:5])
     with pytest.raises(ValueError, match="1, 4, 9 or 16"):
         pack_gaussians(g, sh=torch.zeros(10, 5, 3))
+
+
+def test_sources_with_sh_are_drawn_with_them() -> None:
+    # The player's decode path (decode_frame) takes SH from a source's optional sh_at_frame.
+    from viewer.source import SyntheticSource, decode_frame
+
+    class WithSH(SyntheticSource):
+        def sh_at_frame(self, f: int) -> torch.Tensor:
+            return torch.full((self.num_gaussians, 9, 3), 0.1 * f)
+
+    src = WithSH(num_gaussians=30, frames=3)
+    packed = decode_frame(src, 2, device="cpu")
+    assert packed.sh_degree == 2 and np.all(packed.sh[:, :27] == np.float16(0.2))
+    assert decode_frame(SyntheticSource(num_gaussians=30, frames=3), 2).sh is None

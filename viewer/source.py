@@ -66,14 +66,21 @@ def active_anchor_count(source: GaussianSource, frame: int) -> int:
 
 def decode_frame(source: GaussianSource, frame: int, device: torch.device | str | None = None) -> PackedGaussians:
     """Decode and pack one frame (runs in the decode thread). With ``device``, Gaussians decoded
-    elsewhere are moved there first, so that packing and sorting run on it (e.g. CUDA)."""
+    elsewhere are moved there first, so that packing and sorting run on it (e.g. CUDA).
+
+    A source with view-dependent colour also has ``sh_at_frame(f)``: the frame's (N, K, 3)
+    spherical-harmonic coefficients (atgs.sh's order), drawn instead of ``colors``."""
     t0 = time.perf_counter()
+    sh_at_frame = getattr(source, "sh_at_frame", None)
     with torch.no_grad():
         g = source.gaussians_at_frame(frame)
+        sh = None if sh_at_frame is None else sh_at_frame(frame)
         if device is not None and g.means.device != torch.device(device):
             g = g.to(device)
-    # (packing ends by copying the records to host memory: decode_ms includes the device's work)
-    packed = pack_gaussians(g, frame=frame, num_anchors=active_anchor_count(source, frame))
+        if sh is not None and device is not None:
+            sh = sh.to(device)
+    # (packing ends by copying the columns to host memory: decode_ms includes the device's work)
+    packed = pack_gaussians(g, frame=frame, num_anchors=active_anchor_count(source, frame), sh=sh)
     packed.decode_ms = (time.perf_counter() - t0) * 1e3
     return packed
 
