@@ -108,3 +108,14 @@ def test_cuda_packs_the_same_bytes_as_the_cpu() -> None:
             assert a.dtype == b.dtype and a.shape == b.shape
             np.testing.assert_allclose(a.astype(np.float64), b.astype(np.float64), atol=1.0, rtol=1e-6)
         torch.testing.assert_close(gpu.extent.cpu(), cpu.extent)
+
+
+def test_one_transfer_path_keeps_every_column() -> None:
+    # What CUDA uses (one device buffer, one copy to the host), run here on CPU tensors.
+    from viewer.packing import via_one_buffer
+
+    packed = pack_gaussians(_gaussians(37), sh=torch.randn(37, 16, 3))
+    cols = [torch.from_numpy(c) for c in packed.columns]
+    for a, b in zip(via_one_buffer(cols), packed.columns):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)

@@ -129,9 +129,15 @@ def sh_column(coeffs: torch.Tensor) -> torch.Tensor:
 
 def to_host(columns: list[torch.Tensor]) -> tuple[np.ndarray, ...]:
     """Host numpy arrays of the columns: views of the tensors on the CPU; on another device, one
-    byte buffer filled there and copied over in a single transfer, then split into views."""
+    byte buffer filled there and copied over in a single transfer (:func:`via_one_buffer`)."""
     if all(c.device.type == "cpu" for c in columns):
         return tuple(c.contiguous().numpy() for c in columns)
+    return via_one_buffer(columns)
+
+
+def via_one_buffer(columns: list[torch.Tensor]) -> tuple[np.ndarray, ...]:
+    """The columns concatenated as bytes on their device, copied to host memory at once, and
+    split into numpy views of their dtypes and shapes (every offset stays a multiple of 4)."""
     sizes = [c.numel() * c.element_size() for c in columns]
     blob = torch.empty(sum(sizes), dtype=torch.uint8, device=columns[0].device)
     views, at = [], 0
