@@ -23,7 +23,7 @@ from pathlib import Path as _Path
 
 # This file is named like the `viewer` package; drop its own directory from the import path
 # so that `import viewer` finds the package, not this script.
-from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
+from _docs import update_docs_table, write_json_atomic  # noqa: E402  (bench/_docs.py, imported first)
 from _viewer_scenes import bench_camera, random_gaussians, time_frames, untrained_model, warm_renderer  # noqa: E402
 
 sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
@@ -273,24 +273,28 @@ def markdown_counts(result: dict) -> list[str]:
     return lines
 
 
-def markdown_table(result: dict) -> str:
-    m = result["machine"]
-    la = ", ".join(f"{x:.1f}" for x in m["loadavg_before"])
-    lines = [
-        f"Measured {result['date']} on {m['cpus']} CPUs, {m['gl']}; load average before the run: {la}"
-        f" (after: {', '.join(f'{x:.1f}' for x in m['loadavg_after'])}).",
-        "",
-    ]
+def machine_line(m: dict, date: str) -> str:
+    la = lambda xs: ", ".join(f"{x:.1f}" for x in xs)  # noqa: E731
+    return (f"Measured {date} on {m['cpus']} CPUs, {m['gl']}; load average before: {la(m['loadavg_before'])} "
+            f"(after: {la(m['loadavg_after'])}).")
+
+
+def counts_table(result: dict) -> str:
+    """Part 1 (bench:viewer-counts in docs/viewer.md)."""
+    lines = [machine_line(result["counts_machine"], result["counts_date"]), ""]
     if result.get("per_count_before"):
-        lines += [f"Part 1, before -> after: the code at commit {result['before']} (texture of CPU-packed "
-                  "covariances, numpy sort) -> this code (vertex columns, covariance in the shader, torch sort); "
-                  f"load average before part 1: {', '.join(f'{x:.1f}' for x in result['counts_loadavg'])}.", ""]
-    lines += markdown_counts(result)
-    if not result.get("playback") and not result.get("cutoffs"):
-        return "\n".join(lines)
-    lines += ["", "| playback scene | size | Gaussians | cutoff | res. factor | decode ms | sort ms | draw ms | FPS "
-              "| distinct frames shown | load before / after |",
-              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        lines += [f"Before -> after: the code at commit {result['before']} (texture of CPU-packed covariances, "
+                  "numpy sort) -> this code (vertex columns, covariance in the shader, torch sort), timed one "
+                  "after the other.", ""]
+    return "\n".join(lines + markdown_counts(result))
+
+
+def playback_table(result: dict) -> str:
+    """Parts 2 and 3 (bench:viewer in docs/viewer.md)."""
+    lines = [machine_line(result["machine"], result["date"]), "",
+             "| playback scene | size | Gaussians | cutoff | res. factor | decode ms | sort ms | draw ms | FPS "
+             "| distinct frames shown | load before / after |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in result["playback"]:
         lines.append(
             f"| {r['scene']} | {r['size']} | {r['gaussians']:,} | {r['min_alpha_255']:g}/255 | {r['mean_scale']:.2f} "
@@ -310,18 +314,30 @@ def markdown_table(result: dict) -> str:
 
 
 def main(cfg: BenchConfig) -> None:
+    """Measures ``cfg.parts``; the results file keeps the figures of parts not measured now."""
     load_before = os.getloadavg()
     ctx, renderer = warm_renderer(cfg.gl)
-    result: dict = {"per_count": [], "playback": [], "cutoffs": []}
+    result: dict = json.loads(cfg.out.read_text()) if cfg.out.exists() else {}
+
+    def machine() -> dict:
+        return {"gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
+                "torch_threads": torch.get_num_threads(), "loadavg_before": load_before,
+                "loadavg_after": os.getloadavg()}
+
+    def now() -> str:
+        return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+
     if "counts" in cfg.parts:
-        result["counts_loadavg"] = os.getloadavg()
+        rows: list[dict] = []
         with progress_bar(len(cfg.target_dtypes), "viewer bench", unit="config") as bar:
             for dt in cfg.target_dtypes:
-                result["per_count"] += bench_counts(cfg, renderer, dt)
+                rows += bench_counts(cfg, renderer, dt)
                 bar.update(1)
+        result.update(per_count=rows, counts_machine=machine(), counts_date=now())
+        result.pop("per_count_before", None)
     if "before" in cfg.parts:
-        result["per_count_before"] = bench_before(cfg)
-        result["before"] = cfg.before
+        result.update(per_count_before=bench_before(cfg), before=cfg.before)
+        result["counts_machine"]["loadavg_after"] = os.getloadavg()
     if "playback" in cfg.parts or "cutoffs" in cfg.parts:
         if cfg.checkpoint is not None:
             import atgs
@@ -334,7 +350,7 @@ def main(cfg: BenchConfig) -> None:
         demo = SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480), num_cameras=6)
         demo_name = "built-in demo scene (atgs-view demo)"
     if "playback" in cfg.parts:
-        playback = result["playback"]
+        playback = []
         # The built-in scene first: it is the aim's subject (25 FPS at 640x480).
         playback.append(bench_playback(demo, demo_name, cfg, renderer))
         playback.append(bench_playback(demo, demo_name, cfg, renderer, min_alpha=4 / 255))
@@ -345,17 +361,22 @@ def main(cfg: BenchConfig) -> None:
         playback.append(bench_playback(model, name, cfg, renderer, preload=True, min_alpha=4 / 255, pinned=pinned))
         playback.append(bench_playback(model, name, cfg, renderer, preload=True, adaptive=True, pinned=pinned))
         del pinned
+        result["playback"] = playback
     if "cutoffs" in cfg.parts:
         result["cutoffs"] = bench_cutoffs(demo, demo_name, cfg, renderer) + bench_cutoffs(model, name, cfg, renderer)
-    result["machine"] = {
-        "gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
-        "torch_threads": torch.get_num_threads(),
-        "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
-    }  # fmt: skip
-    result["date"] = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+    if "playback" in cfg.parts or "cutoffs" in cfg.parts:
+        result.update(machine=machine(), date=now())
     renderer.release()
     ctx.release()
-    publish(result, cfg.out, markdown_table(result), cfg.docs, "viewer")
+    write_json_atomic(cfg.out, result)
+    print(f"wrote {cfg.out}")
+    for marker, table, measured in (("viewer-counts", counts_table, "counts" in cfg.parts),
+                                    ("viewer", playback_table, "playback" in cfg.parts or "cutoffs" in cfg.parts)):
+        if measured:
+            text = table(result)
+            print(text)
+            if cfg.docs is not None:
+                update_docs_table(cfg.docs, marker, text)
 
 
 if __name__ == "__main__":
