@@ -13,6 +13,7 @@ import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
+from viewer.device import cpu_threads
 from viewer.packing import PackedGaussians, pack_gaussians
 
 
@@ -72,7 +73,8 @@ def decode_frame(source: GaussianSource, frame: int, device: torch.device | str 
     spherical-harmonic coefficients (atgs.sh's order), drawn instead of ``colors``."""
     t0 = time.perf_counter()
     sh_at_frame = getattr(source, "sh_at_frame", None)
-    with torch.no_grad():
+    # One torch thread for a CPU decode too (viewer.device.cpu_threads; only this thread's ops).
+    with torch.no_grad(), cpu_threads(torch.device("cpu")):
         g = source.gaussians_at_frame(frame)
         sh = None if sh_at_frame is None else sh_at_frame(frame)
         if device is not None and g.means.device != torch.device(device):
