@@ -1,7 +1,8 @@
 """Back-to-front order of Gaussians for alpha blending, on the device the Gaussians live on.
 
 One torch implementation for CPU and CUDA: the cull (near plane, alpha cutoff, conservative
-screen-space footprint) is five plane tests of one small matrix product, and the order is a
+screen-space footprint) is the view depth and four frustum-plane values of one small matrix
+product plus a few elementwise tests, and the order is a
 stable sort of 16-bit quantized view depths (torch's integer sort: a radix sort, linear in N,
 on the CPU too). ``exact=True`` sorts the float depths instead (the reference the tests use).
 """
@@ -85,8 +86,9 @@ def back_to_front(means: torch.Tensor | np.ndarray, w2c: np.ndarray, near: float
         return _back_to_front(means, w2c, near, exact, extent, cull, opacity, min_alpha)
 
 
-def _back_to_front(means: torch.Tensor, w2c: np.ndarray, near: float, exact: bool, extent, cull, opacity,
-                   min_alpha: float) -> torch.Tensor:
+def _back_to_front(means: torch.Tensor, w2c: np.ndarray, near: float, exact: bool,
+                   extent: torch.Tensor | np.ndarray | None, cull: FrustumCull | None,
+                   opacity: torch.Tensor | np.ndarray | None, min_alpha: float) -> torch.Tensor:
     w = np.asarray(w2c, dtype=np.float64)
     A, b = w[2:3, :3], w[2, 3:]
     if cull is not None and extent is not None:

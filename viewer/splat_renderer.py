@@ -5,10 +5,11 @@ Gaussians in back-to-front order (a radix sort of quantized view depths on the d
 decoded Gaussians live on, redone only when the camera or the Gaussians change; a camera move
 uploads only this buffer), the vertex shader builds each Gaussian's covariance from its
 rotation and scale and projects it once, and a geometry shader emits its triangle. The
-Gaussians themselves are the compact vertex records of :mod:`viewer.packing`, uploaded once per
-video frame (plus an optional buffer of spherical-harmonic coefficients). Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``, into a float
-target cleared to the background, which yields ``C + T bg`` and ``alpha = 1 - T`` like
-:func:`atgs.render.rasterize`.
+Gaussians themselves are the compact vertex columns of :mod:`viewer.packing`, uploaded once
+per video frame (plus an optional column of spherical-harmonic coefficients, drawn by a shader
+variant per SH degree). Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``,
+into a float target cleared to the background, which yields ``C + T bg`` and ``alpha = 1 - T``
+like :func:`atgs.render.rasterize`.
 """
 
 from __future__ import annotations
