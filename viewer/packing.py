@@ -115,7 +115,10 @@ def opacity_rgb_column(opacity: torch.Tensor, colors: torch.Tensor | None) -> to
         out[:, 1:] = 0.0
     else:
         out[:, 1:] = colors
-    return out.clamp_(0.0, 1.0).mul_(65535.0).round_().to(torch.uint16)
+    # int16 of v - 32768 with its sign bit flipped has the bits of the uint16 v: no uint16 kernels
+    # needed (torch implements few for uint16, on CUDA even fewer).
+    shifted = out.clamp_(0.0, 1.0).mul_(65535.0).round_().sub_(32768.0).to(torch.int16)
+    return shifted.bitwise_xor_(-32768).view(torch.uint16)
 
 
 def sh_column(coeffs: torch.Tensor) -> torch.Tensor:
