@@ -9,7 +9,7 @@ Part 1: N random Gaussians (10k, 50k, 200k, 1M) seen by a 1280x720 camera: per-s
 frame whose Gaussians change (pack + sort + upload + draw) and of a static frame with a
 moving camera (sort + draw); the same measurement of the code at ``--before`` (a git commit:
 its viewer, shaders and atgs packages are exported to a temporary folder and timed by this
-script in a subprocess, right after the current code, on the same machine and load).
+script in a subprocess, count by count right after the current code, at about the same load).
 Part 2: playback at 640x480 through the real player pipeline (background decode cache ->
 upload -> sort -> draw) for a model-sized scene: the given checkpoint, else an untrained
 ATGS model with the "cpu" preset (decoding a real network; its Gaussians have the sizes an
@@ -36,7 +36,7 @@ import statistics
 import subprocess
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +74,8 @@ class BenchConfig:
     """Alpha cutoffs (in 1/255) of the speed / quality table (1 = the rasterizer's rule)."""
     cutoff_repeats: int = 5
     parts: tuple[str, ...] = ("counts", "before", "playback", "cutoffs")
-    """What to measure: counts (part 1), before (part 1 with the code at --before), playback
-    (part 2), cutoffs (part 3)."""
+    """What to measure: counts (part 1), before (with counts: part 1 also on the code at
+    --before, count by count right after this code), playback (part 2), cutoffs (part 3)."""
     before: str = "4f73495"
     """Git commit of the code to compare with in part 1 (the viewer before the compact GPU layout)."""
 
@@ -229,25 +229,50 @@ def bench_cutoffs(source: GaussianSource, name: str, cfg: BenchConfig, renderer:
     return rows
 
 
-def bench_before(cfg: BenchConfig) -> list[dict]:
-    """Part 1 timed on the code of commit ``cfg.before``: its atgs, viewer and shaders packages
-    exported with ``git archive`` into a temporary folder that goes first on PYTHONPATH, and this
-    script run there with ``--parts counts`` (its part 1 uses only APIs both versions have)."""
+def bench_before(cfg: BenchConfig, counts: tuple[int, ...], tree: Path) -> list[dict]:
+    """Part 1 for ``counts`` timed on the code of commit ``cfg.before``, exported to ``tree``
+    (:func:`export_before`): this script runs with ``--parts counts`` and that folder first on
+    PYTHONPATH (its part 1 uses only APIs both versions have)."""
     root = Path(__file__).resolve().parent.parent
-    with tempfile.TemporaryDirectory(prefix="atgs-viewer-before-") as tmp:
-        archive = subprocess.run(["git", "-C", str(root), "archive", cfg.before, "atgs", "viewer", "shaders"],
-                                 check=True, capture_output=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
-        out = Path(tmp) / "before.json"
-        args = [sys.executable, str(Path(__file__).resolve()), "--parts", "counts", "--out", str(out),
-                "--docs", "None", "--gl", cfg.gl, "--repeats", str(cfg.repeats),
-                "--counts", *map(str, cfg.counts), "--target-dtypes", *cfg.target_dtypes]
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([tmp, str(root)])}
-        subprocess.run(args, check=True, env=env)
-        rows = json.loads(out.read_text())["per_count"]
+    out = tree / "before.json"
+    args = [sys.executable, str(Path(__file__).resolve()), "--parts", "counts", "--out", str(out),
+            "--docs", "None", "--gl", cfg.gl, "--repeats", str(cfg.repeats),
+            "--counts", *map(str, counts), "--target-dtypes", *cfg.target_dtypes]
+    subprocess.run(args, check=True, env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), str(root)])})
+    rows = json.loads(out.read_text())["per_count"]
+    out.unlink()
     for r in rows:
         r["code"] = cfg.before
     return rows
+
+
+def export_before(ref: str, tree: Path) -> None:
+    """``git archive`` of the atgs, viewer and shaders packages at ``ref`` into ``tree``."""
+    root = Path(__file__).resolve().parent.parent
+    archive = subprocess.run(["git", "-C", str(root), "archive", ref, "atgs", "viewer", "shaders"],
+                             check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
+
+
+def bench_counts_before_after(cfg: BenchConfig, renderer: SplatRenderer) -> tuple[list[dict], list[dict]]:
+    """Part 1 for each count: this code, then (with "before" in cfg.parts) the code at
+    cfg.before right after it, so that both see about the same load."""
+    after: list[dict] = []
+    before: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="atgs-viewer-before-") as tmp:
+        if "before" in cfg.parts:
+            export_before(cfg.before, Path(tmp))
+        with progress_bar(len(cfg.counts), "viewer bench, part 1", unit="count") as bar:
+            for n in cfg.counts:
+                one = replace(cfg, counts=(n,))
+                for dt in cfg.target_dtypes:
+                    after += bench_counts(one, renderer, dt)
+                if "before" in cfg.parts:
+                    before += bench_before(cfg, (n,), Path(tmp))
+                bar.update(1)
+    order = {dt: i for i, dt in enumerate(cfg.target_dtypes)}
+    key = lambda r: (order[r["target"]], r["gaussians"])  # noqa: E731  (the table's row order)
+    return sorted(after, key=key), sorted(before, key=key)
 
 
 def markdown_counts(result: dict) -> list[str]:
@@ -284,8 +309,8 @@ def counts_table(result: dict) -> str:
     lines = [machine_line(result["counts_machine"], result["counts_date"]), ""]
     if result.get("per_count_before"):
         lines += [f"Before -> after: the code at commit {result['before']} (texture of CPU-packed covariances, "
-                  "numpy sort) -> this code (vertex columns, covariance in the shader, torch sort), timed one "
-                  "after the other.", ""]
+                  "numpy sort) -> this code (vertex columns, covariance in the shader, torch sort), each count "
+                  "timed on this code and right after on that one.", ""]
     return "\n".join(lines + markdown_counts(result))
 
 
@@ -328,16 +353,11 @@ def main(cfg: BenchConfig) -> None:
         return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
 
     if "counts" in cfg.parts:
-        rows: list[dict] = []
-        with progress_bar(len(cfg.target_dtypes), "viewer bench", unit="config") as bar:
-            for dt in cfg.target_dtypes:
-                rows += bench_counts(cfg, renderer, dt)
-                bar.update(1)
+        rows, before = bench_counts_before_after(cfg, renderer)
         result.update(per_count=rows, counts_machine=machine(), counts_date=now())
         result.pop("per_count_before", None)
-    if "before" in cfg.parts:
-        result.update(per_count_before=bench_before(cfg), before=cfg.before)
-        result["counts_machine"]["loadavg_after"] = os.getloadavg()
+        if before:
+            result.update(per_count_before=before, before=cfg.before)
     if "playback" in cfg.parts or "cutoffs" in cfg.parts:
         if cfg.checkpoint is not None:
             import atgs
