@@ -3,10 +3,13 @@ this machine's software OpenGL (llvmpipe through EGL).
 
     python bench/viewer.py                       # writes bench/results/viewer.json
     python bench/viewer.py --checkpoint ckpt.pt  # playback of a real model at 640x480
+    python bench/viewer.py --parts counts        # part 1 only (with its before/after comparison)
 
-Part 1: N random Gaussians (10k, 50k, 200k) seen by a 1280x720 camera: per-stage times of a
-frame whose Gaussians change (decode + sort + upload + draw) and of a static frame with a
-moving camera (sort + draw).
+Part 1: N random Gaussians (10k, 50k, 200k, 1M) seen by a 1280x720 camera: per-stage times of a
+frame whose Gaussians change (pack + sort + upload + draw) and of a static frame with a
+moving camera (sort + draw); the same measurement of the code at ``--before`` (a git commit:
+its viewer, shaders and atgs packages are exported to a temporary folder and timed by this
+script in a subprocess, count by count right after the current code, at about the same load).
 Part 2: playback at 640x480 through the real player pipeline (background decode cache ->
 upload -> sort -> draw) for a model-sized scene: the given checkpoint, else an untrained
 ATGS model with the "cpu" preset (decoding a real network; its Gaussians have the sizes an
@@ -16,35 +19,33 @@ initialised model has), and the built-in demo scene.
 from __future__ import annotations
 
 import sys
-from pathlib import Path as _Path
 
-# This file is named like the `viewer` package; drop its own directory from the import path
-# so that `import viewer` finds the package, not this script.
-from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
+from _docs import update_docs_table, write_json_atomic  # noqa: E402  (bench/_docs.py, imported first)
+from _viewer_scenes import bench_camera, random_gaussians, time_frames, untrained_model, warm_renderer  # noqa: E402
 
-sys.path[:] = [p for p in sys.path if _Path(p or ".").resolve() != _Path(__file__).resolve().parent]
 
 import json
 import math
 import os
 import platform
 import statistics
+import subprocess
+import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 import tyro
 
-from atgs.cameras import Camera, look_at
-from atgs.gaussians import Gaussians
-from atgs.headless_gl import create_headless_context, gl_description
+from atgs.cameras import Camera
+from atgs.headless_gl import gl_description
 from atgs.progress import progress_bar
 from atgs.viewer.adaptive import next_render_scale
 from atgs.viewer.decode_cache import DecodeCache
 from atgs.viewer.gl_sync import gil_free_finish
-from atgs.viewer.packing import PackedGaussians, pack_gaussians
+from atgs.viewer.packing import PackedGaussians
 from atgs.viewer.playback import FrameFeeder, Playback
 from atgs.viewer.source import GaussianSource, SyntheticSource, decode_frame
 from atgs.viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
@@ -52,7 +53,7 @@ from atgs.viewer.splat_renderer import ALPHA_MIN, RenderSettings, SplatRenderer
 
 @dataclass
 class BenchConfig:
-    counts: tuple[int, ...] = (10_000, 50_000, 200_000)
+    counts: tuple[int, ...] = (10_000, 50_000, 200_000, 1_000_000)
     size: tuple[int, int] = (1280, 720)
     repeats: int = 3
     playback_size: tuple[int, int] = (640, 480)
@@ -68,28 +69,11 @@ class BenchConfig:
     cutoffs: tuple[int, ...] = (1, 2, 4, 8)
     """Alpha cutoffs (in 1/255) of the speed / quality table (1 = the rasterizer's rule)."""
     cutoff_repeats: int = 5
-
-
-def random_gaussians(n: int, seed: int = 0) -> Gaussians:
-    """N Gaussians in a 2x2x2 box with a fixed size distribution (independent of N): seen by
-    the 1280x720 bench camera a typical splat has sigma ~3 px, i.e. a ~20 px wide 3-sigma quad
-    (the SPEC's reference size), so the per-frame work can be compared across N."""
-    gen = torch.Generator().manual_seed(seed)
-    typical = 0.0125
-    return Gaussians(
-        means=torch.rand(n, 3, generator=gen) * 2 - 1,
-        quats=torch.randn(n, 4, generator=gen),
-        scales=typical * torch.exp(torch.randn(n, 3, generator=gen) * 0.3),
-        opacities=torch.rand(n, generator=gen) * 0.8 + 0.1,
-        colors=torch.rand(n, 3, generator=gen),
-    )
-
-
-def bench_camera(width: int, height: int, angle: float = 0.0) -> Camera:
-    f = 0.5 * height / math.tan(math.radians(25))
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    eye = np.array([3.2 * math.cos(angle), 3.2 * math.sin(angle), 1.0])
-    return Camera("bench", width, height, K, look_at(eye, np.zeros(3), np.array([0, 0, 1.0])))
+    parts: tuple[str, ...] = ("counts", "before", "playback", "cutoffs")
+    """What to measure: counts (part 1), before (with counts: part 1 also on the code at
+    --before, count by count right after this code), playback (part 2), cutoffs (part 3)."""
+    before: str = "4f73495"
+    """Git commit of the code to compare with in part 1 (the viewer before the compact GPU layout)."""
 
 
 def _median(xs: list[float]) -> float:
@@ -101,45 +85,11 @@ def bench_counts(cfg: BenchConfig, renderer: SplatRenderer, dtype: str) -> list[
     rows = []
     W, H = cfg.size
     for n in cfg.counts:
-        g = random_gaussians(n)
-        decode, sort, upload, draw, static_sort, static_draw = [], [], [], [], [], []
-        for r in range(cfg.repeats):
-            t0 = time.perf_counter()
-            # "decode" here is the CPU part the player does per new frame: tensor -> packed
-            packed = pack_gaussians(g)
-            decode.append((time.perf_counter() - t0) * 1e3)
-            upload.append(renderer.set_gaussians(packed))
-            renderer.render(bench_camera(W, H, 0.1 * r), RenderSettings(), sync=True)
-            sort.append(renderer.timings.sort_ms)
-            draw.append(renderer.timings.draw_ms)
-            # same Gaussians, moved camera: the sort is redone, nothing is uploaded
-            renderer.render(bench_camera(W, H, 0.1 * r + 0.05), RenderSettings(), sync=True)
-            static_sort.append(renderer.timings.sort_ms)
-            static_draw.append(renderer.timings.draw_ms)
-        row = {
-            "gaussians": n, "target": dtype, "size": f"{W}x{H}",
-            "pack_ms": _median(decode), "sort_ms": _median(sort), "upload_ms": _median(upload),
-            "draw_ms": _median(draw), "camera_move_ms": _median(static_sort) + _median(static_draw),
-        }  # fmt: skip
-        row["fps_new_frame"] = 1000.0 / (row["pack_ms"] + row["sort_ms"] + row["upload_ms"] + row["draw_ms"])
-        row["fps_camera_move"] = 1000.0 / row["camera_move_ms"]
+        row = {"gaussians": n, "target": dtype, "size": f"{W}x{H}",
+               **time_frames(renderer, random_gaussians(n), W, H, cfg.repeats), "loadavg": os.getloadavg()}
         rows.append(row)
         print(json.dumps(row))
     return rows
-
-
-def untrained_model(num_points: int = 6_000, frames: int = 24) -> GaussianSource:
-    """An initialised (untrained) ATGS model with the 'cpu' preset over a synthetic point set."""
-    from atgs.model.atgs_model import ATGSModel
-    from atgs.train.config import preset
-
-    mcfg, _ = preset("cpu")
-    src = SyntheticSource(num_gaussians=num_points, frames=frames)
-    pts = src.gaussians_at_frame(0).means
-    gen = torch.Generator().manual_seed(0)
-    kf = torch.randint(0, 4, (pts.shape[0],), generator=gen)
-    scene_kf = [round(j * (frames - 1) / 3) for j in range(4)]
-    return ATGSModel.from_points(mcfg, pts, kf, scene_kf, frames, 30.0, src.cameras)
 
 
 def preload_all(source: GaussianSource) -> dict[int, PackedGaussians]:
@@ -275,24 +225,97 @@ def bench_cutoffs(source: GaussianSource, name: str, cfg: BenchConfig, renderer:
     return rows
 
 
-def markdown_table(result: dict) -> str:
-    m = result["machine"]
-    la = ", ".join(f"{x:.1f}" for x in m["loadavg_before"])
-    lines = [
-        f"Measured {result['date']} on {m['cpus']} CPUs, {m['gl']}; load average before the run: {la}"
-        f" (after: {', '.join(f'{x:.1f}' for x in m['loadavg_after'])}).",
-        "",
-        "| Gaussians | target | pack ms | sort ms | upload ms | draw ms | new frame FPS | camera move FPS |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|",
-    ]
+def bench_before(cfg: BenchConfig, counts: tuple[int, ...], tree: Path) -> list[dict]:
+    """Part 1 for ``counts`` timed on the code of commit ``cfg.before``, exported to ``tree``
+    (:func:`export_before`): this script runs with ``--parts counts`` and that folder first on
+    PYTHONPATH (its part 1 uses only APIs both versions have)."""
+    root = Path(__file__).resolve().parent.parent
+    out = tree / "before.json"
+    args = [sys.executable, str(Path(__file__).resolve()), "--parts", "counts", "--out", str(out),
+            "--docs", "None", "--gl", cfg.gl, "--repeats", str(cfg.repeats),
+            "--counts", *map(str, counts), "--target-dtypes", *cfg.target_dtypes]
+    subprocess.run(args, check=True, env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), str(root)])})
+    rows = json.loads(out.read_text())["per_count"]
+    out.unlink()
+    for r in rows:
+        r["code"] = cfg.before
+    return rows
+
+
+def export_before(ref: str, tree: Path) -> None:
+    """``git archive`` of the atgs, viewer and shaders packages at ``ref`` into ``tree``."""
+    root = Path(__file__).resolve().parent.parent
+    archive = subprocess.run(["git", "-C", str(root), "archive", ref, "atgs", "viewer", "shaders"],
+                             check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
+
+
+def bench_counts_before_after(cfg: BenchConfig, renderer: SplatRenderer) -> tuple[list[dict], list[dict]]:
+    """Part 1 for each count: this code, then (with "before" in cfg.parts) the code at
+    cfg.before right after it, so that both see about the same load."""
+    after: list[dict] = []
+    before: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="atgs-viewer-before-") as tmp:
+        if "before" in cfg.parts:
+            export_before(cfg.before, Path(tmp))
+        with progress_bar(len(cfg.counts), "viewer bench, part 1", unit="count") as bar:
+            for n in cfg.counts:
+                one = replace(cfg, counts=(n,))
+                for dt in cfg.target_dtypes:
+                    after += bench_counts(one, renderer, dt)
+                if "before" in cfg.parts:
+                    before += bench_before(cfg, (n,), Path(tmp))
+                bar.update(1)
+    order = {dt: i for i, dt in enumerate(cfg.target_dtypes)}
+    key = lambda r: (order[r["target"]], r["gaussians"])  # noqa: E731  (the table's row order)
+    return sorted(after, key=key), sorted(before, key=key)
+
+
+def markdown_counts(result: dict) -> list[str]:
+    """Part 1: before -> after per stage, and the speed-up of pack + sort + upload."""
+    before = {(r["gaussians"], r["target"]): r for r in result.get("per_count_before", [])}
+    lines = ["| Gaussians | target | pack ms | sort ms | upload ms | pack + sort + upload ms | draw ms "
+             "| new frame FPS | camera move FPS |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in result["per_count"]:
-        lines.append(
-            f"| {r['gaussians']:,} | {r['target']} | {r['pack_ms']:.1f} | {r['sort_ms']:.1f} | {r['upload_ms']:.1f} "
-            f"| {r['draw_ms']:.0f} | {r['fps_new_frame']:.1f} | {r['fps_camera_move']:.1f} |"
-        )
-    lines += ["", "| playback scene | size | Gaussians | cutoff | res. factor | decode ms | sort ms | draw ms | FPS "
-              "| distinct frames shown | load before / after |",
-              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        b = before.get((r["gaussians"], r["target"]))
+        psu = r["pack_ms"] + r["sort_ms"] + r["upload_ms"]
+
+        def cell(key: str, fmt: str) -> str:
+            return f"{b[key]:{fmt}} -> {r[key]:{fmt}}" if b else f"{r[key]:{fmt}}"
+
+        if b:
+            bpsu = b["pack_ms"] + b["sort_ms"] + b["upload_ms"]
+            total = f"{bpsu:.0f} -> **{psu:.0f}** ({bpsu / psu:.1f}x)"
+        else:
+            total = f"**{psu:.0f}**"
+        lines.append(f"| {r['gaussians']:,} | {r['target']} | {cell('pack_ms', '.1f')} | {cell('sort_ms', '.1f')} "
+                     f"| {cell('upload_ms', '.1f')} | {total} | {cell('draw_ms', '.0f')} "
+                     f"| {cell('fps_new_frame', '.2f')} | {cell('fps_camera_move', '.2f')} |")
+    return lines
+
+
+def machine_line(m: dict, date: str) -> str:
+    la = lambda xs: ", ".join(f"{x:.1f}" for x in xs)  # noqa: E731
+    return (f"Measured {date} on {m['cpus']} CPUs, {m['gl']}; load average before: {la(m['loadavg_before'])} "
+            f"(after: {la(m['loadavg_after'])}).")
+
+
+def counts_table(result: dict) -> str:
+    """Part 1 (bench:viewer-counts in docs/viewer.md)."""
+    lines = [machine_line(result["counts_machine"], result["counts_date"]), ""]
+    if result.get("per_count_before"):
+        lines += [f"Before -> after: the code at commit {result['before']} (texture of CPU-packed covariances, "
+                  "numpy sort) -> this code (vertex columns, covariance in the shader, torch sort), each count "
+                  "timed on this code and right after on that one.", ""]
+    return "\n".join(lines + markdown_counts(result))
+
+
+def playback_table(result: dict) -> str:
+    """Parts 2 and 3 (bench:viewer in docs/viewer.md)."""
+    lines = [machine_line(result["machine"], result["date"]), "",
+             "| playback scene | size | Gaussians | cutoff | res. factor | decode ms | sort ms | draw ms | FPS "
+             "| distinct frames shown | load before / after |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in result["playback"]:
         lines.append(
             f"| {r['scene']} | {r['size']} | {r['gaussians']:,} | {r['min_alpha_255']:g}/255 | {r['mean_scale']:.2f} "
@@ -312,52 +335,64 @@ def markdown_table(result: dict) -> str:
 
 
 def main(cfg: BenchConfig) -> None:
+    """Measures ``cfg.parts``; the results file keeps the figures of parts not measured now."""
     load_before = os.getloadavg()
-    ctx = create_headless_context(cfg.gl)
-    renderer = SplatRenderer(ctx)
-    renderer.set_gaussians(pack_gaussians(random_gaussians(1000)))
-    renderer.render(bench_camera(64, 64))  # compile shaders / warm up
-    rows: list[dict] = []
-    with progress_bar(len(cfg.target_dtypes), "viewer bench", unit="config") as bar:
-        for dt in cfg.target_dtypes:
-            rows += bench_counts(cfg, renderer, dt)
-            bar.update(1)
-    playback = []
-    if cfg.checkpoint is not None:
-        import atgs
+    ctx, renderer = warm_renderer(cfg.gl)
+    result: dict = json.loads(cfg.out.read_text()) if cfg.out.exists() else {}
 
-        model = atgs.load(cfg.checkpoint)
-        name = f"{cfg.checkpoint} ({model.num_frames} frames)"
-    else:
-        model = untrained_model()
-        name = "untrained ATGS model, cpu preset"
-    demo = SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480), num_cameras=6)
-    demo_name = "built-in demo scene (atgs-view demo)"
-    # The built-in scene first: it is the aim's subject (25 FPS at 640x480).
-    playback.append(bench_playback(demo, demo_name, cfg, renderer))
-    playback.append(bench_playback(demo, demo_name, cfg, renderer, min_alpha=4 / 255))
-    playback.append(bench_playback(demo, demo_name, cfg, renderer, adaptive=True))
-    playback.append(bench_playback(model, name, cfg, renderer))
-    pinned = preload_all(model)
-    playback.append(bench_playback(model, name, cfg, renderer, preload=True, pinned=pinned))
-    playback.append(bench_playback(model, name, cfg, renderer, preload=True, min_alpha=4 / 255, pinned=pinned))
-    playback.append(bench_playback(model, name, cfg, renderer, preload=True, adaptive=True, pinned=pinned))
-    del pinned
-    cutoffs = bench_cutoffs(demo, demo_name, cfg, renderer) + bench_cutoffs(model, name, cfg, renderer)
-    result = {
-        "machine": {
-            "gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
-            "torch_threads": torch.get_num_threads(),
-            "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
-        },
-        "per_count": rows,
-        "playback": playback,
-        "cutoffs": cutoffs,
-        "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-    }  # fmt: skip
+    def machine() -> dict:
+        return {"gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
+                "torch_threads": torch.get_num_threads(), "loadavg_before": load_before,
+                "loadavg_after": os.getloadavg()}
+
+    def now() -> str:
+        return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+
+    if "counts" in cfg.parts:
+        rows, before = bench_counts_before_after(cfg, renderer)
+        result.update(per_count=rows, counts_machine=machine(), counts_date=now())
+        result.pop("per_count_before", None)
+        if before:
+            result.update(per_count_before=before, before=cfg.before)
+    if "playback" in cfg.parts or "cutoffs" in cfg.parts:
+        if cfg.checkpoint is not None:
+            import atgs
+
+            model = atgs.load(cfg.checkpoint)
+            name = f"{cfg.checkpoint} ({model.num_frames} frames)"
+        else:
+            model = untrained_model()
+            name = "untrained ATGS model, cpu preset"
+        demo = SyntheticSource(num_gaussians=20000, frames=120, image_size=(640, 480), num_cameras=6)
+        demo_name = "built-in demo scene (atgs-view demo)"
+    if "playback" in cfg.parts:
+        playback = []
+        # The built-in scene first: it is the aim's subject (25 FPS at 640x480).
+        playback.append(bench_playback(demo, demo_name, cfg, renderer))
+        playback.append(bench_playback(demo, demo_name, cfg, renderer, min_alpha=4 / 255))
+        playback.append(bench_playback(demo, demo_name, cfg, renderer, adaptive=True))
+        playback.append(bench_playback(model, name, cfg, renderer))
+        pinned = preload_all(model)
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True, pinned=pinned))
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True, min_alpha=4 / 255, pinned=pinned))
+        playback.append(bench_playback(model, name, cfg, renderer, preload=True, adaptive=True, pinned=pinned))
+        del pinned
+        result["playback"] = playback
+    if "cutoffs" in cfg.parts:
+        result["cutoffs"] = bench_cutoffs(demo, demo_name, cfg, renderer) + bench_cutoffs(model, name, cfg, renderer)
+    if "playback" in cfg.parts or "cutoffs" in cfg.parts:
+        result.update(machine=machine(), date=now())
     renderer.release()
     ctx.release()
-    publish(result, cfg.out, markdown_table(result), cfg.docs, "viewer")
+    write_json_atomic(cfg.out, result)
+    print(f"wrote {cfg.out}")
+    for marker, table, measured in (("viewer-counts", counts_table, "counts" in cfg.parts),
+                                    ("viewer", playback_table, "playback" in cfg.parts or "cutoffs" in cfg.parts)):
+        if measured:
+            text = table(result)
+            print(text)
+            if cfg.docs is not None:
+                update_docs_table(cfg.docs, marker, text)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from atgs.headless_gl import HeadlessGLError
@@ -184,3 +185,19 @@ def test_depth_video_uses_one_colormap_range(ckpt: Path, tmp_path: Path, monkeyp
     assert render_main([str(ckpt), "--mode", "depth", "--out", str(out), "--frames", "3", "--size", "32x24",
                         "--gl", "osmesa"]) == 0
     assert len(ranges) == 3 and ranges[0] is not None and all(r == ranges[0] for r in ranges)
+
+
+def test_device_option(ckpt: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # --device cpu and auto render the same frame (auto is the CPU here unless CUDA is present)
+    imgs = []
+    for device in ("cpu", "auto"):
+        out = tmp_path / f"{device}.png"
+        assert main([str(ckpt), "--headless", "--frame", "3", "--out", str(out), "--gl", "osmesa", "--device", device]) == 0
+        imgs.append(np.asarray(Image.open(out), dtype=np.float64) / 255.0)
+    assert _psnr(imgs[0], imgs[1]) >= 45.0  # identical on the CPU; CUDA rounds the rotations alike
+    if not torch.cuda.is_available():  # asking for CUDA without one: one line, exit 2, no output
+        out = tmp_path / "cuda.png"
+        assert main([str(ckpt), "--headless", "--out", str(out), "--device", "cuda"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--device cuda" in err and "--device cpu" in err and err.count("\n") == 0
+        assert not out.exists()

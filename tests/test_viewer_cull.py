@@ -89,12 +89,12 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 def test_contribution_cull_never_drops_a_visible_gaussian() -> None:
     g, cam = _scene(150, seed=11)
     packed = pack_gaussians(g)
-    op = packed.data[:, 3].view(np.float32)
+    op = packed.opacity.numpy()
     for cutoff in (ALPHA_MIN, 4 / 255, 16 / 255):
         alphas, _ = _per_gaussian_alpha(g, cam, cutoff)
         peak = alphas.reshape(len(alphas), -1).max(1)  # brute force: the largest alpha at any pixel
-        kept = back_to_front(packed.means, cam.w2c, 0.01, opacity=op, min_alpha=cutoff)
-        dropped = np.setdiff1d(back_to_front(packed.means, cam.w2c, 0.01), kept)
+        kept = back_to_front(packed.means, cam.w2c, 0.01, opacity=op, min_alpha=cutoff).numpy()
+        dropped = np.setdiff1d(back_to_front(packed.means, cam.w2c, 0.01).numpy(), kept)
         assert dropped.size > 10  # the scene has faint Gaussians for the cull to remove
         assert np.all(peak[dropped] == 0.0), "a culled Gaussian reaches the cutoff at some pixel"
         assert np.all(op[kept] >= np.float32(cutoff))

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from atgs.errors import UserError
 from atgs.viewer.adaptive import TARGET_MS, next_render_scale
@@ -76,7 +77,8 @@ class PlayerApp:
 
     def __init__(self, source: GaussianSource, camera_index: int = 0, size: str | None = None,
                  settings: RenderSettings | None = None, visible: bool = True,
-                 preloaded: dict[int, PackedGaussians] | None = None, cache_mb: int = 1024) -> None:
+                 preloaded: dict[int, PackedGaussians] | None = None, cache_mb: int = 1024,
+                 device: torch.device | str = "cpu") -> None:
         import imgui_bundle  # noqa: F401  (first: makes pyGLFW use imgui-bundle's libglfw)
         import glfw
         import moderngl
@@ -127,7 +129,7 @@ class PlayerApp:
         self._gl_finish = gil_free_finish(self.ctx.finish)
         self.settings = settings or RenderSettings()
         self.playback = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0))
-        self.cache = DecodeCache(lambda f: decode_frame(source, f), capacity=8, pinned=preloaded,
+        self.cache = DecodeCache(lambda f: decode_frame(source, f, device), capacity=8, pinned=preloaded,
                                  keep_bytes=max(0, cache_mb) << 20)
         self.feeder = FrameFeeder(self.cache, lookahead=4)
         self.cache.prefetch(range(source.num_frames))  # fill --cache-mb in the background
@@ -464,19 +466,20 @@ def rest_until(t: float) -> None:
         time.sleep(left)
 
 
-def preload_frames(source: GaussianSource, limit_mb: int) -> dict[int, PackedGaussians]:
+def preload_frames(source: GaussianSource, limit_mb: int,
+                   device: torch.device | str = "cpu") -> dict[int, PackedGaussians]:
     """Decode all frames up front (tqdm bar); refuses sequences that would exceed ``limit_mb``."""
     from atgs.progress import progress_bar
 
     F = source.num_frames
-    first = decode_frame(source, 0)
-    est_mb = F * (first.data.nbytes + first.means.nbytes) / 2**20
+    first = decode_frame(source, 0, device)
+    est_mb = F * first.nbytes / 2**20
     if est_mb > limit_mb:
         raise ViewerError(f"--preload needs about {est_mb:.0f} MB for {F} frames; raise --preload-mb or drop --preload")
     out = {0: first}
     with progress_bar(F, "decoding frames", unit="frame") as bar:
         bar.update(1)
         for f in range(1, F):
-            out[f] = decode_frame(source, f)
+            out[f] = decode_frame(source, f, device)
             bar.update(1)
     return out

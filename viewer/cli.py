@@ -14,6 +14,7 @@ import tyro
 
 from atgs.io.cli import run_cli
 from atgs.timeline import frame_at
+from atgs.viewer.device import place_source, resolve_device
 from atgs.viewer.errors import ViewerError
 from atgs.viewer.loading import load_source
 from atgs.viewer.scene_utils import cameras_path, orbit_path, parse_size, resized, start_camera
@@ -48,6 +49,8 @@ class ViewConfig:
     Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
     demo_gaussians: int = 20000
     """Gaussians of the built-in 'demo' scene."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
     preload: bool = False
     """Decode every frame before opening the window (smooth playback when decoding is slower than the video)."""
     preload_mb: int = 2048
@@ -79,6 +82,8 @@ class RenderConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     min_alpha: float = 1 / 255
     """Alpha cutoff (see atgs-view --help)."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
 
 
 def render_settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
@@ -96,7 +101,8 @@ def run_headless(cfg: ViewConfig) -> Path:
 
     settings = render_settings(cfg)
     size = parse_size(cfg.size)
-    source = load_source(cfg.checkpoint, cfg.demo_gaussians)
+    device = resolve_device(cfg.device)
+    source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians), device)
     n = source.num_frames
     if cfg.frame is not None:
         if not 0 <= cfg.frame < n:
@@ -107,7 +113,7 @@ def run_headless(cfg: ViewConfig) -> Path:
             raise ViewerError(f"--time {cfg.time}: normalized time must be within [0, 1]")
         frame = frame_at(cfg.time, n)
     cam = resized(start_camera(source, cfg.camera), size)
-    hr = HeadlessRenderer(source, cfg.gl)
+    hr = HeadlessRenderer(source, cfg.gl, device)
     try:
         img = hr.frame_rgb8(frame, cam, settings)
     finally:
@@ -121,10 +127,11 @@ def run_window(cfg: ViewConfig) -> None:
     from atgs.viewer.app import PlayerApp, preload_frames
 
     settings = render_settings(cfg)
-    source = load_source(cfg.checkpoint, cfg.demo_gaussians)
-    preloaded = preload_frames(source, cfg.preload_mb) if cfg.preload else None
+    device = resolve_device(cfg.device)
+    source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians), device)
+    preloaded = preload_frames(source, cfg.preload_mb, device) if cfg.preload else None
     app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
-                    cache_mb=cfg.cache_mb)
+                    cache_mb=cfg.cache_mb, device=device)
     try:
         app.run()
     finally:
@@ -140,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             run_window(cfg)
 
-    return run_cli("atgs-view", body)
+    return run_cli("atgs-view", body, process=argv is None)
 
 
 def render_video(cfg: RenderConfig) -> Path:
@@ -149,7 +156,8 @@ def render_video(cfg: RenderConfig) -> Path:
     from atgs.viewer.headless import HeadlessRenderer, render_sequence
 
     settings = render_settings(cfg)
-    source = load_source(cfg.checkpoint)
+    device = resolve_device(cfg.device)
+    source = place_source(load_source(cfg.checkpoint), device)
     F = source.num_frames
     n = cfg.frames if cfg.frames is not None else F
     if n < 1:
@@ -167,7 +175,7 @@ def render_video(cfg: RenderConfig) -> Path:
     path = [resized(c, size) for c in path]
     frames = [frame_at(0.0 if n == 1 else i / (n - 1), F) for i in range(n)]
     with VideoWriter(cfg.out, size[0], size[1], fps, codec="libx264", crf=18, pix_fmt="yuv420p", threads=0) as writer:
-        hr = HeadlessRenderer(source, cfg.gl)
+        hr = HeadlessRenderer(source, cfg.gl, device)
         try:
             with progress_bar(n, "atgs-render", unit="frame") as bar:
                 render_sequence(hr, frames, path, settings, lambda i, img: writer.write(img), progress=bar)
@@ -178,7 +186,8 @@ def render_video(cfg: RenderConfig) -> Path:
 
 def render_main(argv: list[str] | None = None) -> int:
     cfg = tyro.cli(RenderConfig, args=argv, prog="atgs-render")
-    return run_cli("atgs-render", lambda: print(f"atgs-render: wrote {render_video(cfg)}"))
+    return run_cli("atgs-render", lambda: print(f"atgs-render: wrote {render_video(cfg)}"),
+                   process=argv is None)
 
 
 if __name__ == "__main__":

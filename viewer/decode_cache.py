@@ -196,5 +196,5 @@ class DecodeCache:
 
 
 def packed_bytes(p: PackedGaussians) -> int:
-    """Memory of one decoded frame (GPU words, sort positions, cull extents)."""
-    return int(p.data.nbytes + p.means.nbytes + (0 if p.extent is None else p.extent.nbytes))
+    """Memory of one decoded frame (vertex records, SH, sort and cull inputs)."""
+    return p.nbytes

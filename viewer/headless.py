@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from atgs.cameras import Camera
 from atgs.headless_gl import create_headless_context
@@ -23,6 +24,7 @@ class HeadlessRenderer:
 
     source: GaussianSource
     gl: str = "auto"
+    device: torch.device | str = "cpu"  # where frames are packed and sorted (viewer.device)
 
     def __post_init__(self) -> None:
         self.ctx = create_headless_context(self.gl)
@@ -41,7 +43,7 @@ class HeadlessRenderer:
         return to_uint8(display_rgb(self.renderer.read(), settings.mode, settings.background, zrange))
 
     def frame_rgb8(self, frame: int, camera: Camera, settings: RenderSettings) -> np.ndarray:
-        self.set_frame(decode_frame(self.source, frame))
+        self.set_frame(decode_frame(self.source, frame, self.device))
         return self.render_rgb8(camera, settings)
 
     def close(self) -> None:
@@ -61,7 +63,7 @@ def render_sequence(
     ``on_image(i, rgb8)``. Returns mean stage times in ms."""
     totals = {"decode_wait_ms": 0.0, "sort_ms": 0.0, "draw_ms": 0.0, "upload_ms": 0.0}
     zrange: tuple[float, float] | None = None
-    with DecodeCache(lambda f: decode_frame(hr.source, f), capacity=4) as cache:
+    with DecodeCache(lambda f: decode_frame(hr.source, f, hr.device), capacity=4) as cache:
         for i, (f, cam) in enumerate(zip(frames, cameras)):
             cache.request(list(dict.fromkeys(frames[i : i + 3])))
             t0 = time.perf_counter()

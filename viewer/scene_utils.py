@@ -72,7 +72,7 @@ def start_camera(source: GaussianSource, index: int) -> Camera:
     when the source has no cameras."""
     cams = list(source.cameras)
     if not cams:
-        return default_camera(decode_frame(source, 0).means)
+        return default_camera(decode_frame(source, 0).means.cpu().numpy())
     if not 0 <= index < len(cams):
         raise ViewerError(f"--camera {index}: the checkpoint has cameras 0..{len(cams) - 1}")
     return cams[index]

@@ -4,7 +4,7 @@ synthetic scene for tests and demos)."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -14,6 +14,7 @@ from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
 from atgs.timeline import Timeline, frame_at, time_of_frame
 from atgs.viewer.packing import PackedGaussians, pack_gaussians
+from atgs.viewer.device import cpu_threads
 
 
 @runtime_checkable
@@ -51,12 +52,24 @@ def active_anchor_count(source: GaussianSource, frame: int) -> int:
     return int(mask.sum()) if hasattr(mask, "sum") else int(mask)
 
 
-def decode_frame(source: GaussianSource, frame: int) -> PackedGaussians:
-    """Decode and pack one frame (runs in the decode thread)."""
+def decode_frame(source: GaussianSource, frame: int, device: torch.device | str | None = None) -> PackedGaussians:
+    """Decode and pack one frame (runs in the decode thread). With ``device``, Gaussians decoded
+    elsewhere are moved there first, so that packing and sorting run on it (e.g. CUDA).
+
+    A source with view-dependent colour also has ``sh_at_frame(f)``: the frame's (N, K, 3)
+    spherical-harmonic coefficients (atgs.sh's order), drawn instead of ``colors``."""
     t0 = time.perf_counter()
-    with torch.no_grad():
+    sh_at_frame = getattr(source, "sh_at_frame", None)
+    # One torch thread for a CPU decode too (viewer.device.cpu_threads; only this thread's ops).
+    with torch.no_grad(), cpu_threads(torch.device("cpu")):
         g = source.gaussians_at_frame(frame)
-    packed = pack_gaussians(g, frame=frame, num_anchors=active_anchor_count(source, frame))
+        sh = None if sh_at_frame is None else sh_at_frame(frame)
+        if device is not None and g.means.device != torch.device(device):
+            g = g.to(device)
+        if sh is not None and device is not None:
+            sh = sh.to(device)
+    # (packing ends by copying the columns to host memory: decode_ms includes the device's work)
+    packed = pack_gaussians(g, frame=frame, num_anchors=active_anchor_count(source, frame), sh=sh)
     packed.decode_ms = (time.perf_counter() - t0) * 1e3
     return packed
 
@@ -85,6 +98,7 @@ class SyntheticSource:
     image_size: tuple[int, int] = (320, 240)
     seed: int = 0
     decode_delay_s: float = 0.0  # simulate a slow decoder (tests of the decode cache)
+    device: str = "cpu"  # where gaussians_at_frame returns its tensors (see to())
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.seed)
@@ -154,4 +168,9 @@ class SyntheticSource:
         ring = self._ring @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]])
         means = np.concatenate([ring, self._floor]).astype(np.float32)
         quats, scales, opac, colors = (torch.from_numpy(a.copy()) for a in self._static)  # callers may modify them
-        return Gaussians(means=torch.from_numpy(means), quats=quats, scales=scales, opacities=opac, colors=colors)
+        g = Gaussians(means=torch.from_numpy(means), quats=quats, scales=scales, opacities=opac, colors=colors)
+        return g if self.device == "cpu" else g.to(self.device)
+
+    def to(self, device: torch.device | str) -> "SyntheticSource":
+        """The same scene decoding onto ``device``."""
+        return replace(self, device=str(torch.device(device)))

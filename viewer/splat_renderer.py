@@ -1,12 +1,15 @@
 """GLSL Gaussian splatting with the training rasterizer's conventions (moderngl, GL 3.3 core).
 
 One triangle per Gaussian from a single indexed draw of points: the element buffer lists the
-Gaussians in back-to-front order (CPU radix sort of view depths, redone only when the camera or
-the Gaussians change), the vertex shader projects each Gaussian once and a geometry shader
-emits its triangle; the Gaussians themselves live in an RGBA32UI texture uploaded once per
-frame. Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``, into a float
-target cleared to the background, which yields ``C + T bg`` and ``alpha = 1 - T`` like
-:func:`atgs.render.rasterize`.
+Gaussians in back-to-front order (a radix sort of quantized view depths on the device the
+decoded Gaussians live on, redone only when the camera or the Gaussians change; a camera move
+uploads only this buffer), the vertex shader builds each Gaussian's covariance from its
+rotation and scale and projects it once, and a geometry shader emits its triangle. The
+Gaussians themselves are the compact vertex columns of :mod:`viewer.packing`, uploaded once
+per video frame (plus an optional column of spherical-harmonic coefficients, drawn by a shader
+variant per SH degree). Blending is premultiplied back to front, ``(ONE, ONE_MINUS_SRC_ALPHA)``,
+into a float target cleared to the background, which yields ``C + T bg`` and ``alpha = 1 - T``
+like :func:`atgs.render.rasterize`.
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ import moderngl
 import numpy as np
 
 from atgs.cameras import Camera
-from atgs.viewer.packing import PackedGaussians
-from atgs.viewer.sorting import FrustumCull, back_to_front
+from atgs.viewer.packing import COLUMN_FORMATS, COLUMNS, PackedGaussians
+from atgs.viewer.sorting import FrustumCull, back_to_front, view_depths
 
 RenderMode = Literal["color", "depth", "alpha"]
 MODES: tuple[str, ...] = ("color", "depth", "alpha")
@@ -34,11 +37,16 @@ CLAMP_MARGIN = 0.3
 RADIUS_SIGMAS = 3.0
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
-GAUSSIANS_PER_ROW = 1024  # texture row = 1024 Gaussians = 3072 texels
+ATTRIBUTES = tuple(f"a_{c}" for c in COLUMNS)  # vertex shader inputs of viewer.packing's columns
 
 
-def load_shader(name: str) -> str:
-    return files("atgs.shaders").joinpath(name).read_text(encoding="utf-8")
+def load_shader(name: str, defines: dict[str, int] | None = None) -> str:
+    """Shader source; ``defines`` become ``#define`` lines right after the ``#version`` line."""
+    text = files("atgs.shaders").joinpath(name).read_text(encoding="utf-8")
+    if not defines:
+        return text
+    version, rest = text.split("\n", 1)
+    return "\n".join([version, *(f"#define {k} {v}" for k, v in defines.items()), rest])
 
 
 def clamp_limits(K: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
@@ -107,11 +115,8 @@ class SplatRenderer:
     def __init__(self, ctx: moderngl.Context, target_dtype: str = "f4") -> None:
         self.ctx = ctx
         self.target_dtype = target_dtype  # "f4" exact; "f2" halves blend bandwidth for display
-        self.prog = ctx.program(
-            vertex_shader=load_shader("splat.vert"),
-            geometry_shader=load_shader("splat.geom"),
-            fragment_shader=load_shader("splat.frag"),
-        )
+        self._programs: dict[int, moderngl.Program] = {}
+        self.prog = self._program(-1)  # plain RGB: compiled up front, so a broken GL fails early
         self.present_prog = ctx.program(
             vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("present.frag")
         )
@@ -120,13 +125,12 @@ class SplatRenderer:
             vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("present_color.frag")
         )
         self.present_color_vao = ctx.vertex_array(self.present_color_prog, [])
-        self._data_tex: moderngl.Texture | None = None
+        self._columns: list[moderngl.Buffer | None] = [None] * (len(COLUMNS) + 1)  # + SH
         self._index_buf: moderngl.Buffer | None = None
         self._vao: moderngl.VertexArray | None = None
+        self._vao_key: tuple = ()
+        self._sh_degree = -1
         self._count = 0
-        self._means = np.zeros((0, 3), np.float32)
-        self._opacity = np.zeros(0, np.float32)
-        self._extent: np.ndarray | None = None
         self._version = 0
         self._sort_key = _SortKey()
         self._drawn = 0
@@ -135,39 +139,61 @@ class SplatRenderer:
         self.gaussians: PackedGaussians | None = None
         self.depth_range = (0.0, 1.0)
 
+    def _program(self, sh_degree: int) -> moderngl.Program:
+        """The splat program for plain RGB (-1) or SH colour of a degree (compiled once, on first use)."""
+        prog = self._programs.get(sh_degree)
+        if prog is None:
+            defines = {"SH_DEGREE": sh_degree}
+            prog = self.ctx.program(
+                vertex_shader=load_shader("splat.vert", defines),
+                geometry_shader=load_shader("splat.geom"),
+                fragment_shader=load_shader("splat.frag"),
+            )
+            self._programs[sh_degree] = prog
+        return prog
+
     # --- data -----------------------------------------------------------------------------
+    def _fit(self, buf: moderngl.Buffer | None, nbytes: int) -> moderngl.Buffer:
+        """``buf`` if it holds ``nbytes``, else a new buffer with room to grow (powers of two)."""
+        if buf is not None and buf.size >= nbytes:
+            return buf
+        if buf is not None:
+            buf.release()
+        return self.ctx.buffer(reserve=max(1 << max(0, (nbytes - 1).bit_length()), 4096), dynamic=True)
+
     def set_gaussians(self, packed: PackedGaussians) -> float:
-        """Upload a frame's Gaussians; returns the upload time in ms."""
+        """Upload a frame's columns (one buffer write each); returns the upload time in ms."""
         t0 = time.perf_counter()
         n = len(packed)
-        rows = max(1, -(-n // GAUSSIANS_PER_ROW))
-        width = GAUSSIANS_PER_ROW * 3
-        if self._data_tex is None or self._data_tex.height < rows:
-            if self._data_tex is not None:
-                self._data_tex.release()
-            cap_rows = 1 << max(0, (rows - 1).bit_length())  # grow in powers of two
-            self._data_tex = self.ctx.texture((width, cap_rows), 4, dtype="u4")
-            self._data_tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         if n:
-            full_rows = n // GAUSSIANS_PER_ROW
-            if full_rows:
-                self._data_tex.write(
-                    packed.data[: full_rows * GAUSSIANS_PER_ROW].tobytes(), viewport=(0, 0, width, full_rows)
-                )
-            rest = n - full_rows * GAUSSIANS_PER_ROW
-            if rest:
-                self._data_tex.write(
-                    packed.data[full_rows * GAUSSIANS_PER_ROW :].tobytes(), viewport=(0, full_rows, rest * 3, 1)
-                )
+            for i, column in enumerate(packed.columns):
+                self._columns[i] = buf = self._fit(self._columns[i], column.nbytes)
+                buf.write(column)
+        self._sh_degree = packed.sh_degree
         self._count = n
-        self._means = packed.means
-        self._opacity = np.ascontiguousarray(packed.data[:, 3]).view(np.float32)
-        self._extent = packed.extent
         self.gaussians = packed
         self._version += 1
         ms = (time.perf_counter() - t0) * 1e3
         self.timings.upload_ms = ms
         return ms
+
+    def _vertex_array(self) -> moderngl.VertexArray | None:
+        """The VAO of the current buffers and colour mode (rebuilt when either changed)."""
+        g = self.gaussians
+        if g is None or self._index_buf is None:
+            return None
+        used = self._columns[: len(g.columns)]
+        key = (self._sh_degree, *(b.glo for b in used if b is not None), self._index_buf.glo)
+        if self._vao is None or key != self._vao_key:
+            if self._vao is not None:
+                self._vao.release()
+            content = [(buf, fmt, name) for buf, fmt, name in zip(used, COLUMN_FORMATS, ATTRIBUTES)]
+            if g.sh is not None:
+                content.append((used[-1], f"{g.sh.shape[1]}f2", "a_sh"))
+            self._vao = self.ctx.vertex_array(self._program(self._sh_degree), content,
+                                              index_buffer=self._index_buf, index_element_size=4)
+            self._vao_key = key
+        return self._vao
 
     # --- targets --------------------------------------------------------------------------
     def _ensure_target(self, width: int, height: int) -> _Target:
@@ -194,26 +220,23 @@ class SplatRenderer:
             self.timings.sorted_again = False
             return
         t0 = time.perf_counter()
-        # Off-screen Gaussians are dropped here (conservatively), and so are those too faint to
-        # reach the alpha cutoff anywhere: they cost no vertex or setup work.
-        cull = FrustumCull(camera.K, camera.width, camera.height, clamp_limits(camera.K, camera.width, camera.height),
-                           scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
-        order = back_to_front(self._means, camera.w2c, NEAR, exact=exact, extent=self._extent, cull=cull,
-                              opacity=self._opacity, min_alpha=float(min_alpha))
-        self._drawn = int(order.size)
-        if order.size:
-            elements = order.astype(np.uint32)  # one point per Gaussian, back to front
-            nbytes = elements.nbytes
-            if self._index_buf is None or self._index_buf.size < nbytes:
-                if self._vao is not None:
-                    self._vao.release()
-                if self._index_buf is not None:
-                    self._index_buf.release()
-                self._index_buf = self.ctx.buffer(reserve=max(nbytes, 4 * 1024), dynamic=True)
-                self._vao = self.ctx.vertex_array(self.prog, [], index_buffer=self._index_buf, index_element_size=4)
-            z = self._means[order[[0, -1]]] @ camera.w2c[2, :3].astype(np.float32) + np.float32(camera.w2c[2, 3])
-            self.depth_range = (float(z[1]), float(z[0]))
-            self._index_buf.write(elements)
+        self._drawn = 0
+        g = self.gaussians
+        if g is not None and self._count:
+            # Off-screen Gaussians are dropped here (conservatively), and so are those too faint
+            # to reach the alpha cutoff anywhere: they cost no vertex or setup work.
+            cull = FrustumCull(camera.K, camera.width, camera.height,
+                               clamp_limits(camera.K, camera.width, camera.height),
+                               scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
+            order = back_to_front(g.means, camera.w2c, NEAR, exact=exact, extent=g.extent, cull=cull,
+                                  opacity=g.opacity, min_alpha=float(min_alpha))
+            self._drawn = int(order.shape[0])
+            if self._drawn:
+                z = view_depths(g.means[order[[0, -1]].long()], camera.w2c).cpu()
+                self.depth_range = (float(z[1]), float(z[0]))
+                elements = order.cpu().numpy()  # one point per Gaussian, back to front
+                self._index_buf = self._fit(self._index_buf, elements.nbytes)
+                self._index_buf.write(elements)
         self._sort_key = _SortKey(key, self._version, exact, view)
         self.timings.sort_ms = (time.perf_counter() - t0) * 1e3
         self.timings.sorted_again = True
@@ -237,35 +260,33 @@ class SplatRenderer:
         self.ctx.viewport = (0, 0, W, H)
         bg = (0.0, 0.0, 0.0) if s.mode == "depth" else tuple(float(c) for c in s.background)
         fbo.clear(bg[0], bg[1], bg[2], 0.0)
-        if self._count and self._drawn and self._vao is not None:
+        vao = self._vertex_array() if self._count and self._drawn else None
+        if vao is not None:
             uniforms = {
-                "u_data": 0,
-                "u_per_row": GAUSSIANS_PER_ROW,
                 "u_intr": (camera.fx, camera.fy, camera.cx, camera.cy),
                 "u_size": (float(W), float(H)),
                 "u_lim": clamp_limits(camera.K, W, H),
                 "u_near": NEAR,
                 "u_dilation": DILATION,
-                "u_scale2": float(s.scale_modifier) ** 2,
+                "u_scale_mod": float(s.scale_modifier),
+                "u_campos": tuple(float(v) for v in camera.center),
                 "u_extent": RADIUS_SIGMAS,
                 "u_alpha_min": float(s.min_alpha),
                 "u_alpha_max": ALPHA_MAX,
                 "u_sigma_cut": 0.5 * RADIUS_SIGMAS**2,
                 "u_mode": 1 if s.mode == "depth" else 0,
             }
-            p = self.prog
+            p = vao.program
             p["u_w2c"].write(np.ascontiguousarray(camera.w2c.T, dtype=np.float32).tobytes())
             for name, value in uniforms.items():
                 member = p.get(name, None)
                 if member is not None:  # a uniform the compiler removed is not an error
                     member.value = value
-            assert self._data_tex is not None
-            self._data_tex.use(0)
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
             self.ctx.enable(moderngl.BLEND)
             self.ctx.blend_equation = moderngl.FUNC_ADD
             self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
-            self._vao.render(moderngl.POINTS, vertices=self._drawn)
+            vao.render(moderngl.POINTS, vertices=self._drawn)
             self.ctx.disable(moderngl.BLEND)
         if sync:
             self.ctx.finish()  # so that draw_ms measures the draw, not the next readback
@@ -320,8 +341,8 @@ class SplatRenderer:
             obj.release()
 
     def release(self) -> None:
-        for obj in (self._vao, self._index_buf, self._data_tex, self.present_vao, self.prog, self.present_prog,
-                    self.present_color_vao, self.present_color_prog):
+        for obj in (self._vao, self._index_buf, *self._columns, self.present_vao, *self._programs.values(),
+                    self.present_prog, self.present_color_vao, self.present_color_prog):
             if obj is not None:
                 obj.release()
         if self._target is not None:

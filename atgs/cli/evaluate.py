@@ -75,7 +75,7 @@ def format_summary(result: EvalResult) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = tyro.cli(EvalArgs, args=argv)
-    return run_cli("atgs-eval", lambda: print(format_summary(run(args))))
+    return run_cli("atgs-eval", lambda: print(format_summary(run(args))), process=argv is None)
 
 
 if __name__ == "__main__":

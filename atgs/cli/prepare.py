@@ -17,7 +17,7 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> None:
         print(f"prepared scene written to {prepare(args)}")
 
-    return run_cli("atgs-prepare", body)
+    return run_cli("atgs-prepare", body, process=argv is None)
 
 
 if __name__ == "__main__":

@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"prepared scene written to {a.prepare} in {time.perf_counter() - t:.1f} s")
 
     # the scene and encoder settings reject bad values with ValueError (e.g. --cameras 1)
-    return run_cli("atgs-synth", body, user_errors=(ValueError,))
+    return run_cli("atgs-synth", body, user_errors=(ValueError,), process=argv is None)
 
 
 if __name__ == "__main__":

@@ -162,13 +162,14 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    process = argv is None  # the process's entry point (console script or python -m)
     argv = sys.argv[1:] if argv is None else argv
     args = parse(argv)
 
     def body() -> None:
         run(args, explicit_model_flags(argv))
 
-    return run_cli(PROG, body)
+    return run_cli(PROG, body, process=process)
 
 
 if __name__ == "__main__":
