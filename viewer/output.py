@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import os
+import re
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -74,10 +77,21 @@ def save_image(path: str | Path, rgb8: np.ndarray) -> None:
     fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(path.suffix.lower())
     if fmt is None:
         raise ViewerError(f"--out {path}: unsupported image type {path.suffix!r}; use .png or .jpg")
+    buf = io.BytesIO()
+    Image.fromarray(rgb8).save(buf, format=fmt)
+    write_atomic(path, buf.getvalue())
+
+
+def write_atomic(path: str | Path, data: bytes) -> None:
+    """Write a file through a temp file in its directory renamed into place (created if missing)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ViewerError(f"{path}: is a directory; give a file name")
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".tmp-", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            Image.fromarray(rgb8).save(fh, format=fmt)
+            fh.write(data)
         _publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -95,7 +109,7 @@ class VideoWriter:
         self.path = Path(path)
         _check_parent(self.path, "video (.mp4)")
         if self.path.suffix.lower() not in (".mp4", ".mkv", ".mov"):
-            raise ViewerError(f"--out {self.path}: use a .mp4, .mkv or .mov file name")
+            raise ViewerError(f"--out {self.path}: use a .mp4, .mkv or .mov file name, or a directory name for PNG frames")
         if width % 2 or height % 2:
             raise ViewerError(f"--size {width}x{height}: H.264 needs an even width and height")
         fd, self._tmp = tempfile.mkstemp(prefix=self.path.name + ".tmp-", suffix=self.path.suffix, dir=self.path.parent)
@@ -128,3 +142,47 @@ class VideoWriter:
         finally:
             if os.path.exists(self._tmp):
                 os.unlink(self._tmp)
+
+
+class FrameDirWriter:
+    """Lossless frames ``00000.png``, ``00001.png``, ... in a directory, built in a temp sibling
+    and renamed into place by :meth:`close`. An existing directory is replaced only if it holds
+    nothing but such frames (an earlier render), never a directory with other files."""
+
+    FRAME_NAME = re.compile(r"\d{5,}\.png")
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            if not self.path.is_dir():
+                raise ViewerError(f"--out {self.path}: exists and is not a directory; give a new directory name for PNG frames")
+            if any(not self.FRAME_NAME.fullmatch(p.name) for p in self.path.iterdir()):
+                raise ViewerError(f"--out {self.path}: directory holds other files than rendered frames; choose a new directory")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = Path(tempfile.mkdtemp(prefix=self.path.name + ".tmp-", dir=self.path.parent))
+        self._count = 0
+
+    def write(self, rgb8: np.ndarray) -> None:
+        Image.fromarray(rgb8).save(self._tmp / f"{self._count:05d}.png")
+        self._count += 1
+
+    def close(self) -> None:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(self._tmp, 0o777 & ~umask)  # mkdtemp makes 0700
+        old = None
+        if self.path.exists():
+            old = Path(tempfile.mkdtemp(prefix=self.path.name + ".old-", dir=self.path.parent))
+            os.rmdir(old)
+            os.replace(self.path, old)
+        os.replace(self._tmp, self.path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def abort(self) -> None:
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+
+def open_video_output(path: str | Path, width: int, height: int, fps: float) -> "VideoWriter | FrameDirWriter":
+    """A video file (.mp4/.mkv/.mov), or PNG frames when ``path`` has no suffix (a directory)."""
+    return FrameDirWriter(path) if Path(path).suffix == "" else VideoWriter(path, width, height, fps)
