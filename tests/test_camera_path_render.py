@@ -16,6 +16,7 @@ from PIL import Image
 from atgs.cameras import look_at
 from viewer.camera_path import CameraPath, PathKey
 from viewer.camera_path_file import load_camera_path, path_to_json, save_camera_path
+from viewer.cli import main as view_main
 from viewer.cli import render_main
 from viewer.errors import ViewerError
 from test_viewer_fixtures import write_tiny_checkpoint
@@ -103,6 +104,10 @@ def test_malformed_or_empty_path_file_is_one_line_and_exit_2(ckpt: Path, tmp_pat
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and needle in err, err
     assert out.read_bytes() == b"an earlier video"  # failed runs never touch the output
+    # the player refuses a broken --path file before it opens a window
+    assert view_main([str(ckpt), "--path", str(tmp_path / "truncated.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("atgs-view: error:") and "truncated.json" in err and err.count("\n") == 0
     # the real command line, as a user runs it: exit code 2 and one line on stderr
     for name in ("empty", "truncated"):
         proc = subprocess.run([sys.executable, "-c", RENDER, str(ckpt), "--path", str(tmp_path / f"{name}.json"),
@@ -129,7 +134,7 @@ def test_path_render_matches_frames_rendered_one_by_one(ckpt: Path, tmp_path: Pa
     source = open_source(ckpt)
     n, F = 6, source.num_frames
     hr = HeadlessRenderer(source, "osmesa")
-    seq_frames = []
+    seq_frames, psnrs = [], []
     try:
         for i, file in enumerate(files):
             pose = path.pose_at(i / (n - 1))
@@ -137,7 +142,8 @@ def test_path_render_matches_frames_rendered_one_by_one(ckpt: Path, tmp_path: Pa
             ref = hr.frame_rgb8(seq_frames[-1], pose.camera(64, 48), RenderSettings())
             img = np.asarray(Image.open(file))
             assert img.shape == (48, 64, 3) and ref.std() > 1.0
-            assert _psnr(img, ref) >= 50.0, i
+            psnrs.append(_psnr(img, ref))
+            assert psnrs[-1] >= 50.0, i
     finally:
         hr.close()
     assert seq_frames[0] == 0 and seq_frames[-1] == F - 1 and len(set(seq_frames)) >= 4  # time plays along
