@@ -97,6 +97,7 @@ def test_reproduces_constant_acceleration_and_constant_angular_velocity() -> Non
     for u in np.linspace(0, 1, 37):
         p = sp.pose_at(u)
         np.testing.assert_allclose(p.eye, a + b * u + c * u * u, atol=1e-12)
+        np.testing.assert_array_equal(sp.eye_at(u), p.eye)
         np.testing.assert_allclose(p.R.T, Rotation.from_rotvec(w * u).as_matrix(), atol=1e-12)
 
 

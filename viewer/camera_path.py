@@ -141,6 +141,8 @@ class PathSpline:
 
     def _locate(self, u: float) -> tuple[int, float]:
         """(segment i, parameter s in [0, 1)) of video time u; s == 0 on keyframe i and beyond the ends."""
+        if math.isnan(u):
+            raise ValueError("video_t is NaN")
         t = self.t
         if u <= t[0]:
             return 0, 0.0
@@ -149,11 +151,16 @@ class PathSpline:
         i = int(np.searchsorted(t, u, side="right")) - 1
         return i, float((u - t[i]) / (t[i + 1] - t[i]))
 
+    def eye_at(self, video_t: float) -> np.ndarray:
+        """The camera center alone (cheaper than :meth:`pose_at`: for drawing the path)."""
+        i, s = self._locate(float(video_t))
+        if s == 0.0:
+            return self.eye[i].copy()
+        d = self.t[i + 1] - self.t[i]
+        return hermite(self.eye[i], self.eye[i + 1], self.m_eye[i] * d, self.m_eye[i + 1] * d, s)
+
     def pose_at(self, video_t: float) -> PathPose:
-        u = float(video_t)
-        if math.isnan(u):
-            raise ValueError("video_t is NaN")
-        i, s = self._locate(u)
+        i, s = self._locate(float(video_t))
         if s == 0.0:  # on a keyframe (or holding before / after the path): its values exactly
             return PathPose(self.eye[i].copy(), self.R[i].copy(), float(self.fov[i]), float(self.scene[i]))
         d = self.t[i + 1] - self.t[i]

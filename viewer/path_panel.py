@@ -42,11 +42,9 @@ class PathPanel:
     # --- actions (keys and buttons) ----------------------------------------------------------
     def view_key(self) -> PathKey:
         """A keyframe at the current view and playhead time (its video_t is set by the editor)."""
-        st = self.app.control.state
-        w2c = np.eye(4)
-        w2c[:3, :3] = st.R
-        w2c[:3, 3] = -st.R @ st.eye  # as CameraControl.camera builds it
-        return PathKey(0.0, w2c, math.degrees(st.fov_y), self.app.playback.time)
+        ctl = self.app.control
+        w2c = ctl.camera(16, 16).w2c  # the pose only: intrinsics follow from fov and render size
+        return PathKey(0.0, w2c, math.degrees(ctl.state.fov_y), self.app.playback.time)
 
     def add_keyframe(self) -> None:
         i = self.editor.add(self.view_key())
@@ -72,7 +70,8 @@ class PathPanel:
     def save(self) -> bool:
         ed = self.editor
         fb_w, fb_h = self._framebuffer_size()
-        ed.path.size = (max(2, fb_w - fb_w % 2), max(2, fb_h - fb_h % 2))  # the preview's size, even for H.264
+        if fb_w >= 16 and fb_h >= 16:  # the preview's size (even, for H.264) is the default video size
+            ed.path.size = (fb_w - fb_w % 2, fb_h - fb_h % 2)
         try:
             save_camera_path(ed.path, self.file)
         except (OSError, ViewerError) as exc:  # a full disk or a bad name must not close the player
@@ -238,7 +237,7 @@ class PathPanel:
             t = np.array([k.video_t for k in ed.keys])
             us = np.concatenate([np.linspace(a, b, OVERLAY_SAMPLES, endpoint=False) for a, b in zip(t[:-1], t[1:])]
                                 + [t[-1:]])
-            self._overlay = (ed.revision, np.stack([sp.pose_at(u).eye for u in us]))
+            self._overlay = (ed.revision, np.stack([sp.eye_at(u) for u in us]))
         io = imgui.get_io()
         fb_w, fb_h = self._framebuffer_size()
         if fb_w <= 0 or fb_h <= 0:
