@@ -5,7 +5,10 @@ pyproject.toml installs every package (viewer/ and shaders/ under the atgs names
 from __future__ import annotations
 
 import ast
-import tomllib
+try:
+    import tomllib
+except ImportError:  # Python 3.10: the same parser from PyPI (a test extra)
+    import tomli as tomllib
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent

@@ -4,6 +4,7 @@ Keyboard (when the UI does not have focus):
   Space play/pause   Left/Right step one frame   Home/End first/last frame   L loop
   -/= speed down/up   1/2/3 color/depth/alpha   [/] scale modifier   C next training camera
   R reset camera   F fly mode   WASD/QE fly   P or F12 screenshot   H hide UI   Esc quit
+  K add a camera-path keyframe   V preview the path   Delete remove the keyframe   Ctrl+S save the path
 Mouse: left drag orbit (fly mode: look), right/middle drag or shift+left pan, wheel zoom.
 """
 
@@ -26,10 +27,12 @@ from atgs.viewer.errors import ViewerError
 from atgs.viewer.gl_sync import gil_free_finish
 from atgs.viewer.output import display_rgb, save_image, to_uint8
 from atgs.viewer.packing import PackedGaussians
+from atgs.viewer.path_panel import PathPanel
 from atgs.viewer.playback import FrameFeeder, Playback
 from atgs.viewer.scene_utils import look_center, parse_size, start_camera
 from atgs.viewer.source import GaussianSource, decode_frame, scene_up
 from atgs.viewer.splat_renderer import MODES, RenderSettings, SplatRenderer
+from atgs.viewer.window_size import default_window_size, screen_work_area
 
 SPEEDS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
 # UI frame cap: an idle loop that spins holds the GIL and starves the decode thread (a decode
@@ -64,21 +67,13 @@ def _glfw_error(glfw) -> str:
     return desc.decode(errors="replace") if isinstance(desc, bytes) else str(desc)
 
 
-def _window_size(cam_w: int, cam_h: int, size: str | None) -> tuple[int, int]:
-    parsed = parse_size(size)
-    if parsed is not None:
-        return parsed
-    s = min(1.0, 1280 / cam_w, 800 / cam_h)
-    return max(64, int(cam_w * s)), max(64, int(cam_h * s))
-
-
 class PlayerApp:
     """One window playing one source. ``step(dt)`` runs a UI frame; ``run()`` loops until closed."""
 
     def __init__(self, source: GaussianSource, camera_index: int = 0, size: str | None = None,
                  settings: RenderSettings | None = None, visible: bool = True,
                  preloaded: dict[int, PackedGaussians] | None = None, cache_mb: int = 1024,
-                 device: torch.device | str = "cpu") -> None:
+                 device: torch.device | str = "cpu", path_file: str | Path | None = None) -> None:
         import imgui_bundle  # noqa: F401  (first: makes pyGLFW use imgui-bundle's libglfw)
         import glfw
         import moderngl
@@ -89,13 +84,14 @@ class PlayerApp:
         cam0 = start_camera(source, camera_index)
         self.cameras = list(source.cameras) or [cam0]
         self.cam_index = camera_index if source.cameras else 0
-        width, height = _window_size(cam0.width, cam0.height, size)
+        self.paths = PathPanel(self, path_file)  # camera-path keyframes; loads path_file if it exists
 
         glfw.ERROR_REPORTING = "ignore"  # failures become one ViewerError line, not warnings
         if not glfw.init():
             raise ViewerError(
                 f"cannot initialise GLFW ({_glfw_error(glfw)}); use --headless, or run under xvfb-run -a"
             )
+        width, height = parse_size(size) or default_window_size((cam0.width, cam0.height), screen_work_area(glfw))
         glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
         glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
         glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
@@ -169,6 +165,7 @@ class PlayerApp:
         imgui.new_frame()
         self._handle_input(dt)
         self.playback.advance(dt)
+        self.paths.update(dt)  # a path preview moves the view and the playhead
         packed, changed = self.feeder.update(self.playback)
         if changed and packed is not None:
             self.renderer.set_gaussians(packed)
@@ -284,6 +281,7 @@ class PlayerApp:
                 self.show_ui = not self.show_ui
             if imgui.is_key_pressed(K.escape, False):
                 self.glfw.set_window_should_close(self.window, True)
+            self.paths.handle_keys()
             if self.fly_mode:
                 step = self.fly_speed * dt
                 mv = lambda a, b: (1.0 if imgui.is_key_down(a) else 0.0) - (1.0 if imgui.is_key_down(b) else 0.0)  # noqa: E731
@@ -346,6 +344,8 @@ class PlayerApp:
         self._draw_scrub_bar(W, H)
         self._draw_stats()
         self._draw_settings(W)
+        below_stats = 6 + 5 * imgui.get_text_line_height_with_spacing() + 2 * imgui.get_style().window_padding.y
+        self.paths.draw(below_stats + (imgui.get_frame_height_with_spacing() if W < 900 else 0))
 
     def _draw_scrub_bar(self, W: float, H: float) -> None:
         imgui = self.imgui

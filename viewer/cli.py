@@ -14,6 +14,8 @@ import tyro
 
 from atgs.io.cli import run_cli
 from atgs.timeline import frame_at
+from atgs.viewer.camera_path import CameraPath
+from atgs.viewer.camera_path_file import load_camera_path
 from atgs.viewer.device import place_source, resolve_device
 from atgs.viewer.errors import ViewerError
 from atgs.viewer.loading import load_source
@@ -40,7 +42,8 @@ class ViewConfig:
     gl: Literal["auto", "egl", "osmesa"] = "auto"
     """Headless OpenGL route: auto tries EGL then OSMesa."""
     size: str | None = None
-    """WIDTHxHEIGHT of the output (headless) or the window; default: the camera's size (window: <= 1280 wide)."""
+    """WIDTHxHEIGHT of the output (headless) or the window; default: the camera's size (headless), or the
+    largest window of the camera's shape within 80% of the screen, at least 960 px wide where it fits."""
     mode: Literal["color", "depth", "alpha"] = "color"
     scale_modifier: float = 1.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -55,6 +58,9 @@ class ViewConfig:
     """Decode every frame before opening the window (smooth playback when decoding is slower than the video)."""
     preload_mb: int = 2048
     """Memory limit of --preload; longer sequences are refused with a message."""
+    path: Path | None = None
+    """Camera path file of the player's path panel: loaded at start if it exists; its Save writes
+    it (default camera_path.json). Render it with atgs-render CKPT --path FILE.json."""
     cache_mb: int = 1024
     """Decoded frames kept (beyond the next few), filled in the background from the start: a
     sequence that decodes slower than real time plays every frame once they are in. 0 keeps
@@ -68,14 +74,17 @@ class RenderConfig:
     checkpoint: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
     """ckpt.pt written by atgs-train, or 'demo'."""
     out: Path = Path("video.mp4")
-    path: Literal["cameras", "orbit"] = "orbit"
-    """cameras: move through the training cameras in order; orbit: one revolution around the scene."""
+    """Video file (.mp4, .mkv, .mov), or a directory name (no suffix) for lossless PNG frames 00000.png, ..."""
+    path: str = "orbit"
+    """orbit: one revolution around the scene; cameras: move through the training cameras in order;
+    FILE.json: a camera path saved by the player (atgs-view), rendered exactly as its preview."""
     fps: float | None = None
-    """Video frame rate (default: the sequence's fps)."""
+    """Video frame rate (default: the path file's, else the sequence's fps)."""
     frames: int | None = None
-    """Number of video frames (default: one per sequence frame); time is resampled to fit."""
+    """Number of video frames (default: a path file's duration x fps, else one per sequence frame);
+    time is resampled to fit."""
     size: str | None = None
-    """WIDTHxHEIGHT (default: the first training camera's size, rounded to even)."""
+    """WIDTHxHEIGHT (default: a path file's size, else the first training camera's; rounded to even)."""
     gl: Literal["auto", "egl", "osmesa"] = "auto"
     mode: Literal["color", "depth", "alpha"] = "color"
     scale_modifier: float = 1.0
@@ -131,7 +140,7 @@ def run_window(cfg: ViewConfig) -> None:
     source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians), device)
     preloaded = preload_frames(source, cfg.preload_mb, device) if cfg.preload else None
     app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
-                    cache_mb=cfg.cache_mb, device=device)
+                    cache_mb=cfg.cache_mb, device=device, path_file=cfg.path)
     try:
         app.run()
     finally:
@@ -150,31 +159,45 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli("atgs-view", body, process=argv is None)
 
 
+def _camera_path_arg(value: str) -> CameraPath | None:
+    """--path: the built-in orbit / cameras paths (None), or a path file saved by the player."""
+    if value in ("orbit", "cameras"):
+        return None
+    if value.lower().endswith(".json"):
+        return load_camera_path(value)  # a missing or broken file: one line naming it
+    raise ViewerError(f"--path {value!r}: expected orbit, cameras, or a camera path .json file saved by atgs-view")
+
+
 def render_video(cfg: RenderConfig) -> Path:
-    from atgs.io.video import VideoWriter
+    from atgs.viewer.output import open_video_output
     from atgs.progress import progress_bar
     from atgs.viewer.headless import HeadlessRenderer, render_sequence
 
     settings = render_settings(cfg)
+    if cfg.fps is not None and not cfg.fps > 0:
+        raise ViewerError(f"--fps {cfg.fps}: must be > 0")
+    camera_path = _camera_path_arg(cfg.path)
     device = resolve_device(cfg.device)
     source = place_source(load_source(cfg.checkpoint), device)
     F = source.num_frames
-    n = cfg.frames if cfg.frames is not None else F
+    default_n = F if camera_path is None else camera_path.frame_count(cfg.fps)
+    n = cfg.frames if cfg.frames is not None else default_n
     if n < 1:
         raise ViewerError(f"--frames {n}: must be >= 1")
-    fps = cfg.fps if cfg.fps is not None else float(source.fps or 30.0)
-    if not fps > 0:
-        raise ViewerError(f"--fps {fps}: must be > 0")
+    fps = cfg.fps if cfg.fps is not None else float(camera_path.fps if camera_path else source.fps or 30.0)
     cams = list(source.cameras) or [start_camera(source, 0)]
     size = parse_size(cfg.size)
     if size is None:
-        size = (cams[0].width - cams[0].width % 2, cams[0].height - cams[0].height % 2)
-    elif size[0] % 2 or size[1] % 2:
-        raise ViewerError(f"--size {size[0]}x{size[1]}: H.264 needs an even width and height")
-    path = orbit_path(cams, n) if cfg.path == "orbit" else cameras_path(cams, n)
-    path = [resized(c, size) for c in path]
-    frames = [frame_at(0.0 if n == 1 else i / (n - 1), F) for i in range(n)]
-    with VideoWriter(cfg.out, size[0], size[1], fps, codec="libx264", crf=18, pix_fmt="yuv420p", threads=0) as writer:
+        w, h = camera_path.size if camera_path and camera_path.size else (cams[0].width, cams[0].height)
+        size = (max(2, w - w % 2), max(2, h - h % 2))
+    if camera_path is not None:
+        path, times = camera_path.render_plan(size[0], size[1], n)
+        frames = [frame_at(t, F) for t in times]
+    else:
+        path = orbit_path(cams, n) if cfg.path == "orbit" else cameras_path(cams, n)
+        path = [resized(c, size) for c in path]
+        frames = [frame_at(0.0 if n == 1 else i / (n - 1), F) for i in range(n)]
+    with open_video_output(cfg.out, size[0], size[1], fps) as writer:
         hr = HeadlessRenderer(source, cfg.gl, device)
         try:
             with progress_bar(n, "atgs-render", unit="frame") as bar:

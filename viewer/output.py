@@ -3,6 +3,10 @@
 
 from __future__ import annotations
 
+import os
+import re
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +64,62 @@ def save_image(path: str | Path, rgb8: np.ndarray) -> None:
         raise ViewerError(f"--out {path}: unsupported image type {path.suffix!r}; use .png or .jpg")
     with atomic_file(path) as tmp:
         Image.fromarray(rgb8).save(tmp, format=fmt)
+
+
+class FrameDirWriter:
+    """Lossless frames ``00000.png``, ``00001.png``, ... in a directory, built in a temp sibling
+    and renamed into place by :meth:`close`. An existing directory is replaced only if it holds
+    nothing but such frames (an earlier render), never a directory with other files. Same
+    interface as :class:`atgs.io.video.VideoWriter` (write, close, abort, context manager)."""
+
+    FRAME_NAME = re.compile(r"\d{5,}\.png")
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            if not self.path.is_dir():
+                raise ViewerError(f"--out {self.path}: exists and is not a directory; give a new directory name for PNG frames")
+            if any(not self.FRAME_NAME.fullmatch(p.name) for p in self.path.iterdir()):
+                raise ViewerError(f"--out {self.path}: directory holds other files than rendered frames; choose a new directory")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = Path(tempfile.mkdtemp(prefix=self.path.name + ".tmp-", dir=self.path.parent))
+        self._count = 0
+
+    def write(self, rgb8: np.ndarray) -> None:
+        Image.fromarray(rgb8).save(self._tmp / f"{self._count:05d}.png")
+        self._count += 1
+
+    def close(self) -> None:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(self._tmp, 0o777 & ~umask)  # mkdtemp makes 0700
+        old = None
+        if self.path.exists():
+            old = Path(tempfile.mkdtemp(prefix=self.path.name + ".old-", dir=self.path.parent))
+            os.rmdir(old)
+            os.replace(self.path, old)
+        os.replace(self._tmp, self.path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def abort(self) -> None:
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def __enter__(self) -> "FrameDirWriter":
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def open_video_output(path: str | Path, width: int, height: int, fps: float):
+    """An H.264 video file (.mp4/.mkv/.mov, atgs.io.video.VideoWriter), or lossless PNG frames
+    when ``path`` has no suffix (a directory)."""
+    from atgs.io.video import VideoWriter
+
+    if Path(path).suffix == "":
+        return FrameDirWriter(path)
+    return VideoWriter(path, width, height, fps, codec="libx264", crf=18, pix_fmt="yuv420p", threads=0)
