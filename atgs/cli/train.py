@@ -1,6 +1,6 @@
 """``atgs-train``: train ATGS on a prepared scene (or the built-in synthetic scene).
 
-    atgs-train --data DIR --out DIR [--preset cpu-fast|cpu|cpu-accurate|paper] [--iterations N] [--resume]
+    atgs-train --data DIR --out DIR [--preset cpu-fast|cpu|cpu-accurate|paper] [--minutes M | --iterations N] [--resume]
 
 Every model/trainer knob is a flag (``--model.*``, ``--train.*``; see ``atgs-train --help``);
 flag defaults come from the chosen preset. Nothing in an existing ``--out`` changes before the new
@@ -17,7 +17,7 @@ from typing import Literal
 import tyro
 
 from atgs.config_dict import to_dict
-from atgs.errors import OutputError
+from atgs.errors import OutputError, UserError
 from atgs.io.cache import cache_dir
 from atgs.io.cli import Interrupted, run_cli, stop_on_sigint
 from atgs.model.config import ModelConfig
@@ -36,7 +36,13 @@ class TrainArgs:
     preset: PresetName = "cpu"
     """Configuration preset (fast -> accurate: cpu-fast, cpu, cpu-accurate; paper = GPU sizes)."""
     iterations: int | None = None
-    """Training steps (rescales the preset's schedule); with --resume: the new total."""
+    """Run exactly this many training steps (rescales the preset's schedule; no time budget);
+    with --resume: the new total."""
+    minutes: float | None = None
+    """Training time budget: the number of steps is sized from the measured step time and
+    re-sized as the model grows, so that training (with its final evaluation) ends on time.
+    Default: the preset's (cpu-fast 5, cpu 20, cpu-accurate 60 minutes; paper: 30,000 steps).
+    With --resume: the new total (time already used counts)."""
     resume: bool = False
     """Continue the run in --out from its ckpt.pt (configuration from the checkpoint)."""
     overwrite: bool = False
@@ -117,17 +123,24 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     from atgs.train.trainer import Trainer
 
     ckpt = args.out / "ckpt.pt"
+    if args.iterations is not None and args.minutes is not None:
+        raise UserError("--iterations and --minutes were both given; pass one (--iterations N runs exactly "
+                        "N steps, --minutes M sizes the steps to M minutes)")
+    if args.minutes is not None and args.minutes < 0:
+        raise UserError(f"--minutes {args.minutes}: must be >= 0 (0 runs the preset's fixed step count)")
     if args.resume:
         if not ckpt.is_file():
             raise OutputError(f"--resume: {ckpt} not found; start without --resume")
-        trainer = Trainer.resume(load_scene(args), ckpt, args.out, iterations=args.iterations)
+        trainer = Trainer.resume(load_scene(args), ckpt, args.out, iterations=args.iterations, minutes=args.minutes)
         print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations}")
         return trainer
     if ckpt.exists() and not args.overwrite:
         raise OutputError(f"{ckpt} already exists; pass --resume to continue it, --overwrite to start over, "
                           "or choose another --out")
     if args.iterations is not None:
-        args.train.iterations = args.iterations
+        args.train.iterations, args.train.minutes = args.iterations, 0.0
+    if args.minutes is not None:
+        args.train.minutes = args.minutes
     scene = load_scene(args)
     if args.auto:
         apply_auto(args, scene, explicit)
@@ -136,7 +149,8 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
                               "model": to_dict(args.model), "train": to_dict(args.train)})
     m = trainer.model
     print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
-          f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras")
+          f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras; "
+          + (f"{args.train.minutes:g} min time budget" if args.train.minutes > 0 else f"{args.train.iterations} steps"))
     return trainer
 
 

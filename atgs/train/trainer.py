@@ -25,6 +25,7 @@ from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians
 from atgs.timeline import evenly_spaced
 from atgs.train.config import TrainConfig
+from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.losses import image_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
@@ -104,6 +105,12 @@ class Trainer:
         self.skipped = 0
         self.final_pruned = 0
         self.images = ImageCache(self._load_image, cfg.image_cache_mb)
+        # --minutes: the step count is sized from the measured pace (atgs.train.budget)
+        self.budget = TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg)) if cfg.minutes > 0 else None
+        self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
+        self._session_start: float | None = None  # clock() when run_steps began
+        self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
+        self._planned_once = False
 
     # --- data -------------------------------------------------------------------------------
     def _load_image(self, cam: int, frame: int) -> np.ndarray:
@@ -295,6 +302,7 @@ class Trainer:
                 "densify": self.stats.state_dict(), "sampler": self.sampler.state_dict(),
                 "grid_visits": self.grid_visits.clone(), "generator": self.gen.get_state(),
                 "skipped": self.skipped, "bad_in_row": self.bad_in_row,
+                "budget": None if self.budget is None else self.budget.state_dict(self._time_used()),
             },
         }
 
@@ -308,14 +316,18 @@ class Trainer:
 
     @classmethod
     def resume(cls, scene: SceneData, path: str | Path, out_dir: str | Path,
-               iterations: int | None = None) -> "Trainer":
+               iterations: int | None = None, minutes: float | None = None) -> "Trainer":
+        """Continue the run of checkpoint ``path``. ``iterations``: a new total step count (and no
+        time budget); ``minutes``: a new total time budget (the time already used counts)."""
         data = read_checkpoint(path)
         if data.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
         model_cfg = from_dict(ModelConfig, data["model_config"])
         cfg = from_dict(TrainConfig, data["train_config"])
         if iterations is not None:
-            cfg.iterations = iterations
+            cfg.iterations, cfg.minutes = iterations, 0.0
+        if minutes is not None:
+            cfg.minutes = minutes
         if int(data["num_frames"]) != scene.num_frames:
             raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
@@ -331,7 +343,38 @@ class Trainer:
         tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
         tr.step = int(data["step"])
         tr.run = RunDir(tr.out, resume_step=tr.step)
+        saved = st.get("budget")
+        if tr.budget is not None and saved is not None:  # the time used so far counts
+            tr.budget = TimeBudget.resumed(saved, 60.0 * cfg.minutes)
+            left = tr.budget.steps_left()
+            if left is not None:  # provisional plan at the last pace; re-planned after calibration
+                rescale_schedule(cfg, tr.budget.base, max(tr.step, tr.step + left))
         return tr
+
+    # --- time budget -------------------------------------------------------------------------------
+    def _time_used(self) -> float:
+        """Training seconds of this run so far, earlier sessions (resumes) included."""
+        before = self._used_before + (self.budget.used if self.budget is not None else 0.0)
+        now = 0.0 if self._session_start is None else self.clock() - self._session_start
+        return before + now
+
+    def _follow_budget(self, bar) -> None:
+        """Re-size the schedule to the time left (no-op without --minutes)."""
+        if self.budget is None:
+            return
+        n = self.budget.plan(self.step, self._time_used(), self.cfg.iterations)
+        if n is None:
+            return
+        first = self.budget.pace > 0 and self._planned_once is False
+        rescale_schedule(self.cfg, self.budget.base, max(n, self.step))
+        if self.step >= n and self.cfg.densify.final_prune:  # out of time: the run ends at this step
+            self._final_prune(int(self.cfg.densify.stop_fraction * self.cfg.iterations))
+        bar.total = n
+        bar.refresh()
+        if first:
+            self._planned_once = True
+            bar.write(f"atgs-train: {self.budget.seconds / 60:.4g} min budget: {self.budget.pace:.3f} s per step "
+                      f"-> about {n} steps (re-sized as the model grows)")
 
     # --- the loop -------------------------------------------------------------------------------------
     def train(self, progress: bool = True, final_renders: bool = True, stop_at: int | None = None,
@@ -350,20 +393,20 @@ class Trainer:
         ``result["stopped_early"]`` = the step), at step ``stop_at`` or after the step at which
         ``should_stop()`` turns true (Ctrl-C)."""
         cfg = self.cfg
-        end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
-        t0 = time.perf_counter()
+        t0 = self._session_start = self.clock()
         start = self.step
         bar = progress_bar(cfg.iterations, "atgs-train", unit="step", enabled=progress, initial=start)
         ema_loss = ema_psnr = None
         try:
-            while self.step < end and not (should_stop is not None and should_stop()):
+            while (self.step < (cfg.iterations if stop_at is None else min(stop_at, cfg.iterations))
+                   and not (should_stop is not None and should_stop())):
                 r = self.train_step()
                 if not r.skipped and math.isfinite(r.loss):
                     ema_loss = r.loss if ema_loss is None else 0.9 * ema_loss + 0.1 * r.loss
                     ema_psnr = r.psnr if ema_psnr is None else 0.9 * ema_psnr + 0.1 * r.psnr
                 row = {"step": self.step, "loss": f"{r.loss:.6f}", "psnr": f"{r.psnr:.3f}",
                        "anchors": self.model.num_anchors, "gaussians": r.gaussians,
-                       "seconds": f"{time.perf_counter() - t0:.2f}", "skipped": self.skipped,
+                       "seconds": f"{self.clock() - t0:.2f}", "skipped": self.skipped,
                        "eval_psnr": "", "eval_ssim": ""}
                 if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iterations:
                     ev = self.evaluate()
@@ -372,17 +415,24 @@ class Trainer:
                 if cfg.save_every > 0 and self.step % cfg.save_every == 0 and self.step < cfg.iterations:
                     self.save()
                 bar.update(1)
+                self._follow_budget(bar)
                 if self.step % 5 == 0 or self.step == cfg.iterations:
                     bar.set_postfix(loss=f"{ema_loss or float('nan'):.4f}", psnr=f"{ema_psnr or float('nan'):.2f}",
                                     anchors=self.model.num_anchors, gs=r.gaussians, refresh=False)
         finally:
             bar.close()
-        seconds = time.perf_counter() - t0
+        seconds = self.clock() - t0
+        self._session_start = None
+        self._used_before = self._used_before + seconds
         stopped_early = self.step < cfg.iterations
         if self.step > start or not stopped_early:  # a stop before any step has nothing new to save
             self.save()
         result = {"steps": self.step - start, "seconds": seconds, "anchors": self.model.num_anchors,
                   "skipped": self.skipped, "final_pruned": self.final_pruned}
+        if self.budget is not None:
+            result["budget_seconds"] = self.budget.seconds
+            result["seconds_used"] = self._time_used()
+            result["seconds_per_step"] = self.budget.pace
         if stopped_early:
             result["stopped_early"] = self.step
         return result

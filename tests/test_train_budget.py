@@ -1,0 +1,110 @@
+"""--minutes: the step count follows the measured pace, the schedule stretches with it, the run
+ends on time, and a resumed run counts the time already used. Time is simulated (a fake clock),
+so nothing here depends on the machine's speed."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from atgs.cli.train import main as train_main
+from atgs.train.budget import FREEZE_FRACTION, ScheduleBase, TimeBudget, rescale_schedule
+from atgs.train.config import preset
+from atgs.train.trainer import Trainer
+from builders import make_toy_scene
+
+
+def simulate(budget: TimeBudget, pace_of_step, planned: int) -> tuple[int, float, list[int]]:
+    """Run the planning loop with a clock that advances pace_of_step(step) per step."""
+    step, used, plans = 0, 0.0, []
+    while step < planned:
+        used += pace_of_step(step)
+        step += 1
+        n = budget.plan(step, used, planned)
+        if n is not None:
+            planned = n
+            plans.append(n)
+    return step, used, plans
+
+
+@pytest.mark.parametrize("profile", ["constant", "doubles", "halves", "jump"])
+def test_the_plan_ends_on_time_for_any_pace(profile: str) -> None:
+    seconds = 600.0
+    paces = {"constant": lambda s: 0.2,
+             "doubles": lambda s: 0.2 * (1 + min(s, 1500) / 1500),  # the model grows during densification
+             "halves": lambda s: 0.4 / (1 + min(s, 1500) / 1500),
+             "jump": lambda s: 0.2 if s < 800 else 0.5}
+    b = TimeBudget(seconds, ScheduleBase.of(preset("cpu")[1]))
+    steps, used, plans = simulate(b, paces[profile], 5000)
+    reserve = b.reserve()
+    assert plans, "the first plan replaces the preset's step count"
+    assert used <= seconds - reserve + 2 * max(paces[profile](s) for s in range(steps)), "ends on time"
+    # uses the time: at worst the steps after the last re-sizing ran faster than planned
+    assert used >= (1 - (1 - FREEZE_FRACTION) * 0.55) * (seconds - reserve) - 5.0, (used, steps)
+    if profile == "constant":
+        assert abs(steps - (seconds - reserve) / 0.2) <= 10
+
+
+def test_out_of_time_ends_at_once() -> None:
+    b = TimeBudget(10.0, ScheduleBase.of(preset("cpu")[1]))
+    steps, used, _ = simulate(b, lambda s: 0.2 if s < 30 else 5.0, 5000)  # suddenly 25x slower
+    assert used <= 10.0 + 5.0 and steps == 31  # the step that crossed the limit is the last
+
+
+def test_rescaled_schedule_is_proportional_and_never_drifts() -> None:
+    _, cfg = preset("cpu")
+    base = ScheduleBase.of(cfg)
+    for n in (777, 12_345, 5000, 3):
+        rescale_schedule(cfg, base, n)
+    assert cfg.iterations == 3 and cfg.densify.start >= 1 and cfg.densify.interval >= 1
+    rescale_schedule(cfg, base, 10_000)  # from the base each time: exactly twice the preset's
+    assert (cfg.iterations, cfg.densify.start, cfg.densify.interval, cfg.lr.warmup_steps, cfg.eval_every,
+            cfg.save_every) == (10_000, 2 * base.densify_start, 2 * base.densify_interval,
+                                2 * base.warmup_steps, 2 * base.eval_every, 2 * base.save_every)
+    assert cfg.densify.stop_fraction == preset("cpu")[1].densify.stop_fraction
+
+
+def _budget_trainer(scene, out, minutes: float) -> Trainer:
+    m, t = preset("tiny")
+    t = dataclasses.replace(t, minutes=minutes, iterations=40, eval_every=0, save_every=0)
+    tr = Trainer(scene, m, t, out)
+    tr.clock = lambda: 0.5 * tr.step  # every step takes half a second
+    return tr
+
+
+def test_trainer_fills_the_budget_and_resume_counts_the_time_used(tmp_path) -> None:
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
+    tr = _budget_trainer(scene, tmp_path / "run", minutes=0.5)
+    res = tr.run_steps(progress=False)
+    reserve = tr.budget.reserve()
+    assert res["seconds_per_step"] == pytest.approx(0.5)
+    assert abs(tr.step - (30.0 - reserve) / 0.5) <= 2, (tr.step, reserve)  # not the preset's 40 steps
+    assert tr.cfg.iterations == tr.step and res["seconds_used"] == pytest.approx(0.5 * tr.step)
+    assert tr.cfg.densify.interval == max(1, round(preset("tiny")[1].densify.interval * tr.step / 40))
+    ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=True)
+    assert ck["trainer"]["budget"]["used"] == pytest.approx(0.5 * tr.step)
+    assert ck["train_config"]["minutes"] == 0.5
+
+    # resume with a 1-minute total: the half minute already used counts
+    tr2 = Trainer.resume(scene, tmp_path / "run" / "ckpt.pt", tmp_path / "run", minutes=1.0)
+    start = tr2.step
+    tr2.clock = lambda: 0.5 * (tr2.step - start)
+    tr2.run_steps(progress=False)
+    total = tr2.budget.used + 0.5 * (tr2.step - start)
+    assert 50.0 <= total <= 60.0 and tr2.step > start + 45
+
+
+def test_iterations_and_minutes_together_are_refused(tmp_path, capsys) -> None:
+    code = train_main(["--out", str(tmp_path / "r"), "--preset", "tiny", "--iterations", "5", "--minutes", "1",
+                       "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("atgs-train: error: ") and "--minutes" in err and "\n" not in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_presets_budget_and_fixed_steps() -> None:
+    assert [preset(n)[1].minutes for n in ("cpu-fast", "cpu", "cpu-accurate", "paper", "tiny")] == [5, 20, 60, 0, 0]
+    assert preset("cpu", iterations=300)[1].minutes == 0.0  # --iterations: exactly that many steps
+    assert preset("paper", minutes=30)[1].minutes == 30.0
