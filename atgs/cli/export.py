@@ -53,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def body() -> None:
         res = run(args)
-        print(f"atgs-export: wrote {len(res.frames)} PLY files ({sum(res.gaussians):,} Gaussians) and "
+        n = len(res.frames)
+        print(f"atgs-export: wrote {n} PLY file{'s' if n != 1 else ''} ({sum(res.gaussians):,} Gaussians) and "
               f"manifest.json to {res.out}")
 
     return run_cli("atgs-export", body, process=argv is None)
