@@ -32,7 +32,7 @@ from _docs import publish  # bench/_docs.py (the script's own folder is on sys.p
 
 @dataclass
 class BenchConfig:
-    checkpoint: Path = Path("/tmp/ply/run800/ckpt.pt")
+    checkpoint: Path = Path("/tmp/ply/cpu-fast-300/ckpt.pt")
     """A trained ckpt.pt (atgs-train output)."""
     repeats: int = 2
     """Exports of every frame to time."""

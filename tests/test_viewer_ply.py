@@ -229,3 +229,11 @@ def test_bad_input_in_a_real_process(bad_inputs, tmp_path: Path) -> None:
     assert proc.returncode == 2 and proc.stdout == ""
     err = proc.stderr.strip()
     assert err.count("\n") == 0 and err.startswith("atgs-view: error: ") and str(path) in err, err
+
+
+def test_a_run_folder_points_to_its_checkpoint(tmp_path: Path, capsys) -> None:
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "ckpt.pt").write_bytes(b"x")
+    assert main([str(tmp_path / "run"), "--headless", "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "a training run" in err and str(tmp_path / "run" / "ckpt.pt") in err and "\n" not in err

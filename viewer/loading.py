@@ -28,6 +28,9 @@ def load_source(path: str | Path, demo_gaussians: int = 20000, fps: float | None
     if is_ply_input(p):
         from atgs.viewer.ply_source import PlySource
 
+        if p.is_dir() and (p / "ckpt.pt").is_file() and not any(p.glob("*.ply")):
+            raise ViewerError(f"{p}: a training run, not a folder of .ply files; pass {p / 'ckpt.pt'}")
+
         return PlySource.open(p, fps)
     if fps is not None:
         raise ViewerError(f"--fps {fps}: only for PLY input; a checkpoint plays at its own frame rate")
