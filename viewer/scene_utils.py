@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.viewer.errors import ViewerError
@@ -94,7 +95,8 @@ def orbit_center(source: GaussianSource) -> np.ndarray:
     cams = list(source.cameras)
     if cams:
         return look_center(cams)
-    lo, hi = cloud_box(decode_frame(source, 0).means.cpu().numpy())
+    with torch.no_grad():  # the means only: no packing (a PLY source keeps the frame it read last)
+        lo, hi = cloud_box(source.gaussians_at_frame(0).means.cpu().numpy())
     return 0.5 * (lo + hi)
 
 
