@@ -104,6 +104,19 @@ def write_tiny_checkpoint(path: Path, num_frames: int = 9, points: int = 300) ->
     return path
 
 
+def train_tiny_checkpoint(out_dir: Path, iterations: int = 30, size: tuple[int, int] = (48, 36)) -> Path:
+    """``ckpt.pt`` of the ``tiny`` preset trained ``iterations`` steps on :func:`make_toy_scene`
+    (6 frames, 4 cameras of ``size``; ~5 s on 2 cores)."""
+    from atgs.train.config import preset
+    from atgs.train.trainer import Trainer
+
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=size[0], height=size[1], keyframes=3)
+    m, t = preset("tiny")
+    t.iterations = iterations
+    Trainer(scene, m, t, out_dir).train(progress=False, final_renders=False)
+    return Path(out_dir) / "ckpt.pt"
+
+
 # --- an in-memory dynamic scene ----------------------------------------------------------------
 
 @dataclass

@@ -78,6 +78,7 @@ def _last_line(stderr: str) -> str:
 
 def test_every_command_reports_bad_input_in_one_line_with_exit_code_2(tmp_path, capsys) -> None:
     from atgs.cli.evaluate import main as eval_main
+    from atgs.cli.export import main as export_main
     from atgs.cli.prepare import main as prepare_main
     from atgs.cli.synth import main as synth_main
     from atgs.cli.train import main as train_main
@@ -90,6 +91,8 @@ def test_every_command_reports_bad_input_in_one_line_with_exit_code_2(tmp_path, 
         ("atgs-prepare", prepare_main, [str(missing), "--out", str(tmp_path / "p")], "source path does not exist"),
         ("atgs-synth", synth_main, [str(tmp_path / "s"), "--cameras", "1"], "cameras >= 2"),
         ("atgs-eval", eval_main, [str(missing / "ckpt.pt")], "checkpoint not found"),
+        ("atgs-export", export_main, [str(missing / "ckpt.pt"), "--out", str(tmp_path / "plys")],
+         "checkpoint not found"),
         ("atgs-view", view_main, [str(missing / "ckpt.pt"), "--headless"], "checkpoint not found"),
         ("atgs-render", render_main, [str(missing / "ckpt.pt"), "--out", str(tmp_path / "v.mp4")],
          "checkpoint not found"),

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from atgs.errors import OutputError, UserError
-from atgs.io.atomic import atomic_file, write_json_atomic
+from atgs.io.atomic import atomic_dir, atomic_file, write_json_atomic
 from atgs.io.cache import cache_dir
 from atgs.io.cli import Interrupted, run_cli
 from atgs.io.video import VideoWriter
@@ -33,6 +33,26 @@ def test_atomic_file_replaces_only_when_complete(tmp_path) -> None:
     assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~umask  # not mkstemp's 0600
     with pytest.raises(OutputError, match="is a directory"):
         write_json_atomic(tmp_path, {})
+
+
+def test_atomic_dir_replaces_only_when_complete(tmp_path) -> None:
+    out = tmp_path / "out"
+    with atomic_dir(out) as tmp:
+        (tmp / "a").write_text("1")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o777 & ~umask  # not mkdtemp's 0700
+    with pytest.raises(OutputError, match="--overwrite"):
+        with atomic_dir(out):
+            pass
+    with pytest.raises(RuntimeError):
+        with atomic_dir(out, overwrite=True) as tmp:
+            (tmp / "b").write_text("half")
+            raise RuntimeError("killed mid-write")
+    assert [p.name for p in out.iterdir()] == ["a"] and [p.name for p in tmp_path.iterdir()] == ["out"]
+    with atomic_dir(out, overwrite=True) as tmp:
+        (tmp / "b").write_text("2")
+    assert [p.name for p in out.iterdir()] == ["b"] and [p.name for p in tmp_path.iterdir()] == ["out"]
 
 
 def test_video_writer_publishes_on_close_and_discards_on_error(tmp_path) -> None:

@@ -1,4 +1,4 @@
-"""The real player window under Xvfb: opens a checkpoint, plays, scrubs, screenshots."""
+"""The real player window under Xvfb: opens a checkpoint (or its PLY export), plays, scrubs, screenshots."""
 
 from __future__ import annotations
 
@@ -15,14 +15,21 @@ from PIL import Image
 from builders import write_tiny_checkpoint
 
 
-def test_window_plays_scrubs_and_screenshots(tmp_path: Path) -> None:
+@pytest.mark.parametrize("opened", ["checkpoint", "ply folder"])
+def test_window_plays_scrubs_and_screenshots(tmp_path: Path, opened: str) -> None:
+    """The same session on a checkpoint and on its atgs-export folder (24 PLY files + manifest)."""
     if shutil.which("xvfb-run") is None:
         pytest.fail("xvfb-run is missing: apt-get install xvfb xauth")
-    ckpt = write_tiny_checkpoint(tmp_path / "ckpt.pt", num_frames=24)
+    source = ckpt = write_tiny_checkpoint(tmp_path / "ckpt.pt", num_frames=24)
+    if opened == "ply folder":
+        import atgs
+        from atgs.export import export_ply_sequence
+
+        source = export_ply_sequence(atgs.load(ckpt), tmp_path / "plys", list(range(24)), progress=False).out
     shot = tmp_path / "shot.png"
     cmd = [
         "xvfb-run", "-a", "-s", "-screen 0 640x480x24",
-        sys.executable, str(Path(__file__).with_name("viewer_driver.py")), str(ckpt), str(shot),
+        sys.executable, str(Path(__file__).with_name("viewer_driver.py")), str(source), str(shot),
         "--camera", "1", "--size", "320x240", "--frames", "12",
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)

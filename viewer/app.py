@@ -29,7 +29,7 @@ from atgs.viewer.output import display_rgb, save_image, to_uint8
 from atgs.viewer.packing import PackedGaussians
 from atgs.viewer.path_panel import PathPanel
 from atgs.viewer.playback import FrameFeeder, Playback
-from atgs.viewer.scene_utils import look_center, parse_size, start_camera
+from atgs.viewer.scene_utils import orbit_center, parse_size, start_camera
 from atgs.viewer.source import GaussianSource, decode_frame, scene_up
 from atgs.viewer.splat_renderer import MODES, RenderSettings, SplatRenderer
 from atgs.viewer.window_size import default_window_size, screen_work_area
@@ -129,7 +129,7 @@ class PlayerApp:
                                  keep_bytes=max(0, cache_mb) << 20)
         self.feeder = FrameFeeder(self.cache, lookahead=4)
         self.cache.prefetch(range(source.num_frames))  # fill --cache-mb in the background
-        self.center = look_center(self.cameras)
+        self.center = orbit_center(source)
         self.control = CameraControl.from_camera(cam0, pivot=self.center, up=scene_up(self.cameras))
         self.fly_mode = False
         self.fly_speed = 0.5 * max(self.control.state.distance, 1e-3)  # world units per second

@@ -19,24 +19,25 @@ from atgs.viewer.camera_path_file import load_camera_path
 from atgs.viewer.device import place_source, resolve_device
 from atgs.viewer.errors import ViewerError
 from atgs.viewer.loading import load_source
-from atgs.viewer.scene_utils import cameras_path, orbit_path, parse_size, resized, start_camera
+from atgs.viewer.scene_utils import cameras_path, orbit_center, orbit_path, parse_size, resized, start_camera
 from atgs.viewer.splat_renderer import RenderSettings
 
 
 @dataclass
 class ViewConfig:
-    """Play a trained ATGS volumetric video (window), or render one frame headless."""
+    """Play a trained ATGS volumetric video or 3D Gaussian splatting PLY files (window), or render one frame headless."""
 
     checkpoint: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
-    """ckpt.pt written by atgs-train, or 'demo' for the built-in synthetic scene."""
+    """ckpt.pt written by atgs-train, a 3DGS .ply file (a static scene), a folder of per-frame .ply
+    files (a sequence, e.g. written by atgs-export), or 'demo' for the built-in synthetic scene."""
     headless: bool = False
     """Render one frame to --out without a window (OSMesa or EGL)."""
     time: float = 0.0
     """Normalized time t in [0, 1] (headless; the window opens at t = 0)."""
     frame: int | None = None
-    """Frame index instead of --time."""
+    """Frame index instead of --time (a PLY folder: the i-th file in frame-number order)."""
     camera: int = 0
-    """Training camera index to render from / open on."""
+    """Training camera index to render from / open on (PLY input without manifest.json: a camera that frames the scene)."""
     out: Path = Path("frame.png")
     """Headless output image (.png or .jpg)."""
     gl: Literal["auto", "egl", "osmesa"] = "auto"
@@ -52,6 +53,8 @@ class ViewConfig:
     Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
     demo_gaussians: int = 20000
     """Gaussians of the built-in 'demo' scene."""
+    fps: float | None = None
+    """Playback frame rate of PLY input (default: the folder's manifest.json's, else 30)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
     preload: bool = False
@@ -69,10 +72,10 @@ class ViewConfig:
 
 @dataclass
 class RenderConfig:
-    """Render a video of a trained ATGS model along a camera path."""
+    """Render a video of a trained ATGS model (or 3D Gaussian splatting PLY files) along a camera path."""
 
     checkpoint: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
-    """ckpt.pt written by atgs-train, or 'demo'."""
+    """ckpt.pt written by atgs-train, a 3DGS .ply file, a folder of per-frame .ply files, or 'demo'."""
     out: Path = Path("video.mp4")
     """Video file (.mp4, .mkv, .mov), or a directory name (no suffix) for lossless PNG frames 00000.png, ..."""
     path: str = "orbit"
@@ -111,7 +114,7 @@ def run_headless(cfg: ViewConfig) -> Path:
     settings = render_settings(cfg)
     size = parse_size(cfg.size)
     device = resolve_device(cfg.device)
-    source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians), device)
+    source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians, cfg.fps), device)
     n = source.num_frames
     if cfg.frame is not None:
         if not 0 <= cfg.frame < n:
@@ -137,7 +140,7 @@ def run_window(cfg: ViewConfig) -> None:
 
     settings = render_settings(cfg)
     device = resolve_device(cfg.device)
-    source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians), device)
+    source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians, cfg.fps), device)
     preloaded = preload_frames(source, cfg.preload_mb, device) if cfg.preload else None
     app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
                     cache_mb=cfg.cache_mb, device=device, path_file=cfg.path)
@@ -194,7 +197,7 @@ def render_video(cfg: RenderConfig) -> Path:
         path, times = camera_path.render_plan(size[0], size[1], n)
         frames = [frame_at(t, F) for t in times]
     else:
-        path = orbit_path(cams, n) if cfg.path == "orbit" else cameras_path(cams, n)
+        path = orbit_path(cams, n, orbit_center(source)) if cfg.path == "orbit" else cameras_path(cams, n)
         path = [resized(c, size) for c in path]
         frames = [frame_at(0.0 if n == 1 else i / (n - 1), F) for i in range(n)]
     with open_video_output(cfg.out, size[0], size[1], fps) as writer:

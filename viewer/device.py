@@ -14,6 +14,7 @@ from typing import Literal
 
 import torch
 
+from atgs.threads import torch_threads
 from atgs.viewer.errors import ViewerError
 
 DeviceName = Literal["auto", "cpu", "cuda"]
@@ -46,19 +47,11 @@ def place_source(source, device: torch.device):
 
 @contextmanager
 def cpu_threads(device: torch.device, threads: int = 1) -> Iterator[None]:
-    """Run the enclosed torch ops with ``threads`` intra-op threads when ``device`` is the CPU.
-
-    Packing and sorting are a few memory-bound passes; with torch's two OpenMP threads they
-    stall whenever the other core is busy (llvmpipe, the decode thread, other programs): packing
-    50k Gaussians took 330-450 ms with two threads and 3.5-28 ms with one at load 8 on this
-    2-core machine. OpenMP's thread count is per calling thread, so this leaves the model's
-    decode (other calls, other threads) alone."""
-    before = torch.get_num_threads()
-    if device.type != "cpu" or before == threads:
+    """Run the enclosed torch ops with ``threads`` intra-op threads when ``device`` is the CPU
+    (:func:`atgs.threads.torch_threads`: packing and sorting stall with two OpenMP threads when
+    the other core is busy, 330-450 ms against 3.5-28 ms for 50k Gaussians at load 8 here)."""
+    if device.type != "cpu":
         yield
         return
-    torch.set_num_threads(threads)
-    try:
+    with torch_threads(threads):
         yield
-    finally:
-        torch.set_num_threads(before)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.viewer.errors import ViewerError
@@ -55,9 +56,19 @@ def look_center(cameras: list[Camera], fallback: np.ndarray | None = None) -> np
     return np.zeros(3)
 
 
+def cloud_box(means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corners of the box holding a point cloud's bulk (2nd to 98th percentile: stray points
+    far out do not shrink the view)."""
+    if not len(means):
+        return -np.ones(3), np.ones(3)
+    lo, hi = np.percentile(np.asarray(means, dtype=np.float64), [2, 98], axis=0)
+    return lo, hi
+
+
 def default_camera(means: np.ndarray, size: tuple[int, int] = (640, 480)) -> Camera:
-    """A camera that frames a point cloud (for sources without training cameras)."""
-    lo, hi = (np.percentile(means, [2, 98], axis=0) if len(means) else (-np.ones(3), np.ones(3)))
+    """A camera that frames a point cloud (for sources without training cameras), looking at
+    the centre of :func:`cloud_box`."""
+    lo, hi = cloud_box(means)
     center = 0.5 * (lo + hi)
     radius = max(float(np.linalg.norm(hi - lo)) * 0.5, 1e-3)
     W, H = size
@@ -76,6 +87,17 @@ def start_camera(source: GaussianSource, index: int) -> Camera:
     if not 0 <= index < len(cams):
         raise ViewerError(f"--camera {index}: the checkpoint has cameras 0..{len(cams) - 1}")
     return cams[index]
+
+
+def orbit_center(source: GaussianSource) -> np.ndarray:
+    """The pivot of orbits: where the training cameras look, or for a source without cameras
+    (a 3DGS PLY) the point :func:`default_camera` looks at."""
+    cams = list(source.cameras)
+    if cams:
+        return look_center(cams)
+    with torch.no_grad():  # the means only: no packing (a PLY source keeps the frame it read last)
+        lo, hi = cloud_box(source.gaussians_at_frame(0).means.cpu().numpy())
+    return 0.5 * (lo + hi)
 
 
 def orbit_path(cameras: list[Camera], n: int, center: np.ndarray | None = None) -> list[Camera]:

@@ -104,6 +104,9 @@ def atomic_dir(out: Path, overwrite: bool = False) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; a published directory gets what mkdir gives
     old: Path | None = None
     if out.exists():
         check_output_dir(out, overwrite)  # something may have appeared while we worked

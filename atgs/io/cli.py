@@ -1,7 +1,7 @@
 """The one wrapper around every command's body, and Ctrl-C as a clean stop.
 
 :func:`run_cli` keeps the promises of the README for all commands (``atgs-train``, ``-prepare``,
-``-synth``, ``-eval``, ``-view``, ``-render``): a :class:`~atgs.errors.UserError` (bad input, an
+``-synth``, ``-eval``, ``-export``, ``-view``, ``-render``): a :class:`~atgs.errors.UserError` (bad input, an
 output that may not be replaced, a run that cannot go on) becomes one line
 ``<command>: error: <message>`` on stderr and exit code 2, never a traceback; Ctrl-C becomes one
 line ``<command>: interrupted[: what was kept]`` and exit code 130. Outputs are atomic

@@ -1,0 +1,64 @@
+"""``atgs-export CKPT --out DIR``: per-frame 3D Gaussian splatting PLY files of a checkpoint.
+
+Bad input gives one line on stderr and exit code 2 (atgs.io.cli); the output folder appears
+complete or not at all (see :mod:`atgs.export`)."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from atgs.io.cli import run_cli
+
+
+@dataclass
+class ExportArgs:
+    """Export a trained ATGS checkpoint as 3D Gaussian splatting PLY files, one per frame
+    (frame_000000.ply, ...), plus manifest.json (fps, frames, cameras)."""
+
+    ckpt: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
+    """Checkpoint file written by atgs-train (ckpt.pt)."""
+    out: Path
+    """Output folder; built aside and renamed into place when complete."""
+    frames: str | None = None
+    """Frames to export: start:stop[:step] (stop exclusive, e.g. 0:120:2) or a list (e.g. 0,30,60); default all."""
+    min_opacity: float = 0.0
+    """Drop Gaussians whose opacity is below this (e.g. 0.005 keeps files smaller)."""
+    overwrite: bool = False
+    """Replace an existing non-empty output folder (only once the new one is complete)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+def run(args: ExportArgs):
+    from atgs.checkpoint import model_from_checkpoint, read_checkpoint
+    from atgs.export import export_ply_sequence, parse_frames
+    from atgs.io.atomic import check_output_dir
+
+    check_output_dir(args.out, args.overwrite)
+    ckpt = read_checkpoint(args.ckpt)  # validated; a missing or corrupt file is a one-line error
+    model = model_from_checkpoint(ckpt, args.ckpt)
+    frames = parse_frames(args.frames, model.num_frames)
+    source = {"checkpoint": str(args.ckpt.resolve()), "step": ckpt.get("step")}
+    return export_ply_sequence(model, args.out, frames, min_opacity=args.min_opacity, overwrite=args.overwrite,
+                               source=source, progress=args.progress)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = tyro.cli(ExportArgs, args=argv, prog="atgs-export")
+
+    def body() -> None:
+        res = run(args)
+        n = len(res.frames)
+        print(f"atgs-export: wrote {n} PLY file{'s' if n != 1 else ''} ({sum(res.gaussians):,} Gaussians) and "
+              f"manifest.json to {res.out}")
+
+    return run_cli("atgs-export", body, process=argv is None)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
