@@ -107,8 +107,8 @@ class Trainer:
         self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         if model is None:  # built on the CPU (the same initialisation on every device), then moved
             model = ATGSModel.from_points(
-                model_cfg, torch.from_numpy(np.asarray(scene.points, dtype=np.float32)),
-                torch.from_numpy(np.asarray(scene.point_keyframes, dtype=np.int64)), list(scene.keyframes),
+                model_cfg, torch.as_tensor(np.asarray(scene.points, dtype=np.float32), device="cpu"),
+                torch.as_tensor(np.asarray(scene.point_keyframes, dtype=np.int64), device="cpu"), list(scene.keyframes),
                 scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in self.train_idx],
                 seed=cfg.seed, bounds=_bounds(scene))
         self.model = model.to(self.device)
