@@ -21,9 +21,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from atgs.train.config import preset
 from atgs.train.trainer import Trainer
-from builders import make_toy_scene
+from builders import growing_tiny_config, make_toy_scene
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -38,12 +37,8 @@ DEVICE_MODULES = [*sorted((REPO / "atgs" / "model").glob("*.py")), *sorted((REPO
 
 
 def _densifying_config(iterations: int):
-    m, t = preset("tiny")
-    t.iterations = iterations
-    t.densify.start, t.densify.interval, t.densify.grad_threshold = 4, 2, 1e-6
-    t.densify.success_threshold, t.densify.init_factor, t.densify.min_opacity = 0.1, 1, 1.5
-    t.views_per_step, t.random_background, t.grad_clip = 2, True, 0.05
-    t.eval_max_frames = 2
+    m, t = growing_tiny_config(iterations)
+    t.random_background, t.grad_clip, t.eval_max_frames = True, 0.05, 2  # their paths run too
     return m, t
 
 

@@ -97,7 +97,8 @@ def test_value_checks_read_back_at_once_on_a_gpu_agree_with_the_cpu_checks() -> 
     nan = float("nan")
     cases = {  # the checks each input fails
         "good": (tensors(), set()),
-        "nan opacity": (tensors(opacities=torch.tensor([0.5, nan, 0.5])), {"finite opacities", "opacities in [0, 1]"}),
+        "nan opacity": (tensors(opacities=torch.tensor([0.5, nan, 0.5])),
+                        {"finite opacities", "opacities in [0, 1]"}),
         "inf mean": (tensors(means=torch.tensor([[0.0, 0.0, float("inf")]] * 3)), {"finite means"}),
         "opacity > 1": (tensors(opacities=torch.tensor([0.5, 1.5, 0.5])), {"opacities in [0, 1]"}),
         "opacity < 0": (tensors(opacities=torch.tensor([0.5, -0.1, 0.5])), {"opacities in [0, 1]"}),

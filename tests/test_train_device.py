@@ -15,7 +15,7 @@ from atgs.device import DeviceError, resolve_device
 from atgs.render.cuda import gsplat_available
 from atgs.train.config import preset
 from atgs.train.trainer import Trainer
-from builders import make_toy_scene, write_tiny_checkpoint
+from builders import growing_tiny_config, make_toy_scene, write_tiny_checkpoint
 
 needs_cuda = pytest.mark.skipif(not gsplat_available(), reason="needs a CUDA device and gsplat (pip install gsplat)")
 
@@ -23,16 +23,6 @@ needs_cuda = pytest.mark.skipif(not gsplat_available(), reason="needs a CUDA dev
 @pytest.fixture(scope="module")
 def scene():
     return make_toy_scene(num_frames=5, num_cameras=4, width=32, height=24, keyframes=3)
-
-
-def _growing_config(iterations: int):
-    """The tiny preset with densification early and eager (anchors grow within a few steps)."""
-    m, t = preset("tiny")
-    t.iterations = iterations
-    t.densify.start, t.densify.interval, t.densify.grad_threshold = 4, 2, 1e-6
-    t.densify.success_threshold, t.densify.init_factor, t.densify.min_opacity = 0.1, 1, 1.5
-    t.views_per_step = 2
-    return m, t
 
 
 def _model_tensors(obj, seen=None):
@@ -124,7 +114,7 @@ def test_train_with_device_cpu_end_to_end(toy_scene_dir, tmp_path, capsys) -> No
 def test_checkpoints_hold_cpu_tensors_and_load_where_asked(scene, tmp_path, monkeypatch) -> None:
     from atgs.checkpoint import on_cpu
 
-    tr = Trainer(scene, *_growing_config(6), tmp_path)
+    tr = Trainer(scene, *growing_tiny_config(6), tmp_path)
     tr.train(progress=False, final_renders=False)
     data = torch.load(tmp_path / "ckpt.pt", weights_only=True)  # no map_location: as written
     tensors = [v for v in _leaves(data) if isinstance(v, torch.Tensor)]
@@ -178,7 +168,7 @@ def test_model_to_moves_every_tensor_and_empties_the_decode_cache(tmp_path) -> N
 
 @needs_cuda
 def test_cuda_training_steps_are_finite_and_densification_grows_anchors(scene, tmp_path) -> None:
-    tr = Trainer(scene, *_growing_config(10), tmp_path, device="cuda")
+    tr = Trainer(scene, *growing_tiny_config(10), tmp_path, device="cuda")
     anchors = tr.model.num_anchors
     results = [tr.train_step() for _ in range(10)]
     assert all(not r.skipped and torch.isfinite(torch.tensor(r.loss)) for r in results)
@@ -189,7 +179,7 @@ def test_cuda_training_steps_are_finite_and_densification_grows_anchors(scene, t
 
 @needs_cuda
 def test_cpu_and_cuda_decode_of_a_checkpoint_agree(scene, tmp_path) -> None:
-    tr = Trainer(scene, *_growing_config(8), tmp_path)
+    tr = Trainer(scene, *growing_tiny_config(8), tmp_path)
     tr.train(progress=False, final_renders=False)
     cpu = atgs.load(tmp_path / "ckpt.pt", device="cpu")
     gpu = atgs.load(tmp_path / "ckpt.pt", device="cuda")
@@ -205,7 +195,7 @@ def test_cpu_and_cuda_decode_of_a_checkpoint_agree(scene, tmp_path) -> None:
 @needs_cuda
 @pytest.mark.parametrize(("first", "then"), [("cuda", "cpu"), ("cpu", "cuda")])
 def test_resume_across_devices(first, then, scene, tmp_path) -> None:
-    tr = Trainer(scene, *_growing_config(12), tmp_path, device=first)
+    tr = Trainer(scene, *growing_tiny_config(12), tmp_path, device=first)
     tr.run_steps(progress=False, stop_at=6)
     resumed = Trainer.resume(scene, tmp_path / "ckpt.pt", tmp_path, device=then)
     assert resumed.step == 6 and resumed.model.num_anchors == tr.model.num_anchors
