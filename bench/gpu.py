@@ -93,10 +93,11 @@ def unavailable(device: str, part: str) -> str | None:
     atgs-view's rule (atgs.device), training needing gsplat as well."""
     from atgs.device import cuda_problem
 
-    problem = cuda_problem(need_gsplat=part == "train") if device == "cuda" else None
-    if problem is None:
+    if device != "cuda" or cuda_problem(need_gsplat=part == "train") is None:
         return None
-    return f"{NOT_MEASURED} ({problem.split(';')[0]}; torch {torch.__version__})"
+    if not torch.cuda.is_available():
+        return f"{NOT_MEASURED} (no CUDA device: torch {torch.__version__} sees none)"
+    return f"{NOT_MEASURED} ({cuda_problem(need_gsplat=True).split(';')[0]})"
 
 
 def _sync(device: str) -> None:
@@ -176,15 +177,15 @@ def viewer_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> li
 
 def decode_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> list[dict]:
     """ms per decoded + packed frame of an untrained model of each preset, on ``device``: the
-    model moves there if it can (``to(device)``), else it decodes on the CPU and its Gaussians
-    are packed on the device (the player does the same, viewer.device)."""
+    model moves there (``ATGSModel.to``, through the player's ``place_source``) and decodes and
+    packs there."""
     from atgs.viewer.device import place_source
 
     rows = []
     for preset_name in cfg.presets:
         model = untrained_model(preset_name, cfg.decode_points)
         source = place_source(model, torch.device(device))
-        where = device if (source is not model or device == "cpu") else "cpu (the model cannot move: no to())"
+        where = str(source.device)  # ATGSModel.to moves the model in place
         first = decode_frame(source, 0, device)
         frames = [1 + i % (model.num_frames - 1) for i in range(cfg.decode_frames)]
         ms = [decode_frame(source, f, device).decode_ms for f in frames]
@@ -246,7 +247,7 @@ def markdown_table(result: dict) -> str:
     for part, (head, key, cells) in tables.items():
         part_rows = [r for r in rows if r["part"] == part]
         if part_rows:
-            lines += (["", ""] if lines else []) + [_stamp(result["parts"][part])]
+            lines += ([""] if lines else []) + [_stamp(result["parts"][part])]
             lines += part_table(part_rows, head, key, cells)
     return "\n".join(lines)
 

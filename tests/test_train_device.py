@@ -6,6 +6,7 @@ tests/test_device_placement.py checks it creates nothing off the model's device)
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -171,9 +172,8 @@ def test_cuda_training_steps_are_finite_and_densification_grows_anchors(scene, t
     tr = Trainer(scene, *growing_tiny_config(10), tmp_path, device="cuda")
     anchors = tr.model.num_anchors
     results = [tr.train_step() for _ in range(10)]
-    assert all(not r.skipped and torch.isfinite(torch.tensor(r.loss)) for r in results)
+    assert all(not r.skipped and math.isfinite(r.loss) for r in results)
     assert tr.model.device.type == "cuda" and tr.stats.device.type == "cuda"
-    assert float(tr.stats.grad_accum.sum()) > 0 or tr.model.num_anchors > anchors, "gsplat's means2d gradient"
     assert tr.model.num_anchors > anchors, "densification grew anchors from gsplat's screen-space gradients"
 
 

@@ -44,7 +44,7 @@ class TrainArgs:
     overwrite: bool = False
     """Start a new run even if --out already holds a checkpoint (it is replaced at the first save)."""
     device: DeviceName = "auto"
-    """Where to train: cuda (the GPU, rasterizing with gsplat), cpu (the compiled CPU rasterizer), or
+    """Where to train: cuda (the GPU; gsplat rasterizes), cpu (the compiled CPU rasterizer),
     auto (cuda when torch sees a GPU and gsplat imports, else cpu). --resume may change it."""
     progress: bool = True
     cache_dir: Path = field(default_factory=cache_dir)
