@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from atgs.cameras import Camera
-from atgs.device import DeviceError
+from atgs.device import usable_device
 from atgs.errors import UserError
 from atgs.io.atomic import atomic_file
 
@@ -91,18 +91,6 @@ def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>", device:
         raise CheckpointError(f"{path}: checkpoint contents are inconsistent ({type(e).__name__}: {e})") from None
     model.test_camera_names = list(data.get("test_cameras", []))
     return model.to(usable_device(device))
-
-
-def usable_device(device: torch.device | str) -> torch.device:
-    """``device`` as a torch.device; a CUDA device that torch cannot see is a one-line error."""
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise DeviceError(f"device {device!r} is not a torch device; use 'cpu' or 'cuda'") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise DeviceError(f"device {device!r}: torch sees no CUDA device (a CPU-only torch build, or no "
-                          "GPU/driver); load with device='cpu'")
-    return dev
 
 
 def load_model(path: str | Path, device: torch.device | str = "cpu"):

@@ -50,8 +50,21 @@ def resolve_device(name: str, need_gsplat: bool = False) -> torch.device:
     return torch.device("cpu")
 
 
+def usable_device(device: torch.device | str) -> torch.device:
+    """``device`` (a torch device or its name, as ``atgs.load`` takes it) as a torch.device; a
+    CUDA device that torch cannot see is a one-line error."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise DeviceError(f"device {device!r} is not a torch device; use 'cpu' or 'cuda'") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise DeviceError(f"device {device!r}: torch sees no CUDA device (a CPU-only torch build, or no "
+                          "GPU/driver); load with device='cpu'")
+    return dev
+
+
 def device_description(device: torch.device) -> str:
-    """A short name of ``device`` for messages and benchmark rows."""
+    """A short name of ``device`` for messages ("cuda (NVIDIA H100 80GB HBM3)", "cpu")."""
     if device.type == "cuda":
         return f"cuda ({torch.cuda.get_device_name(device)})"
     return str(device)

@@ -5,7 +5,7 @@ Every command line (``atgs.io.cli.run_cli``) prints it as ``<command>: error: <m
 traceback and exits with code 2. Each layer subclasses it: ``atgs.data.errors.DataError``,
 ``atgs.checkpoint.CheckpointError``, ``atgs.eval.evaluate.EvalError``,
 ``atgs.viewer.errors.ViewerError``, ``atgs.headless_gl.HeadlessGLError``,
-``atgs.train.trainer.NonFiniteError`` and :class:`OutputError` below.
+``atgs.train.trainer.NonFiniteError``, ``atgs.device.DeviceError`` and :class:`OutputError` below.
 """
 
 from __future__ import annotations
