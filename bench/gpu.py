@@ -126,6 +126,8 @@ def train_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> lis
     for name in cfg.train_presets:
         model_cfg, train_cfg = preset(name)
         train_cfg.eval_every = train_cfg.save_every = 0
+        images_mb = sum(a.nbytes for a in scene.frames.values()) / 2**20
+        train_cfg.image_cache_mb = max(train_cfg.image_cache_mb, int(images_mb) + 1)  # every image cached
         with tempfile.TemporaryDirectory() as out:
             t0 = time.perf_counter()
             tr = Trainer(scene, model_cfg, train_cfg, out, device=device)
