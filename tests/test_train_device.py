@@ -19,6 +19,7 @@ from atgs.train.trainer import Trainer
 from builders import growing_tiny_config, make_toy_scene, write_tiny_checkpoint
 
 needs_cuda = pytest.mark.skipif(not gsplat_available(), reason="needs a CUDA device and gsplat (pip install gsplat)")
+needs_cuda_device = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (torch sees none)")
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +178,7 @@ def test_cuda_training_steps_are_finite_and_densification_grows_anchors(scene, t
     assert tr.model.num_anchors > anchors, "densification grew anchors from gsplat's screen-space gradients"
 
 
-@needs_cuda
+@needs_cuda_device  # trained on the CPU: no gsplat needed
 def test_cpu_and_cuda_decode_of_a_checkpoint_agree(scene, tmp_path) -> None:
     tr = Trainer(scene, *growing_tiny_config(8), tmp_path)
     tr.train(progress=False, final_renders=False)
