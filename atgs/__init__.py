@@ -17,8 +17,9 @@ if not (_Path(__file__).parent / "viewer").is_dir() and (_checkout / "viewer" / 
     __path__.append(str(_checkout))  # noqa: F821 - the package's module search path
 
 
-def load(path, device: str = "cpu"):
-    """Load a trained checkpoint ``ckpt.pt`` and return the model (see :mod:`atgs.model`)."""
+def load(path, device="cpu"):
+    """Load a trained checkpoint ``ckpt.pt`` and return the model (see :mod:`atgs.model`) on
+    ``device`` ("cpu", "cuda", a torch.device); checkpoints load on any device."""
     from atgs.checkpoint import load_model  # deferred: keeps `import atgs` light
 
     return load_model(path, device=device)

@@ -8,6 +8,9 @@ A checkpoint is a dict of tensors and plain Python types only, read with
      "cameras": [Camera.to_dict()], "test_cameras": [names],
      "num_frames": F, "fps": fps, "time_range": [0.0, (F - 1) / fps], "keyframes": [frames],
      "step": int, "model": {...tensors...}, "trainer": {...optimizer state, RNG...} | None}
+
+Tensors are saved on the CPU whatever the device they were trained on, so a checkpoint loads on
+any machine; :func:`load_model` / :func:`model_from_checkpoint` move the model to ``device``.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 import torch
 
 from atgs.cameras import Camera
+from atgs.device import usable_device
 from atgs.errors import UserError
 from atgs.io.atomic import atomic_file
 
@@ -30,9 +34,21 @@ class CheckpointError(UserError, ValueError):
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:
-    """Write ``payload`` to ``path`` atomically (atgs.io.atomic: temp file, fsync, rename)."""
+    """Write ``payload`` to ``path`` atomically (atgs.io.atomic: temp file, fsync, rename), its
+    tensors on the CPU."""
     with atomic_file(path) as tmp:
-        torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
+        torch.save({"format": FORMAT, "version": VERSION, **on_cpu(payload)}, tmp)
+
+
+def on_cpu(tree):
+    """``tree`` (dicts, lists, tuples) with every tensor on the CPU (CPU tensors as they are)."""
+    if isinstance(tree, torch.Tensor):
+        return tree.cpu()
+    if isinstance(tree, dict):
+        return {k: on_cpu(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return type(tree)(on_cpu(v) for v in tree)
+    return tree
 
 
 def read_checkpoint(path: str | Path) -> dict:
@@ -61,7 +77,8 @@ def read_checkpoint(path: str | Path) -> dict:
     return data
 
 
-def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>"):
+def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>", device: torch.device | str = "cpu"):
+    """The model of a checkpoint dict (:func:`read_checkpoint`), on ``device``."""
     from atgs.model.atgs_model import ATGSModel
     from atgs.config_dict import from_dict
     from atgs.model.config import ModelConfig
@@ -73,11 +90,11 @@ def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>"):
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path}: checkpoint contents are inconsistent ({type(e).__name__}: {e})") from None
     model.test_camera_names = list(data.get("test_cameras", []))
-    return model
+    return model.to(usable_device(device))
 
 
-def load_model(path: str | Path, device: str = "cpu"):
-    """``atgs.load``: the trained :class:`~atgs.model.atgs_model.ATGSModel` of a checkpoint."""
-    if device != "cpu":
-        raise CheckpointError(f"load_model(device={device!r}): only 'cpu' models are supported")
-    return model_from_checkpoint(read_checkpoint(path), path)
+def load_model(path: str | Path, device: torch.device | str = "cpu"):
+    """``atgs.load``: the trained :class:`~atgs.model.atgs_model.ATGSModel` of a checkpoint, on
+    ``device`` (checkpoints hold CPU tensors and load on any device)."""
+    dev = usable_device(device)  # before reading: a bad device fails fast
+    return model_from_checkpoint(read_checkpoint(path), path, dev)

@@ -1,16 +1,21 @@
 """GPU benchmark (issue 13): what a GPU buys end to end, with the device name on every row.
 
-    python bench/gpu.py      # writes bench/results/gpu.json and the table in docs/viewer.md
+    python bench/gpu.py                    # writes bench/results/gpu.json and the table in docs/gpu.md
+    python bench/gpu.py --parts train      # one part; the results of the others are kept
 
 Rows, one function each (``PARTS``; each returns a list of row dicts with a ``device``):
+- train: training steps per second of each preset on an N3DV-like scene (bench/_n3dv_like.py:
+  20 cameras, 1352x1014 on CUDA; the CPU rows at a quarter of that size, labelled), through
+  ``atgs.train.trainer.Trainer(device=...)`` as ``atgs-train --device`` runs it;
 - viewer: FPS of the splatting player at 1920x1080 for 100k / 500k / 1M random Gaussians, for a
   new video frame (pack + upload + sort + draw, the Gaussians starting on the device) and for a
   camera move (sort + draw), with the stages' times;
 - decode: ms per frame of an untrained ATGS model of the ``paper`` and ``cpu`` presets
   (``model.gaussians_at_frame`` + packing, i.e. what the player's decode thread does).
-Each part runs on CUDA when torch sees a CUDA device and on the CPU; a CUDA row without a CUDA
-device is written as ``"not measured"`` with the reason. The OpenGL draw runs wherever the
-headless context lives (its renderer string is in ``machine.gl``: llvmpipe is the CPU).
+Each part runs on CUDA when torch sees a CUDA device (training: and gsplat imports) and on the
+CPU; a CUDA row without them is written as ``"not measured"`` with the reason. The OpenGL draw
+runs wherever the headless context lives (its renderer string is in the part's ``machine.gl``:
+llvmpipe is the CPU).
 """
 
 from __future__ import annotations
@@ -25,9 +30,11 @@ import json
 import os
 import platform
 import statistics
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import torch
@@ -53,10 +60,25 @@ class GpuBenchConfig:
     decode_frames: int = 6
     """Frames decoded per model after the first (which builds the decode caches)."""
     devices: tuple[str, ...] = ("cuda", "cpu")
-    parts: tuple[str, ...] = ("viewer", "decode")
+    parts: tuple[str, ...] = ("train", "viewer", "decode")
+    train_presets: tuple[str, ...] = ("cpu-fast", "cpu", "cpu-accurate", "paper")
+    train_size: tuple[int, int] = (1352, 1014)
+    """Image size of the CUDA training rows (N3DV at half resolution, as trained in the paper)."""
+    cpu_train_size: tuple[int, int] = (338, 254)
+    """Image size of the CPU training rows (a quarter of N3DV's: a CPU step at full size takes minutes)."""
+    train_cameras: int = 20
+    train_frames: int = 6
+    train_points: int = 10_000
+    """Points per keyframe (3 keyframes) the anchors are initialised from."""
+    train_warmup: int = 5
+    """Steps before timing (gsplat's kernels, allocator caches)."""
+    train_steps: int = 50
+    """Timed steps per preset on CUDA."""
+    cpu_train_steps: int = 10
+    """Timed steps per preset on the CPU."""
     gl: str = "auto"
     out: Path = Path("bench/results/gpu.json")
-    docs: Path | None = Path("docs/viewer.md")
+    docs: Path | None = Path("docs/gpu.md")
     """Replace the table between the bench:gpu markers in this file (None: leave the docs alone)."""
 
 
@@ -66,11 +88,74 @@ def device_name(device: str) -> str:
     return f"CPU ({os.cpu_count()} cores, {platform.processor() or platform.machine()})"
 
 
-def unavailable(device: str) -> str | None:
-    """Why ``device`` cannot be measured here (None: it can)."""
-    if device == "cuda" and not torch.cuda.is_available():
+def unavailable(device: str, part: str) -> str | None:
+    """Why ``part`` cannot be measured on ``device`` here (None: it can): atgs-train's and
+    atgs-view's rule (atgs.device), training needing gsplat as well."""
+    from atgs.device import cuda_problem
+
+    if device != "cuda" or cuda_problem(need_gsplat=part == "train") is None:
+        return None
+    if not torch.cuda.is_available():
         return f"{NOT_MEASURED} (no CUDA device: torch {torch.__version__} sees none)"
-    return None
+    return f"{NOT_MEASURED} ({cuda_problem(need_gsplat=True).split(';')[0]})"
+
+
+def _sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+@lru_cache(maxsize=2)
+def _n3dv_scene(size: tuple[int, int], cameras: int, frames: int, points: int):
+    from _n3dv_like import n3dv_like_scene
+
+    return n3dv_like_scene(size, cameras=cameras, frames=frames, points_per_keyframe=points)
+
+
+def train_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> list[dict]:
+    """Training steps/s of each preset on the N3DV-like scene: every image in the trainer's
+    cache first (on the device), ``train_warmup`` steps, then the timed steps. The steps are
+    the first of a run: the initial anchors, before densification (it starts at step >= 100)."""
+    from atgs.train.config import preset
+    from atgs.train.trainer import Trainer
+
+    size = cfg.train_size if device == "cuda" else cfg.cpu_train_size
+    steps = cfg.train_steps if device == "cuda" else cfg.cpu_train_steps
+    scene = _n3dv_scene(tuple(size), cfg.train_cameras, cfg.train_frames, cfg.train_points)
+    rows = []
+    for name in cfg.train_presets:
+        model_cfg, train_cfg = preset(name)
+        train_cfg.eval_every = train_cfg.save_every = 0
+        images_mb = sum(a.nbytes for a in scene.frames.values()) / 2**20
+        train_cfg.image_cache_mb = max(train_cfg.image_cache_mb, int(images_mb) + 1)  # every image cached
+        with tempfile.TemporaryDirectory() as out:
+            t0 = time.perf_counter()
+            tr = Trainer(scene, model_cfg, train_cfg, out, device=device)
+            for ci in tr.train_idx:
+                for f in range(scene.num_frames):
+                    tr.images.get(ci, f)
+            init_s = time.perf_counter() - t0
+            anchors = tr.model.num_anchors
+            for _ in range(cfg.train_warmup):
+                tr.train_step()
+            if device == "cuda":
+                torch.cuda.reset_peak_memory_stats()
+            _sync(device)
+            t0 = time.perf_counter()
+            results = [tr.train_step() for _ in range(steps)]
+            _sync(device)
+            seconds = time.perf_counter() - t0
+        row = {"part": "train", "device": device, "device_name": device_name(device), "preset": name,
+               "size": f"{size[0]}x{size[1]}", "cameras": len(scene.cameras), "frames": scene.num_frames,
+               "anchors": anchors, "gaussians_per_view": int(statistics.mean(r.gaussians for r in results)),
+               "skipped": sum(r.skipped for r in results), "init_s": init_s, "steps": steps,
+               "ms_per_step": 1e3 * seconds / steps, "steps_per_s": steps / seconds,
+               "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None,
+               "torch_threads": torch.get_num_threads(), "loadavg": os.getloadavg()}
+        rows.append(row)
+        print(json.dumps(row))
+        del tr
+    return rows
 
 
 def _median(xs: list[float]) -> float:
@@ -94,15 +179,15 @@ def viewer_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> li
 
 def decode_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> list[dict]:
     """ms per decoded + packed frame of an untrained model of each preset, on ``device``: the
-    model moves there if it can (``to(device)``), else it decodes on the CPU and its Gaussians
-    are packed on the device (the player does the same, viewer.device)."""
+    model moves there (``ATGSModel.to``, through the player's ``place_source``) and decodes and
+    packs there."""
     from atgs.viewer.device import place_source
 
     rows = []
     for preset_name in cfg.presets:
         model = untrained_model(preset_name, cfg.decode_points)
         source = place_source(model, torch.device(device))
-        where = device if (source is not model or device == "cpu") else "cpu (the model cannot move: no to())"
+        where = str(source.device)  # ATGSModel.to moves the model in place
         first = decode_frame(source, 0, device)
         frames = [1 + i % (model.num_frames - 1) for i in range(cfg.decode_frames)]
         ms = [decode_frame(source, f, device).decode_ms for f in frames]
@@ -115,8 +200,9 @@ def decode_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> li
     return rows
 
 
-# Each part: name -> function(cfg, device, renderer) -> rows. Training steps/s is another part.
+# Each part: name -> function(cfg, device, renderer) -> rows.
 PARTS: dict[str, Callable[[GpuBenchConfig, str, SplatRenderer], list[dict]]] = {
+    "train": train_rows,
     "viewer": viewer_rows,
     "decode": decode_rows,
 }
@@ -135,51 +221,79 @@ def part_table(rows: list[dict], head: list[str], key: str, cells: Callable[[dic
     return lines
 
 
+def _stamp(stamp: dict) -> str:
+    m = stamp["machine"]
+    return (f"Measured {stamp['date']}: {m['cpus']} CPUs, OpenGL {m['gl']}, torch {m['torch']}; "
+            f"load average before: {', '.join(f'{x:.1f}' for x in m['loadavg_before'])}.")
+
+
 def markdown_table(result: dict) -> str:
-    m = result["machine"]
-    lines = [f"Measured {result['date']}: {m['cpus']} CPUs, OpenGL {m['gl']}, torch {m['torch']}; "
-             f"load average before: {', '.join(f'{x:.1f}' for x in m['loadavg_before'])}."]
-    rows = result["rows"]
-    lines += part_table(
-        [r for r in rows if r["part"] == "viewer"],
-        ["viewer at 1920x1080: device", "name", "Gaussians", "pack ms", "upload ms", "sort ms", "draw ms",
-         "new frame FPS", "camera move FPS"], "gaussians",
-        lambda r: [f"{r['pack_ms']:.1f}", f"{r['upload_ms']:.1f}", f"{r['sort_ms']:.1f}", f"{r['draw_ms']:.0f}",
-                   f"**{r['fps_new_frame']:.2f}**", f"**{r['fps_camera_move']:.2f}**"])
-    lines += part_table(
-        [r for r in rows if r["part"] == "decode"],
-        ["decode + pack, untrained model: device", "name", "preset", "decoded on", "anchors", "Gaussians",
-         "first frame ms", "ms per frame"], "preset",
-        lambda r: [r["decoded_on"], f"{r['anchors']:,}", f"{r['gaussians']:,}", f"{r['first_frame_ms']:.0f}",
-                   f"**{r['decode_ms']:.1f}**"])
+    """One table per part, each under the line saying when and where it was measured."""
+    rows, lines = result["rows"], []
+    tables = {
+        "train": (["training, N3DV-like scene: device", "name", "preset", "image size", "anchors",
+                   "Gaussians per view", "ms per step", "steps/s", "peak GPU MB"], "preset",
+                  lambda r: [r["size"], f"{r['anchors']:,}", f"{r['gaussians_per_view']:,}",
+                             f"{r['ms_per_step']:.0f}", f"**{r['steps_per_s']:.2f}**",
+                             "" if r["peak_gpu_mb"] is None else f"{r['peak_gpu_mb']:,.0f}"]),
+        "viewer": (["viewer at 1920x1080: device", "name", "Gaussians", "pack ms", "upload ms", "sort ms", "draw ms",
+                    "new frame FPS", "camera move FPS"], "gaussians",
+                   lambda r: [f"{r['pack_ms']:.1f}", f"{r['upload_ms']:.1f}", f"{r['sort_ms']:.1f}",
+                              f"{r['draw_ms']:.0f}", f"**{r['fps_new_frame']:.2f}**",
+                              f"**{r['fps_camera_move']:.2f}**"]),
+        "decode": (["decode + pack, untrained model: device", "name", "preset", "decoded on", "anchors", "Gaussians",
+                    "first frame ms", "ms per frame"], "preset",
+                   lambda r: [r["decoded_on"], f"{r['anchors']:,}", f"{r['gaussians']:,}",
+                              f"{r['first_frame_ms']:.0f}", f"**{r['decode_ms']:.1f}**"]),
+    }
+    for part, (head, key, cells) in tables.items():
+        part_rows = [r for r in rows if r["part"] == part]
+        if part_rows:
+            lines += ([""] if lines else []) + [_stamp(result["parts"][part])]
+            lines += part_table(part_rows, head, key, cells)
     return "\n".join(lines)
 
 
+def previous_parts(path: Path) -> tuple[dict, list[dict]]:
+    """(part -> its date and machine, rows) of an earlier results file; empty if there is none."""
+    if not path.exists():
+        return {}, []
+    old = json.loads(path.read_text())
+    rows = old.get("rows", [])
+    parts = old.get("parts") or {r["part"]: {"date": old["date"], "machine": old["machine"]} for r in rows}
+    return parts, rows
+
+
 def main(cfg: GpuBenchConfig) -> None:
+    """Measures ``cfg.parts``; the results file keeps the rows of the parts not measured now."""
     load_before = os.getloadavg()
     ctx, renderer = warm_renderer(cfg.gl)
-    rows: list[dict] = []
+    parts, old_rows = previous_parts(cfg.out)
+    rows = [r for r in old_rows if r["part"] not in cfg.parts]
+    parts = {p: v for p, v in parts.items() if p not in cfg.parts}
     # what an unmeasured part's rows would have covered (one "not measured" row each)
-    row_keys = {"viewer": ("gaussians", cfg.counts), "decode": ("preset", cfg.presets)}
+    row_keys = {"train": ("preset", cfg.train_presets), "viewer": ("gaussians", cfg.counts),
+                "decode": ("preset", cfg.presets)}
     jobs = [(part, device) for part in cfg.parts for device in cfg.devices]
     with progress_bar(len(jobs), "gpu bench", unit="part") as bar:
         for part, device in jobs:
-            reason = unavailable(device)
+            reason = unavailable(device, part)
             if reason is None:
                 rows += PARTS[part](cfg, device, renderer)
             else:
-                key, values = row_keys.get(part, ("case", ("all",)))
+                key, values = row_keys[part]
                 rows += [{"part": part, "device": device, "device_name": "none", key: v, "status": reason}
                          for v in values]
             bar.update(1)
-    result = {
-        "machine": {"gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
-                    "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-                    "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else NOT_MEASURED,
-                    "loadavg_before": load_before, "loadavg_after": os.getloadavg()},
-        "rows": rows,
-        "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-    }  # fmt: skip
+    machine = {"gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
+               "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+               "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else NOT_MEASURED,
+               "loadavg_before": load_before, "loadavg_after": os.getloadavg()}
+    date = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+    parts.update({p: {"date": date, "machine": machine} for p in cfg.parts})
+    order = list(PARTS)
+    result = {"parts": dict(sorted(parts.items(), key=lambda kv: order.index(kv[0]))),
+              "rows": sorted(rows, key=lambda r: order.index(r["part"])), "date": date}
     renderer.release()
     ctx.release()
     publish(result, cfg.out, markdown_table(result), cfg.docs, "gpu")

@@ -4,13 +4,13 @@ here ships with the package."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from atgs.cameras import Camera, look_at
+from atgs.data.scene import MemoryScene
 from atgs.model.atgs_model import ATGSModel
 from atgs.model.config import HashGridConfig, ModelConfig
 from atgs.render import rasterize_gaussians
@@ -87,6 +87,19 @@ def randomize_features(model: ATGSModel, gen: torch.Generator, grid_scale: float
     model.hash.table = grid_scale * torch.randn(model.hash.table.shape, generator=gen)
 
 
+def growing_tiny_config(iterations: int):
+    """(model, train) configs of the ``tiny`` preset with densification early and eager (anchors
+    grow within a few steps) and two views per step (the path that merges sparse gradients)."""
+    from atgs.train.config import preset
+
+    m, t = preset("tiny")
+    t.iterations = iterations
+    t.densify.start, t.densify.interval, t.densify.grad_threshold = 4, 2, 1e-6
+    t.densify.success_threshold, t.densify.init_factor, t.densify.min_opacity = 0.1, 1, 1.5
+    t.views_per_step = 2
+    return m, t
+
+
 def write_tiny_checkpoint(path: Path, num_frames: int = 9, points: int = 300) -> Path:
     """An untrained 3-camera (96x72) checkpoint of :func:`tiny_config`, without optimizer state."""
     from atgs.checkpoint import save_checkpoint
@@ -119,38 +132,11 @@ def train_tiny_checkpoint(out_dir: Path, iterations: int = 30, size: tuple[int, 
 
 # --- an in-memory dynamic scene ----------------------------------------------------------------
 
-@dataclass
-class ToyScene:
-    """A few coloured static Gaussians and a blob that moves, seen by cameras on a ring. Ground
-    truth is rendered with the rasterizer itself, so a model can fit it exactly in principle.
-    Has the attributes of ``PreparedScene`` that training and evaluation read."""
-
-    cameras: list[Camera]
-    num_frames: int
-    fps: float
-    keyframes: list[int]
-    points: np.ndarray
-    point_keyframes: np.ndarray
-    test_cameras: list[str]
-    frames: dict = field(default_factory=dict)  # (cam, frame) -> uint8 image
-
-    @property
-    def train_indices(self) -> list[int]:
-        return [i for i, c in enumerate(self.cameras) if c.name not in self.test_cameras]
-
-    @property
-    def test_indices(self) -> list[int]:
-        return [i for i, c in enumerate(self.cameras) if c.name in self.test_cameras]
-
-    def image_uint8(self, cam_index: int, frame: int) -> np.ndarray:
-        return self.frames[(cam_index, frame)]
-
-    def image(self, cam_index: int, frame: int) -> np.ndarray:
-        return self.image_uint8(cam_index, frame).astype(np.float32) / 255.0
-
-
 def make_toy_scene(num_frames: int = 6, num_cameras: int = 5, width: int = 40, height: int = 32,
-                   keyframes: int = 3, seed: int = 0) -> ToyScene:
+                   keyframes: int = 3, seed: int = 0) -> MemoryScene:
+    """A few coloured static Gaussians and a blob that moves, seen by cameras on a ring (the last
+    one held out). Ground truth is rendered with the rasterizer itself, so a model can fit it
+    exactly in principle."""
     gen = torch.Generator().manual_seed(seed)
     n_static = 24
     static = (torch.rand(n_static, 3, generator=gen) - 0.5) * torch.tensor([1.6, 1.6, 0.4])
@@ -186,5 +172,5 @@ def make_toy_scene(num_frames: int = 6, num_cameras: int = 5, width: int = 40, h
     for j, fr in enumerate(kf_frames):
         pts.append(blob(fr) + 0.08 * torch.randn(4, 3, generator=gen))
         pk.append(torch.full((4,), j, dtype=torch.int64))
-    return ToyScene(cams, num_frames, 30.0, kf_frames, torch.cat(pts).numpy(), torch.cat(pk).numpy(),
-                    [cams[-1].name], frames)
+    return MemoryScene(cams, num_frames, 30.0, kf_frames, torch.cat(pts).numpy(), torch.cat(pk).numpy(),
+                       [cams[-1].name], frames)

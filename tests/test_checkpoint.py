@@ -7,8 +7,7 @@ import torch
 
 import atgs
 from atgs.checkpoint import VERSION, CheckpointError, read_checkpoint, save_checkpoint
-from atgs.train.config import preset
-from builders import make_toy_scene
+from builders import growing_tiny_config, make_toy_scene
 from atgs.train.trainer import Trainer
 
 
@@ -17,17 +16,8 @@ def scene():
     return make_toy_scene(num_frames=5, num_cameras=4, width=32, height=24, keyframes=3)
 
 
-def _cfg(iterations=10):
-    m, t = preset("tiny")
-    t.iterations = iterations
-    t.densify.start, t.densify.interval, t.densify.grad_threshold = 4, 2, 1e-6
-    t.densify.success_threshold, t.densify.init_factor, t.densify.min_opacity = 0.1, 1, 1.5
-    t.views_per_step = 2
-    return m, t
-
-
 def test_round_trip_and_public_api(scene, tmp_path):
-    m, t = _cfg(6)
+    m, t = growing_tiny_config(6)
     tr = Trainer(scene, m, t, tmp_path)
     tr.train(progress=False, final_renders=False)
     model = atgs.load(tmp_path / "ckpt.pt")
@@ -76,7 +66,7 @@ def test_bad_files_give_clear_errors(tmp_path):
 
 
 def test_truncated_checkpoint_and_existing_file_survives_failed_write(scene, tmp_path):
-    m, t = _cfg(2)
+    m, t = growing_tiny_config(2)
     tr = Trainer(scene, m, t, tmp_path)
     tr.train(progress=False, final_renders=False)
     path = tmp_path / "ckpt.pt"
@@ -92,10 +82,10 @@ def test_truncated_checkpoint_and_existing_file_survives_failed_write(scene, tmp
 
 
 def test_resume_continues_exactly(scene, tmp_path):
-    m, t = _cfg(10)
+    m, t = growing_tiny_config(10)
     full = Trainer(scene, m, t, tmp_path / "full")
     full.train(progress=False, final_renders=False)
-    m, t = _cfg(10)
+    m, t = growing_tiny_config(10)
     half = Trainer(scene, m, t, tmp_path / "half")
     half.train(progress=False, stop_at=5)
     assert half.step == 5

@@ -14,12 +14,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
-from atgs.data.scene import write_prepared_scene
-from builders import make_toy_scene, write_tiny_checkpoint
+from builders import write_tiny_checkpoint
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -27,16 +25,6 @@ REPO = Path(__file__).resolve().parent.parent
 def _snapshot(root: Path) -> dict[str, bytes]:
     """Every file below ``root`` with its bytes (directories as b"<dir>")."""
     return {str(p.relative_to(root)): (b"<dir>" if p.is_dir() else p.read_bytes()) for p in sorted(root.rglob("*"))}
-
-
-@pytest.fixture(scope="module")
-def toy_scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    s = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
-    out = tmp_path_factory.mktemp("scene") / "toy"
-    write_prepared_scene(out, s.cameras, lambda c, f: s.frames[(c, f)], s.num_frames, s.points,
-                         np.full((len(s.points), 3), 0.5), s.point_keyframes, fps=s.fps, keyframes=s.keyframes,
-                         test_cameras=s.test_cameras)
-    return out
 
 
 def _env() -> dict[str, str]:

@@ -83,3 +83,33 @@ def test_rasterize_gaussians_with_a_camera() -> None:
     g = Gaussians(args["means"] - torch.tensor([0, 0, 2.0]), args["quats"], args["scales"], args["opacities"], args["colors"])
     out = rasterize_gaussians(g, cam, backend="torch")
     assert out.image.shape == (12, 16, 3) and float(out.alpha.max()) > 0.3
+
+
+def test_value_checks_read_back_at_once_on_a_gpu_agree_with_the_cpu_checks() -> None:
+    """device_value_flags (what a CUDA rasterize runs: one device-to-host read) finds exactly
+    what the numpy checks of CPU tensors find, run here on CPU tensors."""
+    from atgs.render.validate import device_value_flags, host_value_flags
+
+    def tensors(**bad: torch.Tensor) -> dict[str, torch.Tensor]:
+        t = {k: v for k, v in good().items() if isinstance(v, torch.Tensor)}
+        return {**t, "background": torch.zeros(3), **bad}
+
+    nan = float("nan")
+    cases = {  # the checks each input fails
+        "good": (tensors(), set()),
+        "nan opacity": (tensors(opacities=torch.tensor([0.5, nan, 0.5])),
+                        {"finite opacities", "opacities in [0, 1]"}),
+        "inf mean": (tensors(means=torch.tensor([[0.0, 0.0, float("inf")]] * 3)), {"finite means"}),
+        "opacity > 1": (tensors(opacities=torch.tensor([0.5, 1.5, 0.5])), {"opacities in [0, 1]"}),
+        "opacity < 0": (tensors(opacities=torch.tensor([0.5, -0.1, 0.5])), {"opacities in [0, 1]"}),
+        "negative scale": (tensors(scales=torch.full((3, 3), -0.1)), {"scales >= 0"}),
+        "fy = 0": (tensors(K=torch.tensor([[10.0, 0, 8], [0, 0, 8], [0, 0, 1]])), {"focal lengths > 0"}),
+        "nan background": (tensors(background=torch.tensor([0.0, nan, 0.0])), {"finite background"}),
+    }
+    for name, (t, failing) in cases.items():
+        host, device = host_value_flags(t, 3), device_value_flags(t, 3)
+        assert host == device, name
+        assert {k for k, ok in host.items() if not ok} == failing, (name, host)
+    empty = tensors(means=torch.zeros(0, 3), quats=torch.zeros(0, 4), scales=torch.zeros(0, 3),
+                    opacities=torch.zeros(0), colors=torch.zeros(0, 3))
+    assert host_value_flags(empty, 0) == device_value_flags(empty, 0) and all(host_value_flags(empty, 0).values())

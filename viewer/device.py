@@ -10,29 +10,24 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Literal
 
 import torch
 
+from atgs import device as atgs_device
 from atgs.threads import torch_threads
 from atgs.viewer.errors import ViewerError
 
-DeviceName = Literal["auto", "cpu", "cuda"]
-DEVICE_NAMES: tuple[str, ...] = ("auto", "cpu", "cuda")
+DEVICE_NAMES = atgs_device.DEVICE_NAMES
+DeviceName = atgs_device.DeviceName
 
 
 def resolve_device(name: str) -> torch.device:
-    """"auto" -> CUDA when torch sees a CUDA device, else the CPU; "cuda" without one is an error."""
-    if name not in DEVICE_NAMES:
-        raise ViewerError(f"--device {name}: choose one of {', '.join(DEVICE_NAMES)}")
-    if name == "cpu":
-        return torch.device("cpu")
-    if torch.cuda.is_available():
-        return torch.device("cuda")
-    if name == "cuda":
-        raise ViewerError("--device cuda: torch sees no CUDA device (a CPU-only torch, or no GPU/driver); "
-                          "use --device cpu or auto")
-    return torch.device("cpu")
+    """"auto" -> CUDA when torch sees a CUDA device, else the CPU; "cuda" without one is an error
+    (atgs.device: the rule atgs-train uses too; playback needs no gsplat)."""
+    try:
+        return atgs_device.resolve_device(name, need_gsplat=False)
+    except atgs_device.DeviceError as e:
+        raise ViewerError(str(e)) from None
 
 
 def place_source(source, device: torch.device):

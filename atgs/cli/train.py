@@ -1,6 +1,7 @@
 """``atgs-train``: train ATGS on a prepared scene (or the built-in synthetic scene).
 
     atgs-train --data DIR --out DIR [--preset cpu-fast|cpu|cpu-accurate|paper] [--minutes M | --iterations N] [--resume]
+               [--device auto|cpu|cuda]
 
 Every model/trainer knob is a flag (``--model.*``, ``--train.*``; see ``atgs-train --help``);
 flag defaults come from the chosen preset. Nothing in an existing ``--out`` changes before the new
@@ -17,6 +18,7 @@ from typing import Literal
 import tyro
 
 from atgs.config_dict import to_dict
+from atgs.device import DeviceName, device_description, resolve_device
 from atgs.errors import OutputError, UserError
 from atgs.io.cache import cache_dir
 from atgs.io.cli import Interrupted, run_cli, stop_on_sigint
@@ -47,6 +49,9 @@ class TrainArgs:
     """Continue the run in --out from its ckpt.pt (configuration from the checkpoint)."""
     overwrite: bool = False
     """Start a new run even if --out already holds a checkpoint (it is replaced at the first save)."""
+    device: DeviceName = "auto"
+    """Where to train: cuda (the GPU; gsplat rasterizes), cpu (the compiled CPU rasterizer),
+    auto (cuda when torch sees a GPU and gsplat imports, else cpu). --resume may change it."""
     progress: bool = True
     cache_dir: Path = field(default_factory=cache_dir)
     """Where the built-in synthetic scene is cached (default: $ATGS_CACHE_DIR, else ~/.cache/atgs)."""
@@ -122,6 +127,7 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     Refuses, before any work, to start over a run that --out already holds."""
     from atgs.train.trainer import Trainer
 
+    device = resolve_device(args.device, need_gsplat=True)
     ckpt = args.out / "ckpt.pt"
     if args.iterations is not None and args.minutes is not None:
         raise UserError("--iterations and --minutes were both given; pass one (--iterations N runs exactly "
@@ -131,8 +137,9 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     if args.resume:
         if not ckpt.is_file():
             raise OutputError(f"--resume: {ckpt} not found; start without --resume")
-        trainer = Trainer.resume(load_scene(args), ckpt, args.out, iterations=args.iterations, minutes=args.minutes)
-        print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations}")
+        trainer = Trainer.resume(load_scene(args), ckpt, args.out, iterations=args.iterations, minutes=args.minutes,
+                                 device=device)
+        print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} on {device_description(device)}")
         return trainer
     if ckpt.exists() and not args.overwrite:
         raise OutputError(f"{ckpt} already exists; pass --resume to continue it, --overwrite to start over, "
@@ -144,12 +151,13 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     scene = load_scene(args)
     if args.auto:
         apply_auto(args, scene, explicit)
-    trainer = Trainer(scene, args.model, args.train, args.out)
+    trainer = Trainer(scene, args.model, args.train, args.out, device=device)
     trainer.run.stage_config({"preset": args.preset, "data": str(args.data) if args.data else None,
-                              "model": to_dict(args.model), "train": to_dict(args.train)})
+                              "device": str(device), "model": to_dict(args.model), "train": to_dict(args.train)})
     m = trainer.model
     print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
-          f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras; "
+          f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras, "
+          f"on {device_description(device)}; "
           + (f"{args.train.minutes:g} min time budget" if args.train.minutes > 0 else f"{args.train.iterations} steps"))
     return trainer
 

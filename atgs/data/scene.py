@@ -11,6 +11,7 @@ Layout (contract, see docs/ARCHITECTURE.md and docs/data.md)::
       points.ply   x y z red green blue keyframe   (keyframe = index into "keyframes")
 
 Frames are never held in memory: :meth:`PreparedScene.image` decodes one file per call.
+:class:`MemoryScene` is the same interface over frames held in memory (tests, benchmarks).
 """
 
 from __future__ import annotations
@@ -144,6 +145,38 @@ class PreparedScene:
         if arr.shape[:2] != (cam.height, cam.width):
             raise DataError(f"{path}: size {arr.shape[1]}x{arr.shape[0]} differs from camera {cam.name} ({cam.width}x{cam.height})")
         return arr
+
+
+@dataclass
+class MemoryScene:
+    """A scene held in memory, with what training and evaluation read of a
+    :class:`PreparedScene` (cameras, frames, keyframe points, test cameras by name): toy scenes
+    of the tests and the benchmarks' synthetic scenes. ``frames[(camera index, frame)]`` is a
+    uint8 (H, W, 3) image."""
+
+    cameras: list[Camera]
+    num_frames: int
+    fps: float
+    keyframes: list[int]
+    points: np.ndarray
+    point_keyframes: np.ndarray
+    test_cameras: list[str]
+    frames: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+    bounds: np.ndarray | None = None  # (2, 3) min and max corner, as PreparedScene.bounds
+
+    @property
+    def train_indices(self) -> list[int]:
+        return [i for i, c in enumerate(self.cameras) if c.name not in self.test_cameras]
+
+    @property
+    def test_indices(self) -> list[int]:
+        return [i for i, c in enumerate(self.cameras) if c.name in self.test_cameras]
+
+    def image_uint8(self, cam_index: int, frame: int) -> np.ndarray:
+        return self.frames[(cam_index, frame)]
+
+    def image(self, cam_index: int, frame: int) -> np.ndarray:
+        return self.image_uint8(cam_index, frame).astype(np.float32) / 255.0
 
 
 def resize_frame(img: np.ndarray, width: int, height: int) -> np.ndarray:

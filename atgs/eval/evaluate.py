@@ -203,7 +203,7 @@ def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, 
     cfg = cfg or EvalConfig()
     if background is None:
         background = getattr(model, "background", None)
-    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32).reshape(3)
+    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device="cpu").reshape(3)
     cam_indices = select_cameras(model, scene, cfg.cameras)
     frames = select_frames(model, scene, cfg.frames, cfg.every)
     if not 0.0 < cfg.resolution_scale <= 1.0:
@@ -249,11 +249,11 @@ def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[
                 num_gaussians.append(len(g))
                 for ci, cam in zip(cam_indices, cams):
                     gt_np = _ground_truth(scene, ci, f, cam)  # checked against the scene, resized to cam
-                    render = render_view(g, cam, None if background is None else background.to(g.means.dtype),
-                                         cfg.backend)
-                    gt = torch.from_numpy(gt_np).to(render.dtype)
+                    bg = None if background is None else background.to(g.means.device, g.means.dtype)
+                    render = render_view(g, cam, bg, cfg.backend)  # on the model's device
+                    gt = torch.from_numpy(gt_np).to(render.device, render.dtype)
                     row: dict[str, Any] = {"camera": cam.name, "frame": f, **all_metrics(render, gt)}
-                    row["lpips"] = float(lpips_net(render, gt)) if lpips_net is not None else UNAVAILABLE
+                    row["lpips"] = UNAVAILABLE if lpips_net is None else float(lpips_net(render.cpu(), gt.cpu()))
                     rows.append(row)
                     render_np = render.cpu().numpy().astype(np.float32)
                     if keep_renders:

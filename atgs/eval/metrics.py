@@ -78,9 +78,9 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = tor
     """Normalised 1D Gaussian of odd length ``size`` centred on the middle tap."""
     if size < 1 or size % 2 == 0:
         raise ValueError(f"window size must be odd and positive, got {size}")
-    r = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
+    r = torch.arange(size, dtype=torch.float64, device=device) - (size - 1) / 2.0  # built where it is used
     w = torch.exp(-(r**2) / (2.0 * sigma**2))
-    return (w / w.sum()).to(dtype=dtype, device=device)
+    return (w / w.sum()).to(dtype=dtype)
 
 
 def _filter(x: torch.Tensor, w1d: torch.Tensor, padding: Padding) -> torch.Tensor:

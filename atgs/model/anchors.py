@@ -26,13 +26,18 @@ class AnchorInit:
     voxel_size: float
 
 
+def _random_device(generator: torch.Generator | None, like: torch.Tensor) -> torch.device:
+    """Where random numbers from ``generator`` are drawn (a generator draws on its own device)."""
+    return generator.device if generator is not None else like.device
+
+
 def auto_voxel_size(points: torch.Tensor, sample: int = 4096, generator: torch.Generator | None = None) -> float:
     """Median nearest-neighbour spacing of (a sample of) the points."""
     points = torch.unique(points, dim=0)  # duplicated points would give a zero spacing
     if points.shape[0] < 2:
         return 0.01
     n = points.shape[0]
-    sel = torch.randperm(n, generator=generator)[: min(sample, n)]
+    sel = torch.randperm(n, generator=generator, device=_random_device(generator, points))[: min(sample, n)]
     d = knn_mean_sq_dist(points[sel], points, k=1, exclude_self=False, skip_zero=True)
     return float(d.sqrt().median().clamp_min(1e-6))
 
@@ -55,7 +60,7 @@ def knn_mean_sq_dist(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_sel
         finite = torch.isfinite(vals)
         mean = torch.where(finite, vals, torch.zeros_like(vals)).sum(1) / finite.sum(1).clamp_min(1)
         out.append(mean.float())
-    return torch.cat(out) if out else torch.zeros(0)
+    return torch.cat(out) if out else torch.zeros(0, device=query.device)
 
 
 def voxel_downsample(points: torch.Tensor, voxel: float) -> torch.Tensor:
@@ -90,17 +95,18 @@ def init_anchors(points: torch.Tensor, keyframes: torch.Tensor, voxel_size: floa
         # static points pool the observations of every keyframe: they support a finer voxel
         p = voxel_downsample(points[keyframes == k], voxel * (static_voxel_factor if k == STATIC else 1.0))
         if max_per_keyframe and p.shape[0] > max_per_keyframe:
-            p = p[torch.randperm(p.shape[0], generator=generator)[:max_per_keyframe]]
+            keep = torch.randperm(p.shape[0], generator=generator, device=_random_device(generator, p))
+            p = p[keep[:max_per_keyframe]]
         if p.shape[0] >= 2:
             # Mean over the 3 nearest points *including the anchor itself*, i.e. (d1^2 + d2^2) / 3:
             # smaller than SPEC's "3 nearest other anchors", chosen by measurement (cpu-fast on the
             # large-motion scene: +1.8 dB at 300 steps, +2.3 dB at 1000 steps).
             d2 = knn_mean_sq_dist(p, p, k=3, exclude_self=False)
         else:
-            d2 = torch.full((p.shape[0],), voxel**2)
+            d2 = torch.full((p.shape[0],), voxel**2, device=p.device)
         s = d2.clamp_min(1e-7 * voxel * voxel + 1e-12).sqrt().log()
         mus.append(p)
-        kfs.append(torch.full((p.shape[0],), int(k), dtype=torch.int64))
+        kfs.append(torch.full((p.shape[0],), int(k), dtype=torch.int64, device=p.device))
         scales.append(s[:, None].expand(-1, 6))
     return AnchorInit(torch.cat(mus), torch.cat(scales).contiguous(), torch.cat(kfs), float(voxel))
 
@@ -113,7 +119,7 @@ def split_static(points: torch.Tensor, keyframes: torch.Tensor, cell: float, min
     kf_ids = torch.unique(keyframes)
     K = kf_ids.numel()
     if K < 2 or points.shape[0] == 0:
-        return torch.zeros(points.shape[0], dtype=torch.bool)
+        return torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
     cells = torch.round(points.double() / cell).long()
     uniq_cells, cell_of = torch.unique(cells, dim=0, return_inverse=True)
     # distinct (cell, keyframe) pairs -> number of keyframes that see each cell

@@ -3,6 +3,9 @@
 Large tables (anchor features and scales, F_s, the hash tables, the per-segment temporal MLPs)
 are plain tensors updated row-sparsely by :class:`atgs.train.optim.SparseAdam`; a tracked
 decode returns the leaves of the rows it touched. The decoder MLPs are an ``nn.Module``.
+
+A model is built on the CPU (the same initialisation whatever the device) and moved with
+:meth:`ATGSModel.to`; decoding creates every tensor on the device of the model's tables.
 """
 
 from __future__ import annotations
@@ -56,8 +59,8 @@ def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Te
                            ) -> tuple[torch.Tensor, torch.Tensor]:
     """Map points of the scene's keyframes onto the model's K keyframes: keyframe j takes the
     points of the scene keyframe nearest to its frame. Returns (point mask, new keyframe index)."""
-    sk = torch.tensor(scene_keyframes, dtype=torch.int64)
-    new_k = torch.full((len(scene_keyframes),), -1, dtype=torch.int64)
+    sk = torch.tensor(scene_keyframes, dtype=torch.int64, device=point_keyframes.device)
+    new_k = torch.full((len(scene_keyframes),), -1, dtype=torch.int64, device=point_keyframes.device)
     for j, f in enumerate(timeline.keyframe_frames()):
         s = int((sk - f).abs().argmin())
         if new_k[s] < 0:
@@ -79,7 +82,7 @@ class ATGSModel:
         d = cfg.feature_dim
         self.anchor_mu = anchors.mu.float().contiguous()
         self.anchor_keyframe = anchors.keyframe.long()
-        self.anchor_feature = torch.zeros(self.num_anchors, d)
+        self.anchor_feature = torch.zeros(self.num_anchors, d, device=self.anchor_mu.device)
         self.anchor_log_scale = anchors.log_scale.float().clone()
         self.spatial = SpatialGrid(cfg.spatial_resolution if cfg.use_spatial_grid else 2, d)
         h = cfg.hash
@@ -90,7 +93,7 @@ class ATGSModel:
 
         def uni(shape: tuple[int, ...], fan_in: int) -> torch.Tensor:
             b = 1.0 / math.sqrt(fan_in)
-            return (torch.rand(shape, generator=gen) * 2 - 1) * b
+            return (torch.rand(shape, generator=gen, device=gen.device) * 2 - 1) * b
 
         self.tmlp_w1 = uni((M, n_in, h.mlp_hidden), n_in)
         self.tmlp_b1 = uni((M, h.mlp_hidden), n_in)
@@ -124,9 +127,10 @@ class ATGSModel:
             kf = torch.where(split_static(points, kf, 2 * voxel, cfg.static_fraction), STATIC, kf)
         if cfg.random_anchors > 0:
             box = bounds.float() if bounds is not None else torch.stack([points.min(0).values, points.max(0).values])
-            extra = box[0] + torch.rand(cfg.random_anchors, 3, generator=gen) * (box[1] - box[0])
+            extra = box[0] + torch.rand(cfg.random_anchors, 3, generator=gen, device=gen.device) * (box[1] - box[0])
             points = torch.cat([points, extra])
-            kf = torch.cat([kf, torch.full((cfg.random_anchors,), STATIC if split else 0, dtype=torch.int64)])
+            kf = torch.cat([kf, torch.full((cfg.random_anchors,), STATIC if split else 0, dtype=torch.int64,
+                                           device=kf.device)])
         anchors = init_anchors(points, kf, voxel, cfg.max_anchors_per_keyframe, gen, cfg.static_voxel_factor)
         lo, hi = anchors.mu.min(0).values, anchors.mu.max(0).values
         size = (hi - lo).clamp_min(1e-3)
@@ -151,6 +155,26 @@ class ATGSModel:
     @property
     def num_anchors(self) -> int:
         return int(self.anchor_mu.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """Where the model's tables live (and where it decodes)."""
+        return self.anchor_mu.device
+
+    def to(self, device: torch.device | str) -> "ATGSModel":
+        """Move every table, grid, MLP and the decoder to ``device`` in place and return the
+        model (as ``nn.Module.to``); the inference cache is emptied (its tensors are rebuilt on
+        the device at the next decode)."""
+        device = torch.device(device)
+        if device == self.device:
+            return self
+        for name in ("anchor_mu", "anchor_keyframe", "bbox_min", "bbox_max"):
+            setattr(self, name, getattr(self, name).to(device))
+        for name, table in self.sparse_tensors().items():
+            self.set_sparse_tensor(name, table.to(device))
+        self.decoder.to(device)
+        self.inference_cache.clear()
+        return self
 
     def window_at(self, t: float) -> tuple[int, int]:
         return self.timeline.window_at(t)
@@ -187,8 +211,8 @@ class ATGSModel:
         return mask
 
     def in_frustum(self, cam: Camera, margin: float = 0.15) -> torch.Tensor:
-        R = torch.from_numpy(cam.R).float()
-        tr = torch.from_numpy(cam.t).float()
+        R = torch.as_tensor(cam.R, dtype=torch.float32, device=self.device)
+        tr = torch.as_tensor(cam.t, dtype=torch.float32, device=self.device)
         pc = self.anchor_mu @ R.T + tr
         z = pc[:, 2]
         zs = z.clamp_min(1e-6)
@@ -228,14 +252,14 @@ class ATGSModel:
         h, g = self.hash.query(xn, tau, m, track)
         if g is not None:
             sparse.append(SparseLeaf("hash", g.rows, g.leaf))
-        seg = torch.tensor([m])
+        seg = torch.tensor([m], device=mu.device)
         w1, b1, w2, b2 = (rows_of(n, seg)[0] for n in TEMPORAL_MLP)
         ft = torch.relu((h * inside) @ w1 + b1) @ w2 + b2
         fw = torch.cat([fa, ft], dim=1)
         raw = self.decoder(fw, mu, log_scale)
         q = self.cfg.gaussians_per_anchor
         anchor_ids = active[:, None].expand(-1, q).reshape(-1)
-        slot_ids = torch.arange(q).repeat(active.numel())
+        slot_ids = torch.arange(q, device=active.device).repeat(active.numel())
         opac = raw.opacities.reshape(-1)
         keep = None
         if self.cfg.opacity_threshold > 0:

@@ -32,19 +32,19 @@ def gather_rows(table: torch.Tensor, idx: torch.Tensor, track: bool) -> tuple[to
     if not track:
         return table[idx], None
     flat = idx.reshape(-1)
-    mask = torch.zeros(table.shape[0], dtype=torch.bool)
+    mask = torch.zeros(table.shape[0], dtype=torch.bool, device=table.device)
     mask[flat] = True
     rows = mask.nonzero().squeeze(1)
-    remap = torch.empty(table.shape[0], dtype=torch.int64)
-    remap[rows] = torch.arange(rows.numel())
+    remap = torch.empty(table.shape[0], dtype=torch.int64, device=table.device)
+    remap[rows] = torch.arange(rows.numel(), device=table.device)
     leaf = table[rows].detach().requires_grad_(True)
     out = leaf[remap[flat]].reshape(*idx.shape, table.shape[1])
     return out, RowGather(rows, leaf)
 
 
-def _corner_offsets(dims: int) -> torch.Tensor:
+def _corner_offsets(dims: int, device: torch.device) -> torch.Tensor:
     """(2^dims, dims) 0/1 offsets of the corners of a unit cell."""
-    c = torch.arange(2**dims)
+    c = torch.arange(2**dims, device=device)
     return torch.stack([(c >> d) & 1 for d in range(dims)], dim=1)
 
 
@@ -53,11 +53,11 @@ def interp_indices(x: torch.Tensor, res: list[int]) -> tuple[torch.Tensor, torch
     ``res[d] + 1`` vertices along dimension d. Returns corners (N, 2^d, d) int64 and
     weights (N, 2^d)."""
     d = x.shape[1]
-    r = torch.tensor(res, dtype=x.dtype)
+    r = torch.tensor(res, dtype=x.dtype, device=x.device)
     pos = x.clamp(0.0, 1.0) * r
     base = torch.minimum(pos.floor(), r - 1).clamp_min(0)
     frac = pos - base
-    offs = _corner_offsets(d)  # (C, d)
+    offs = _corner_offsets(d, x.device)  # (C, d)
     corners = base.long()[:, None, :] + offs[None]
     w = torch.where(offs[None].bool(), frac[:, None, :], 1.0 - frac[:, None, :]).prod(dim=2)
     return corners, w
@@ -66,9 +66,9 @@ def interp_indices(x: torch.Tensor, res: list[int]) -> tuple[torch.Tensor, torch
 class SpatialGrid:
     """Dense grid of ``res^3`` vertices x D features over [0, 1]^3, trilinear, zero init."""
 
-    def __init__(self, res: int, dim: int) -> None:
+    def __init__(self, res: int, dim: int, device: torch.device | str = "cpu") -> None:
         self.res, self.dim = int(res), int(dim)
-        self.table = torch.zeros(self.res**3, self.dim)
+        self.table = torch.zeros(self.res**3, self.dim, device=device)
 
     def indices(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         n = self.res - 1
@@ -102,7 +102,8 @@ class HashGrid4D:
         self.time_res = [max(1, min(r, int(max_time_res))) for r in self.res]
         rows = self.num_grids * self.levels * self.table_size
         # Instant-NGP initializes uniformly in [-1e-4, 1e-4].
-        self.table = (torch.rand(rows, self.features, generator=generator) * 2 - 1) * init_scale
+        device = generator.device if generator is not None else "cpu"
+        self.table = (torch.rand(rows, self.features, generator=generator, device=device) * 2 - 1) * init_scale
 
     def dense_level(self, lv: int) -> bool:
         r, rt = self.res[lv], self.time_res[lv]
@@ -145,14 +146,16 @@ class HashGrid4D:
     def time_corners(self, tau: float, lv: int) -> tuple[int, float, float]:
         """(lower time vertex, weight of it, weight of the next one) of local time tau at level lv,
         computed in float32 exactly as :func:`interp_indices` does for the 4th coordinate."""
-        t = torch.full((1, 1), float(tau), dtype=torch.float32).clamp(0, 1)
+        # a few host scalars: returned as Python numbers, no device round trip
+        t = torch.full((1, 1), float(tau), dtype=torch.float32, device="cpu").clamp(0, 1)
         corners, w = interp_indices(t, [self.time_res[lv]])
         return int(corners[0, 0, 0]), float(w[0, 0]), float(w[0, 1])
 
     def indices(self, x: torch.Tensor, tau: float, grid: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows (N, L, 16) and weights (N, L, 16) of points x (N, 3) in [0,1]^3 at local time tau."""
         n = x.shape[0]
-        x4 = torch.cat([x.clamp(0, 1), torch.full((n, 1), float(tau), dtype=x.dtype).clamp(0, 1)], dim=1)
+        x4 = torch.cat([x.clamp(0, 1), torch.full((n, 1), float(tau), dtype=x.dtype, device=x.device).clamp(0, 1)],
+                       dim=1)
         all_idx, all_w = [], []
         for lv in range(self.levels):
             r, rt = self.res[lv], self.time_res[lv]

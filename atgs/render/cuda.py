@@ -16,15 +16,18 @@ from atgs.render.types import RasterOutput
 
 
 @functools.lru_cache(maxsize=1)
-def gsplat_available() -> bool:
-    """True when CUDA is present and gsplat imports."""
-    if not torch.cuda.is_available():
-        return False
+def gsplat_import_error() -> str | None:
+    """Why ``import gsplat`` fails, in a few words (None: it imports)."""
     try:
         import gsplat  # noqa: F401
-    except Exception:
-        return False
-    return True
+    except Exception as e:  # ImportError, or a broken build raising anything at import
+        return f"{type(e).__name__}: {e}".splitlines()[0]
+    return None
+
+
+def gsplat_available() -> bool:
+    """True when CUDA is present and gsplat imports."""
+    return torch.cuda.is_available() and gsplat_import_error() is None
 
 
 def rasterize_cuda(

@@ -31,28 +31,32 @@ class DensifyStats:
     anchor_count: torch.Tensor  # (A,)
 
     @classmethod
-    def zeros(cls, num_anchors: int, q: int) -> "DensifyStats":
-        n = num_anchors * q
-        return cls(torch.zeros(n), torch.zeros(n), torch.zeros(n, 3), torch.zeros(num_anchors),
-                   torch.zeros(num_anchors))
+    def zeros(cls, num_anchors: int, q: int, device: torch.device | str = "cpu") -> "DensifyStats":
+        n, dev = num_anchors * q, device
+        return cls(torch.zeros(n, device=dev), torch.zeros(n, device=dev), torch.zeros(n, 3, device=dev),
+                   torch.zeros(num_anchors, device=dev), torch.zeros(num_anchors, device=dev))
+
+    @property
+    def device(self) -> torch.device:
+        return self.grad_accum.device
 
     def record(self, dec: Decoded, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int,
                height: int, q: int) -> None:
         self.opacity_accum.index_add_(0, dec.active, dec.raw.opacities.detach().sum(1))
-        self.anchor_count.index_add_(0, dec.active, torch.ones(dec.active.numel()))
+        self.anchor_count.index_add_(0, dec.active, torch.ones(dec.active.numel(), device=self.device))
         if means2d_grad is None:
             return
         # a non-finite screen-space gradient (the trainer zeroes it for the update) must not
         # poison the running sums: such Gaussians are not counted this step
         vis = (radii > 0) & torch.isfinite(means2d_grad).all(dim=1)
         slots = (dec.anchor_ids * q + dec.slot_ids)[vis]
-        g = means2d_grad[vis] * torch.tensor([0.5 * width, 0.5 * height])
+        g = means2d_grad[vis] * torch.tensor([0.5 * width, 0.5 * height], device=self.device)
         self.grad_accum.index_add_(0, slots, g.norm(dim=1))
-        self.grad_count.index_add_(0, slots, torch.ones(slots.numel()))
+        self.grad_count.index_add_(0, slots, torch.ones(slots.numel(), device=self.device))
         self.last_pos[slots] = dec.gaussians.means.detach()[vis]
 
     def append(self, n: int, q: int) -> None:
-        z = DensifyStats.zeros(n, q)
+        z = DensifyStats.zeros(n, q, self.device)
         for name in self.__dataclass_fields__:
             setattr(self, name, torch.cat([getattr(self, name), getattr(z, name)]))
 
@@ -67,8 +71,8 @@ class DensifyStats:
         return {name: getattr(self, name) for name in self.__dataclass_fields__}
 
     @classmethod
-    def from_state(cls, state: dict) -> "DensifyStats":
-        return cls(**{k: state[k].clone() for k in cls.__dataclass_fields__})
+    def from_state(cls, state: dict, device: torch.device | str = "cpu") -> "DensifyStats":
+        return cls(**{k: state[k].to(device, copy=True) for k in cls.__dataclass_fields__})
 
 
 def _voxel_keys(pos: torch.Tensor, keyframe: torch.Tensor, size: float) -> torch.Tensor:
@@ -82,8 +86,9 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
     room = cfg.max_anchors - model.num_anchors
     min_count = cfg.interval * cfg.success_threshold * 0.5
     eligible = stats.grad_count > min_count
-    grads = torch.where(eligible, stats.grad_accum / stats.grad_count.clamp_min(1), torch.zeros(()))
-    slot_anchor = torch.arange(model.num_anchors).repeat_interleave(q)
+    device = stats.device
+    grads = torch.where(eligible, stats.grad_accum / stats.grad_count.clamp_min(1), torch.zeros((), device=device))
+    slot_anchor = torch.arange(model.num_anchors, device=device).repeat_interleave(q)
     new_mu, new_feat, new_scale, new_kf = [], [], [], []
     existing_kf = model.anchor_keyframe
     for i in range(cfg.levels):
@@ -95,7 +100,8 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
         if i < cfg.levels - 1:
             cand &= grads < cfg.grad_threshold * (cfg.hierarchy_factor // 2) ** (i + 1)
         # random thinning, stronger at the finer levels (Scaffold-GS)
-        cand &= torch.rand(cand.shape, generator=generator) > 0.5 ** (i + 1)
+        # drawn where the generator lives (the trainer's CPU generator: the same draws on every device)
+        cand &= torch.rand(cand.shape, generator=generator, device=generator.device).to(device) > 0.5 ** (i + 1)
         idx = cand.nonzero().squeeze(1)
         if idx.numel() == 0:
             continue
@@ -103,7 +109,7 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
         keys = _voxel_keys(stats.last_pos[idx], model.anchor_keyframe[parents], size)
         old_keys = _voxel_keys(model.anchor_mu, existing_kf, size)
         allk, inv = torch.unique(torch.cat([old_keys, keys]), dim=0, return_inverse=True)
-        occupied = torch.zeros(allk.shape[0], dtype=torch.bool)
+        occupied = torch.zeros(allk.shape[0], dtype=torch.bool, device=device)
         occupied[inv[: old_keys.shape[0]]] = True
         cand_inv = inv[old_keys.shape[0]:]
         free = ~occupied[cand_inv]
@@ -113,14 +119,14 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
         ids, local = ids[:room], local
         sel = local < ids.numel()
         n_new = ids.numel()
-        feat = torch.full((n_new, model.cfg.feature_dim), -math.inf)
+        feat = torch.full((n_new, model.cfg.feature_dim), -math.inf, device=device)
         feat = feat.scatter_reduce(0, local[sel, None].expand(-1, feat.shape[1]),
                                    model.anchor_feature[parents[free][sel]], reduce="amax")
         key = allk[ids]
         new_mu.append(key[:, 1:].float() * size)
         new_kf.append(key[:, 0])
         new_feat.append(feat)
-        new_scale.append(torch.full((n_new, 6), math.log(size)))
+        new_scale.append(torch.full((n_new, 6), math.log(size), device=device))
         room -= n_new
     reset = eligible
     stats.grad_accum[reset] = 0

@@ -27,5 +27,7 @@ def image_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float) -> torc
     return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(img, ref))
 
 
-def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
-    return float(_psnr(img.detach(), ref.detach()))
+def psnr(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """PSNR of a training view as a 0-d tensor on the images' device (the trainer reads the
+    step's values back at once)."""
+    return _psnr(img.detach(), ref.detach())

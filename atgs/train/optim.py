@@ -16,7 +16,7 @@ class SparseAdam:
         self.betas, self.eps = betas, eps
         self.exp_avg = {n: torch.zeros_like(t) for n, t in tables.items()}
         self.exp_avg_sq = {n: torch.zeros_like(t) for n, t in tables.items()}
-        self.steps = {n: torch.zeros(t.shape[0], dtype=torch.int64) for n, t in tables.items()}
+        self.steps = {n: torch.zeros(t.shape[0], dtype=torch.int64, device=t.device) for n, t in tables.items()}
 
     def step(self, name: str, table: torch.Tensor, rows: torch.Tensor, grad: torch.Tensor,
              lr: float | torch.Tensor) -> None:
@@ -46,7 +46,7 @@ class SparseAdam:
         for store in (self.exp_avg, self.exp_avg_sq):
             t = store[name]
             store[name] = torch.cat([t, t.new_zeros((n,) + tuple(t.shape[1:]))])
-        self.steps[name] = torch.cat([self.steps[name], torch.zeros(n, dtype=torch.int64)])
+        self.steps[name] = torch.cat([self.steps[name], self.steps[name].new_zeros(n)])
 
     def keep_rows(self, name: str, keep: torch.Tensor) -> None:
         for store in (self.exp_avg, self.exp_avg_sq, self.steps):
@@ -56,9 +56,10 @@ class SparseAdam:
         return {"exp_avg": dict(self.exp_avg), "exp_avg_sq": dict(self.exp_avg_sq), "steps": dict(self.steps)}
 
     def load_state_dict(self, state: dict) -> None:
+        """Load a state saved on any device onto the device of this optimizer's tables."""
         for key in ("exp_avg", "exp_avg_sq", "steps"):
             mine = getattr(self, key)
             for name, value in state[key].items():
                 if name not in mine:
                     raise ValueError(f"optimizer state has unknown table {name!r}")
-                mine[name] = value.clone()
+                mine[name] = value.to(mine[name].device, copy=True)

@@ -1,4 +1,8 @@
-"""Balanced view sampling over temporal segments and a bounded cache of training images."""
+"""Balanced view sampling over temporal segments and a bounded cache of training images.
+
+The sampler draws on the CPU (its generator's device) whatever the training device, so a seed
+picks the same views everywhere; it returns Python ints. The image cache keeps uint8 images on
+the training device (see :class:`ImageCache`)."""
 
 from __future__ import annotations
 
@@ -25,16 +29,16 @@ class SegmentSampler:
 
     def next(self) -> tuple[int, int]:
         if not self.queue:
-            perm = torch.randperm(len(self.segments), generator=self.gen).tolist()
+            perm = torch.randperm(len(self.segments), generator=self.gen, device=self.gen.device).tolist()
             self.queue = [self.segments[i] for i in perm]
         m = self.queue.pop()
         frames = self.timeline.frames_of_segment(m)
-        f = frames[int(torch.randint(len(frames), (1,), generator=self.gen))]
-        c = self.cams[int(torch.randint(len(self.cams), (1,), generator=self.gen))]
+        f = frames[int(torch.randint(len(frames), (1,), generator=self.gen, device=self.gen.device))]
+        c = self.cams[int(torch.randint(len(self.cams), (1,), generator=self.gen, device=self.gen.device))]
         return c, f
 
     def state_dict(self) -> dict:
-        return {"queue": torch.tensor(self.queue, dtype=torch.int64)}
+        return {"queue": torch.tensor(self.queue, dtype=torch.int64, device="cpu")}  # saved with the checkpoint
 
     def load_state_dict(self, state: dict) -> None:
         self.queue = [int(x) for x in state["queue"].tolist()]
@@ -42,24 +46,33 @@ class SegmentSampler:
 
 class ImageCache:
     """LRU cache of uint8 images keyed by (camera, frame), bounded in megabytes, so memory
-    stays flat in the sequence length."""
+    stays flat in the sequence length.
 
-    def __init__(self, load: Callable[[int, int], np.ndarray], max_mb: int) -> None:
+    The images are kept on ``device`` (uint8, a quarter of float32): a cached image costs no
+    host-to-device copy and no synchronisation per step, and the float conversion runs on the
+    device. A miss (decode from disk) copies the image once. Pinned host memory would spare
+    device memory but copy every step; ``max_mb`` bounds the device memory used."""
+
+    def __init__(self, load: Callable[[int, int], np.ndarray], max_mb: int,
+                 device: torch.device | str = "cpu") -> None:
         self.load, self.max_bytes = load, max(0, int(max_mb)) * 2**20
-        self.items: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self.device = torch.device(device)
+        self.items: OrderedDict[tuple[int, int], torch.Tensor] = OrderedDict()
         self.bytes = 0
 
     def get(self, cam: int, frame: int) -> torch.Tensor:
+        """The image as float32 (H, W, 3) in [0, 1] on the cache's device."""
         key = (cam, frame)
-        arr = self.items.get(key)
-        if arr is None:
+        img = self.items.get(key)
+        if img is None:
             arr = np.array(self.load(cam, frame), dtype=np.uint8, order="C")  # owned, writable
+            img = torch.from_numpy(arr).to(self.device)  # the CPU: the array itself, no copy
             if arr.nbytes <= self.max_bytes:
-                self.items[key] = arr
+                self.items[key] = img
                 self.bytes += arr.nbytes
                 while self.bytes > self.max_bytes:
                     _, old = self.items.popitem(last=False)
-                    self.bytes -= old.nbytes
+                    self.bytes -= old.numel()
         else:
             self.items.move_to_end(key)
-        return torch.from_numpy(arr).float() / 255.0
+        return img.float() / 255.0

@@ -1,6 +1,11 @@
 """The training loop: balanced view sampling, sparse/dense Adam, schedules, densification,
 robustness to non-finite values, periodic evaluation (through atgs.eval), checkpoints and resume.
-What is written to the output directory, and when, is :class:`atgs.train.run_dir.RunDir`'s job."""
+What is written to the output directory, and when, is :class:`atgs.train.run_dir.RunDir`'s job.
+
+Device: the model, optimizer states, densification statistics, image cache and everything a
+step creates live on ``device``; rasterization goes through ``atgs.render`` (gsplat for CUDA
+tensors). The random generator stays on the CPU, so a seed draws the same views, backgrounds and
+growth candidates on every device, and checkpoints hold CPU tensors."""
 
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ from atgs.cameras import Camera
 from atgs.checkpoint import CheckpointError, model_from_checkpoint, read_checkpoint, save_checkpoint
 from atgs.config_dict import from_dict, to_dict
 from atgs.data.scene import resize_frame
+from atgs.device import DeviceError
 from atgs.errors import UserError
 from atgs.model.atgs_model import ATGSModel, Decoded
 from atgs.model.config import ModelConfig
@@ -58,7 +64,8 @@ class SceneData(Protocol):
 
 def _bounds(scene: SceneData) -> torch.Tensor | None:
     b = getattr(scene, "bounds", None)
-    return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32)).reshape(2, 3)
+    # on the CPU: the model is initialised there and moved afterwards
+    return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32), device="cpu").reshape(2, 3)
 
 
 class NonFiniteError(UserError, RuntimeError):
@@ -73,9 +80,23 @@ class StepResult:
     skipped: bool
 
 
+def check_backend(device: torch.device, backend: str) -> None:
+    """Refuse a ``--train.render-backend`` that cannot rasterize tensors on ``device``."""
+    if backend == "cpu" and device.type != "cpu":
+        raise DeviceError(f"--train.render-backend cpu rasterizes CPU tensors only, but training runs on {device}; "
+                          "use --train.render-backend auto, or --device cpu")
+    if backend == "cuda" and device.type != "cuda":
+        raise DeviceError("--train.render-backend cuda needs CUDA tensors; use --device cuda, "
+                          "or --train.render-backend auto")
+
+
 class Trainer:
     def __init__(self, scene: SceneData, model_cfg: ModelConfig, cfg: TrainConfig, out_dir: str | Path,
-                 model: ATGSModel | None = None) -> None:
+                 model: ATGSModel | None = None, device: torch.device | str = "cpu") -> None:
+        """``device``: where training runs (``atgs.device.resolve_device`` picks it for the CLI);
+        a given ``model`` is moved there."""
+        self.device = torch.device(device)
+        check_backend(self.device, cfg.render_backend)
         self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
         self.out = Path(out_dir)
         self.run = RunDir(self.out)
@@ -84,27 +105,28 @@ class Trainer:
         s = cfg.resolution_scale
         self.cams = [c.scaled(s) if s != 1.0 else c for c in scene.cameras]
         self.train_idx, self.test_idx = list(scene.train_indices), list(scene.test_indices)
-        self.gen = torch.Generator().manual_seed(cfg.seed)
-        if model is None:
+        self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+        if model is None:  # built on the CPU (the same initialisation on every device), then moved
             model = ATGSModel.from_points(
-                model_cfg, torch.from_numpy(np.asarray(scene.points, dtype=np.float32)),
-                torch.from_numpy(np.asarray(scene.point_keyframes, dtype=np.int64)), list(scene.keyframes),
+                model_cfg, torch.as_tensor(np.asarray(scene.points, dtype=np.float32), device="cpu"),
+                torch.as_tensor(np.asarray(scene.point_keyframes, dtype=np.int64), device="cpu"), list(scene.keyframes),
                 scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in self.train_idx],
                 seed=cfg.seed, bounds=_bounds(scene))
-        self.model = model
+        self.model = model.to(self.device)
         self.model.test_camera_names = list(scene.test_cameras)
         self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
         dec = model.decoder
         self.dense_opt = torch.optim.Adam(
             [{"params": list(getattr(dec, h).parameters()), "name": h} for h in dec.HEADS], lr=0.0, eps=cfg.adam_eps)
-        self.stats = DensifyStats.zeros(model.num_anchors, model_cfg.gaussians_per_anchor)
+        self.stats = DensifyStats.zeros(model.num_anchors, model_cfg.gaussians_per_anchor, self.device)
         self.sampler = SegmentSampler(model.timeline, self.train_idx, self.gen)
-        self.grid_visits = torch.zeros(model.num_segments, dtype=torch.int64)
+        self.grid_visits = torch.zeros(model.num_segments, dtype=torch.int64, device=self.device)
         self.step = 0
         self.bad_in_row = 0
         self.skipped = 0
         self.final_pruned = 0
-        self.images = ImageCache(self._load_image, cfg.image_cache_mb)
+        self.images = ImageCache(self._load_image, cfg.image_cache_mb, self.device)
+        self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
         self.budget = TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg)) if cfg.minutes > 0 else None
         self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
@@ -118,9 +140,9 @@ class Trainer:
         return resize_frame(self.scene.image_uint8(cam, frame), c.width, c.height)
 
     def _background(self) -> torch.Tensor:
-        if self.cfg.random_background:
-            return torch.rand(3, generator=self.gen)
-        return torch.tensor(self.cfg.background, dtype=torch.float32)
+        if self.cfg.random_background:  # drawn on the CPU (the generator's device), then moved
+            return torch.rand(3, generator=self.gen, device=self.gen.device).to(self.device)
+        return self.fixed_background
 
     # --- learning rates -----------------------------------------------------------------------
     def _expected_visits(self) -> int:
@@ -176,7 +198,8 @@ class Trainer:
             gt = self.images.get(ci, f)
             dec = model.decode_frame(f, cam, track=True)
             segments.append(dec.segment)
-            if not all(bool(torch.isfinite(x).all()) for x in dec.gaussians.as_tuple()):
+            # one host-device synchronisation for the five tensors
+            if not bool(torch.stack([torch.isfinite(x).all() for x in dec.gaussians.as_tuple()]).all()):
                 bad = True
                 break
             if len(dec.gaussians) == 0:  # nothing of the model in this view: nothing to learn
@@ -189,7 +212,7 @@ class Trainer:
                 bad = True
                 break
             (loss / cfg.views_per_step).backward()
-            losses.append(float(loss.detach()))
+            losses.append(loss.detach())  # read back once at the end of the step
             psnrs.append(psnr(out.image, gt))
             n_gauss += len(dec.gaussians)
             g2d = out.means2d.grad
@@ -215,7 +238,9 @@ class Trainer:
         self._maybe_densify()
         if not losses:
             return StepResult(float("nan"), float("nan"), 0, False)
-        return StepResult(float(np.mean(losses)), float(np.mean(psnrs)), n_gauss // len(losses), False)
+        values = torch.cat([torch.stack(losses).double(), torch.stack(psnrs).double()]).tolist()
+        n = len(losses)
+        return StepResult(float(np.mean(values[:n])), float(np.mean(values[n:])), n_gauss // n, False)
 
     def _apply_sparse(self, grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]]) -> None:
         tables = self.model.sparse_tensors()
@@ -224,12 +249,13 @@ class Trainer:
                 rows, g = parts[0]
             else:  # several views touched this table: sum gradients of shared rows
                 rows, inv = torch.unique(torch.cat([r for r, _ in parts]), return_inverse=True)
-                g = torch.zeros((rows.numel(),) + tuple(parts[0][1].shape[1:]))
+                g = parts[0][1].new_zeros((rows.numel(),) + tuple(parts[0][1].shape[1:]))
                 g.index_add_(0, inv, torch.cat([x for _, x in parts]))
             g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
-            norm = float(g.norm())
-            if self.cfg.grad_clip > 0 and norm > self.cfg.grad_clip:
-                g = g * (self.cfg.grad_clip / norm)
+            clip = self.cfg.grad_clip
+            if clip > 0:  # clip on the device, without reading the norm back (float64 as Python's)
+                norm = g.norm().double()
+                g = g * torch.where(norm > clip, clip / norm, 1.0).float()
             self.sparse_opt.step(name, tables[name], rows, g, self.sparse_lr(name, rows, self.step))
 
     def _apply_dense(self) -> None:
@@ -316,9 +342,12 @@ class Trainer:
 
     @classmethod
     def resume(cls, scene: SceneData, path: str | Path, out_dir: str | Path,
-               iterations: int | None = None, minutes: float | None = None) -> "Trainer":
-        """Continue the run of checkpoint ``path``. ``iterations``: a new total step count (and no
-        time budget); ``minutes``: a new total time budget (the time already used counts)."""
+               iterations: int | None = None, minutes: float | None = None,
+               device: torch.device | str = "cpu") -> "Trainer":
+        """Continue the run of checkpoint ``path`` on ``device`` (any: checkpoints hold CPU tensors
+        and the optimizer and densification state move with the model). ``iterations``: a new
+        total step count (and no time budget); ``minutes``: a new total time budget (the time
+        already used counts)."""
         data = read_checkpoint(path)
         if data.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
@@ -331,14 +360,14 @@ class Trainer:
         if int(data["num_frames"]) != scene.num_frames:
             raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
-        model = model_from_checkpoint(data, path)
-        tr = cls(scene, model_cfg, cfg, out_dir, model=model)
+        model = model_from_checkpoint(data, path, device)
+        tr = cls(scene, model_cfg, cfg, out_dir, model=model, device=device)
         st = data["trainer"]
         tr.sparse_opt.load_state_dict(st["sparse_opt"])
-        tr.dense_opt.load_state_dict(st["dense_opt"])
-        tr.stats = DensifyStats.from_state(st["densify"])
+        tr.dense_opt.load_state_dict(st["dense_opt"])  # torch.optim moves the state to the parameters
+        tr.stats = DensifyStats.from_state(st["densify"], tr.device)
         tr.sampler.load_state_dict(st["sampler"])
-        tr.grid_visits = st["grid_visits"].clone()
+        tr.grid_visits = st["grid_visits"].to(tr.device, copy=True)
         tr.gen.set_state(st["generator"])
         tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
         tr.step = int(data["step"])
