@@ -34,8 +34,10 @@ class EncodeConfig:
 
 
 def synthesize(out: str | Path, cfg: SynthConfig = SynthConfig(), enc: EncodeConfig = EncodeConfig(),
-               overwrite: bool = False, progress: bool = True) -> Path:
-    """Render ``cfg`` into an N3DV-layout directory ``out`` (written atomically)."""
+               overwrite: bool = False, progress: bool = True, depth: bool = False) -> Path:
+    """Render ``cfg`` into an N3DV-layout directory ``out`` (written atomically). ``depth`` also
+    writes the true depth of every frame: ``depth/<frame:06d>.npz``, one float32 (H,W) array per
+    camera name, the OpenCV z of the nearest surface at each pixel center (0: none)."""
     from tqdm import tqdm
 
     from atgs.data.synth_render import MeshRenderer
@@ -53,11 +55,16 @@ def synthesize(out: str | Path, cfg: SynthConfig = SynthConfig(), enc: EncodeCon
                    for c in cams]
         try:
             with tqdm(total=cfg.frames * len(cams), desc="synth render+encode", unit="img", disable=not progress) as bar:
+                if depth:
+                    (tmp / "depth").mkdir()
                 for f in range(cfg.frames):
                     renderer.set_frame(f)
                     for cam, w in zip(cams, writers):
                         w.write(renderer.render(cam))
                         bar.update(1)
+                    if depth:
+                        np.savez_compressed(tmp / "depth" / f"{f:06d}.npz",
+                                            **{c.name: renderer.render_depth(c) for c in cams})
         finally:
             for w in writers:
                 w.close()

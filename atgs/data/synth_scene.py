@@ -26,6 +26,14 @@ from atgs.cameras import Camera, look_at
 
 Preset = Literal["small-motion", "large-motion"]
 Rig = Literal["ring", "front"]
+Layout = Literal["ring12", "ring10-low", "front6", "ring12-flat"]
+# Named camera layouts of the benchmarks (SynthConfig overrides); "ring12" is the default scene.
+LAYOUTS: dict[str, dict] = {
+    "ring12": {"cameras": 12, "width": 256, "height": 192, "rig": "ring", "texture_contrast": 1.0},
+    "ring10-low": {"cameras": 10, "width": 200, "height": 150, "rig": "ring", "texture_contrast": 1.0},
+    "front6": {"cameras": 6, "width": 256, "height": 192, "rig": "front", "texture_contrast": 1.0},
+    "ring12-flat": {"cameras": 12, "width": 256, "height": 192, "rig": "ring", "texture_contrast": 0.0},
+}
 
 
 @dataclass(frozen=True)

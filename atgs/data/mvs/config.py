@@ -65,5 +65,5 @@ class FillConfig:
     min_views: int = 2
     """A fill point must project inside at least this many cameras, within their near/far range."""
     max_color_std: float = 0.08
-    """Image consistency: a fill point's colors in the cameras that see it differ by at most this std
-    (in [0,1]); disabled for images without texture."""
+    """Image consistency: a fill point's colours in the cameras that see it have at most this
+    standard deviation (in [0,1], mean over RGB)."""

@@ -44,7 +44,7 @@ def make_view(image: np.ndarray, cam: Camera, long_side: int) -> View:
         raise ValueError(f"image of {cam.name} is {img.shape[1]}x{img.shape[0]}, camera says {cam.width}x{cam.height}")
     if (wc.width, wc.height) != (cam.width, cam.height):
         img = np.asarray(Image.fromarray(img).resize((wc.width, wc.height), Image.BOX))
-    rgb = torch.from_numpy(np.ascontiguousarray(img[..., :3])).float() / 255.0
+    rgb = torch.from_numpy(np.array(img[..., :3], dtype=np.float32)) / 255.0
     gray = rgb @ torch.tensor([0.299, 0.587, 0.114])
     return View(wc, gray.contiguous(), rgb)
 
