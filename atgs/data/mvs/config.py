@@ -58,12 +58,9 @@ class FillConfig:
 
     enabled: Annotated[bool, tyro.conf.arg(name="fill", prefix_name=False)] = True
     """Fill uncovered space so training can always start (--no-fill: never)."""
-    below: float = 0.5
+    below: float = 0.2
     """A training camera whose pixels are covered less than this fraction gets fill points."""
     points: int = 8000
     """Fill points per keyframe at most."""
     min_views: int = 2
     """A fill point must project inside at least this many cameras, within their near/far range."""
-    max_color_std: float = 0.08
-    """Image consistency: a fill point's colours in the cameras that see it have at most this
-    standard deviation (in [0,1], mean over RGB)."""

@@ -6,8 +6,10 @@ projected back into the reference, returns within ``reproj_px`` of where it star
 depth within ``rel_depth`` of the reference depth (the geometric check of Galliani et al. 2015
 and MVSNet). Where fewer other cameras see the point at all (it projects into their image onto
 a pixel with a depth), every one of them must agree, and at least one: the edges of a sparse
-rig are seen by two cameras only. A kept point is the mean of the reference point and the agreeing cameras' points,
-its colour the mean of their pixels. ``fuse_reference`` is the per-pixel loop the tests compare
+rig are seen by two cameras only. Camera j's depth at the projected point is interpolated bilinearly in inverse depth
+(exact on planes) unless the 2x2 pixels around it straddle a depth edge. A kept point is the
+mean of the reference point and the agreeing cameras' points, its colour the mean of their
+pixels. ``fuse_reference`` is the per-pixel loop the tests compare
 the vectorized path with.
 """
 
@@ -36,6 +38,40 @@ def _to_camera(cam: Camera, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     z = pc[2]
     zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
     return cam.fx * pc[0] / zs + cam.cx, cam.fy * pc[1] / zs + cam.cy, z
+
+
+SMOOTH_SPREAD = 0.1  # 2x2 inverse depths spread less than this (relative): one surface, interpolate
+
+
+def sample_depth(depth: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Depth (float64) at continuous pixel coordinates: bilinear in inverse depth (exact on planes)
+    where the 2x2 pixels around are valid and close (one surface), else the nearest pixel's."""
+    h, w = depth.shape
+    d = depth.double()
+    nearest = d[v.floor().long().clamp(0, h - 1), u.floor().long().clamp(0, w - 1)]
+    x, y = u - 0.5, v - 0.5
+    x0, y0 = x.floor().long().clamp(0, max(w - 2, 0)), y.floor().long().clamp(0, max(h - 2, 0))
+    fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
+    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+    q = torch.stack([d[y0, x0], d[y0, x1], d[y1, x0], d[y1, x1]])
+    inv = 1.0 / q.clamp_min(1e-12)
+    lerp = (inv[0] * (1 - fx) + inv[1] * fx) * (1 - fy) + (inv[2] * (1 - fx) + inv[3] * fx) * fy
+    smooth = (q > 0).all(0) & (inv.max(0).values - inv.min(0).values <= SMOOTH_SPREAD * lerp)
+    return torch.where(smooth, 1.0 / lerp.clamp_min(1e-12), nearest)
+
+
+def _sample_depth_reference(depth: np.ndarray, u: float, v: float) -> float:
+    h, w = depth.shape
+    nearest = float(depth[min(max(int(np.floor(v)), 0), h - 1), min(max(int(np.floor(u)), 0), w - 1)])
+    x0 = min(max(int(np.floor(u - 0.5)), 0), max(w - 2, 0))
+    y0 = min(max(int(np.floor(v - 0.5)), 0), max(h - 2, 0))
+    fx, fy = min(max(u - 0.5 - x0, 0.0), 1.0), min(max(v - 0.5 - y0, 0.0), 1.0)
+    q = [float(depth[yy, xx]) for yy in (y0, min(y0 + 1, h - 1)) for xx in (x0, min(x0 + 1, w - 1))]
+    if min(q) <= 0:
+        return nearest
+    inv = [1.0 / z for z in q]
+    lerp = (inv[0] * (1 - fx) + inv[1] * fx) * (1 - fy) + (inv[2] * (1 - fx) + inv[3] * fx) * fy
+    return 1.0 / lerp if max(inv) - min(inv) <= SMOOTH_SPREAD * lerp else nearest
 
 
 def fuse_depth_maps(views: Sequence[View], maps: Sequence[DepthMap | None], checks: Sequence[Sequence[int]],
@@ -67,7 +103,7 @@ def fuse_depth_maps(views: Sequence[View], maps: Sequence[DepthMap | None], chec
             inside = (z > 0) & (u >= 0) & (u < cj.width) & (v >= 0) & (v < cj.height)
             xi = u.floor().long().clamp(0, cj.width - 1)
             yi = v.floor().long().clamp(0, cj.height - 1)
-            dj = maps[j].depth[yi, xi].double()
+            dj = sample_depth(maps[j].depth, u, v)
             ok = inside & (dj > 0)
             rays = torch.stack([(u - cj.cx) / cj.fx, (v - cj.cy) / cj.fy, torch.ones_like(u)])
             Xj = _to_world(cj, rays * dj)
@@ -113,7 +149,7 @@ def fuse_reference(views: Sequence[View], maps: Sequence[DepthMap | None], check
                     if not (z[0] > 0 and 0 <= u < cj.width and 0 <= v < cj.height):
                         continue
                     xi, yi = int(np.floor(u)), int(np.floor(v))
-                    dj = float(maps[j].depth[yi, xi])
+                    dj = _sample_depth_reference(maps[j].depth.numpy(), u, v)
                     if dj <= 0:
                         continue
                     seen += 1

@@ -28,6 +28,7 @@ from atgs.data.mvs.config import StereoConfig
 from atgs.data.mvs.views import View
 
 INVALID_COST = 2.0  # 1 - NCC lies in [0, 2]; a source that cannot see the point scores the worst
+NCC_EPS = 1e-3  # added to window standard deviations (intensities in [0,1]): flat windows correlate 0
 
 
 @dataclass
@@ -73,7 +74,7 @@ class PlaneCost:
         yq = (y[:, None] + self.off[:, 1]).clamp(0, h - 1)
         rw = ref.gray.reshape(-1)[yq * w + xq]  # (HW,Q)
         self.ref_std = rw.std(1, unbiased=False)
-        self.ref_norm = (rw - rw.mean(1, keepdim=True)) / (self.ref_std[:, None] + 1e-6)
+        self.ref_norm = (rw - rw.mean(1, keepdim=True)) / (self.ref_std[:, None] + NCC_EPS)
         self.kinv = torch.from_numpy(np.linalg.inv(ref.cam.K)).float()
         self.pix = torch.stack([x.float() + 0.5, y.float() + 0.5, torch.ones(h * w)], -1)  # (HW,3)
         self.ray = self.pix @ self.kinv.T  # (HW,3) rays through the pixel centers
@@ -114,11 +115,10 @@ class PlaneCost:
         else:
             S = torch.cat([F.grid_sample(im, g[None], mode="bilinear", padding_mode="border", align_corners=False)[0]
                            for im, g in zip(self.images, grid)])
-        q = S.shape[1]  # S: (N,Q,M)
-        mean = S.mean(1)
-        var = ((S * S).sum(1) / q - mean * mean).clamp_min(0)
-        cross = (S * self.ref_norm[idx].T[None]).sum(1) / q  # the reference windows have zero mean
-        ncc = (cross / (var.sqrt() + 1e-6)).clamp(-1, 1)
+        S = S - S.mean(1, keepdim=True)  # S: (N,Q,M)
+        sd = S.square().mean(1).sqrt()
+        cross = (S * self.ref_norm[idx].T[None]).mean(1)
+        ncc = (cross / (sd + NCC_EPS)).clamp(-1, 1)
         cost = torch.where(seen, 1.0 - ncc, INVALID_COST)
         k = min(self.top_k, cost.shape[0])
         return cost.topk(k, dim=0, largest=False).values.mean(0) if k < cost.shape[0] else cost.mean(0)
@@ -259,7 +259,7 @@ def patchmatch_cost_reference(ref: View, srcs: Sequence[View], pixel: tuple[int,
             if dx == 0 and dy == 0:
                 seen = z[0] > 0 and 0 <= uv[0, 0] <= src.cam.width and 0 <= uv[0, 1] <= src.cam.height
         sw = np.array(sw)
-        ncc = np.mean((rw - rw.mean()) / (rw.std() + 1e-6) * (sw - sw.mean())) / (sw.std() + 1e-6)
+        ncc = np.mean((rw - rw.mean()) / (rw.std() + NCC_EPS) * (sw - sw.mean())) / (sw.std() + NCC_EPS)
         costs.append(1.0 - np.clip(ncc, -1, 1) if seen else INVALID_COST)
     return float(np.mean(sorted(costs)[:top_k]))
 
