@@ -29,10 +29,17 @@ class StereoConfig:
     """PatchMatch pyramid levels (each half the size of the next; 1: the working resolution only)."""
     coarse_iterations: int = 4
     """PatchMatch iterations at each coarser level, starting from random planes at the coarsest."""
-    iterations: int = 2
+    iterations: int = 1
     """PatchMatch iterations at the working resolution."""
     candidates: int = 3
     """Neighbour planes a pixel tests per iteration: its cheapest of 8 (at distances 1 and 3)."""
+    geo_iterations: int = 2
+    """Iterations of a second pass whose cost adds the disagreement with the sources' first-pass
+    depth maps (0: no second pass)."""
+    geo_weight: float = 0.2
+    """Weight of that disagreement (pixels of round-trip reprojection error) against 1 - NCC."""
+    geo_max_px: float = 3.0
+    """The disagreement is truncated at this many pixels."""
     min_ncc: float = 0.3
     """Pixels whose mean NCC (best sources) is below this get no depth."""
     min_texture: float = 0.004

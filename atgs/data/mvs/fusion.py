@@ -4,9 +4,10 @@ A reference depth is kept only if at least ``min_consistent`` other cameras agre
 reference point, projected into camera j, lands on a pixel whose depth, back-projected and
 projected back into the reference, returns within ``reproj_px`` of where it started, with a
 depth within ``rel_depth`` of the reference depth (the geometric check of Galliani et al. 2015
-and MVSNet). Where fewer other cameras see the point at all (it projects into their image onto
-a pixel with a depth), every one of them must agree, and at least one: the edges of a sparse
-rig are seen by two cameras only. Camera j's depth at the projected point is interpolated bilinearly in inverse depth
+and MVSNet). Where fewer other cameras can see the point (it projects into their image, onto a
+pixel without a depth or whose depth is not in front of it: nothing occludes it there), every
+one of them must agree, and at least one: the edges of a sparse rig, and what one camera sees around an
+occluder, are seen by two cameras only. Camera j's depth at the projected point is interpolated bilinearly in inverse depth
 (exact on planes) unless the 2x2 pixels around it straddle a depth edge. A kept point is the
 mean of the reference point and the agreeing cameras' points, its colour the mean of their
 pixels. ``fuse_reference`` is the per-pixel loop the tests compare
@@ -111,7 +112,7 @@ def fuse_depth_maps(views: Sequence[View], maps: Sequence[DepthMap | None], chec
             err = torch.hypot(ur - u0, vr - v0)
             agree = ok & (err < cfg.reproj_px) & ((zr - d).abs() < cfg.rel_depth * d)
             count += agree.long()
-            seen += ok.long()
+            seen += (inside & ((dj <= 0) | (dj > (1 - cfg.rel_depth) * z))).long()  # unless something is in front
             sum_x += Xj * agree
             sum_c += views[j].rgb[yi, xi].double() * agree[:, None]
         keep = count >= torch.clamp(seen, 1, cfg.min_consistent)
@@ -150,9 +151,9 @@ def fuse_reference(views: Sequence[View], maps: Sequence[DepthMap | None], check
                         continue
                     xi, yi = int(np.floor(u)), int(np.floor(v))
                     dj = _sample_depth_reference(maps[j].depth.numpy(), u, v)
+                    seen += dj <= 0 or dj > (1 - cfg.rel_depth) * z[0]
                     if dj <= 0:
                         continue
-                    seen += 1
                     Xj = cj.R.T @ (np.linalg.inv(cj.K) @ np.array([u, v, 1.0]) * dj - cj.t)
                     uvr, zr = cam.project(Xj[None])
                     if np.hypot(*(uvr[0] - [x + 0.5, y + 0.5])) < cfg.reproj_px and abs(zr[0] - d) < cfg.rel_depth * d:

@@ -37,10 +37,12 @@ class DepthMap:
 
     depth: torch.Tensor  # (H,W) float32
     confidence: torch.Tensor  # (H,W) float32
+    plane_depth: torch.Tensor | None = None  # (H,W) the planes' depth everywhere (unfiltered)
+    normal: torch.Tensor | None = None  # (H,W,3) the planes' camera-space normals
 
 # Neighbours whose planes a pixel tries: the other checkerboard colour at distances 1 and 3.
 PROPAGATION = ((0, -1), (0, 1), (-1, 0), (1, 0), (0, -3), (0, 3), (-3, 0), (3, 0))
-MAX_TILT_DEG = 80.0  # random normals: at most this far from facing the camera head-on
+MAX_TILT_DEG = 88.0  # random normals: at most this far from facing the camera head-on
 MIN_LEVEL_SIDE = 32  # the coarsest level keeps at least this many pixels on its short side
 
 
@@ -62,8 +64,10 @@ class PlaneCost:
     is replicate-padded: window samples past its border take the border pixel's value.
     """
 
-    def __init__(self, ref: View, srcs: Sequence[View], cfg: StereoConfig) -> None:
+    def __init__(self, ref: View, srcs: Sequence[View], cfg: StereoConfig,
+                 src_depths: Sequence[torch.Tensor] | None = None) -> None:
         self.top_k = cfg.top_k
+        self.geo_weight, self.geo_max = cfg.geo_weight, cfg.geo_max_px
         self.h, self.w = h, w = ref.gray.shape
         self.off = window_offsets(cfg.window, cfg.window_step)
         self.offf = self.off.float()
@@ -89,6 +93,13 @@ class PlaneCost:
         sizes = {(s.cam.height, s.cam.width) for s in srcs}
         self.batch = torch.stack([s.gray for s in srcs])[:, None] if len(sizes) == 1 else None
         self.images = [s.gray[None, None] for s in srcs]
+        # geometric consistency with the sources' depth maps: source pixel -> source ray -> reference pixel
+        self.src_depths = None if src_depths is None else [d.float()[None, None] for d in src_depths]
+        back = [np.linalg.inv(t) for t in T]
+        self.src_kinv = torch.from_numpy(np.stack([np.linalg.inv(s.cam.K) for s in srcs])).float()  # (N,3,3)
+        self.back_A = torch.from_numpy(np.stack([ref.cam.K @ b[:3, :3] for b in back])).float()  # (N,3,3)
+        self.back_b = torch.from_numpy(np.stack([ref.cam.K @ b[:3, 3] for b in back])).float()  # (N,3)
+        self.src_size = torch.tensor([[s.cam.width, s.cam.height] for s in srcs], dtype=torch.float32)
 
     def __call__(self, idx: torch.Tensor, inv: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
         """Aggregated cost (M,) of the planes (inverse depth along the pixel ray, camera-space
@@ -120,8 +131,28 @@ class PlaneCost:
         cross = (S * self.ref_norm[idx].T[None]).mean(1)
         ncc = (cross / (sd + NCC_EPS)).clamp(-1, 1)
         cost = torch.where(seen, 1.0 - ncc, INVALID_COST)
+        if self.src_depths is not None:
+            cost = cost + self.geo_weight * self._reprojection(idx, gc).clamp(max=self.geo_max)
         k = min(self.top_k, cost.shape[0])
         return cost.topk(k, dim=0, largest=False).values.mean(0) if k < cost.shape[0] else cost.mean(0)
+
+
+    def _reprojection(self, idx: torch.Tensor, gc: torch.Tensor) -> torch.Tensor:
+        """(N,M) pixel distance between each reference pixel and where its hypothesis point comes
+        back to after a round trip through each source's depth map (inf where it has none)."""
+        uv = (gc + 1) * self.src_size[:, None] / 2  # source pixel coordinates of the window centers
+        if self.batch is not None:
+            d = F.grid_sample(torch.cat(self.src_depths), gc[:, :, None], mode="nearest", padding_mode="border",
+                              align_corners=False)[:, 0, :, 0]
+        else:
+            d = torch.cat([F.grid_sample(dm, g[None, :, None], mode="nearest", padding_mode="border",
+                                         align_corners=False)[0, :, :, 0] for dm, g in zip(self.src_depths, gc)])
+        ph = torch.cat([uv, torch.ones_like(uv[..., :1])], -1)  # (N,M,3)
+        Xs = torch.einsum("nij,nmj->nmi", self.src_kinv, ph) * d[..., None]
+        back = torch.einsum("nij,nmj->nmi", self.back_A, Xs) + self.back_b[:, None]
+        pr = back[..., :2] / back[..., 2:].clamp_min(1e-9)
+        err = (pr - self.pix[idx][None, :, :2]).norm(dim=-1)
+        return torch.where((d > 0) & (back[..., 2] > 0), err, torch.full_like(err, float("inf")))
 
 
 def _face_camera(normal: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
@@ -148,11 +179,11 @@ def _transfer(ray: torch.Tensor, src_idx: torch.Tensor, dst_idx: torch.Tensor, i
 
 
 def _iterate(cost: PlaneCost, inv: torch.Tensor, normal: torch.Tensor, best: torch.Tensor, lo: float, hi: float,
-             iterations: int, candidates: int, gen: torch.Generator, scale0: float = 1.0) -> None:
+             iterations: int, candidates: int, gen: torch.Generator, scale0: float = 1.0, random: bool = True) -> None:
     """Red-black PatchMatch iterations, in place on (inv, normal, best) of all pixels. Each pixel
     tries the planes of its ``candidates`` cheapest propagation neighbours (Xu and Tao 2019,
     "ACMM": the neighbours' own costs choose which planes are worth a test), then one random
-    perturbation of its plane and, in the first iteration, one random plane."""
+    perturbation of its plane and, in the first iteration (if ``random``), one random plane."""
     h, w = cost.h, cost.w
     ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     colour = ((xs + ys) % 2).reshape(-1)
@@ -171,7 +202,7 @@ def _iterate(cost: PlaneCost, inv: torch.Tensor, normal: torch.Tensor, best: tor
             pert_inv = inv[idx] + (hi - lo) * 0.1 * scale * (2 * torch.rand(idx.shape[0], generator=gen) - 1)
             pert_n = _face_camera(normal[idx] + 0.3 * scale * torch.randn(idx.shape[0], 3, generator=gen), ray)
             _keep_best(cost, idx, pert_inv, pert_n, inv, normal, best, lo, hi)
-            if it == 0:
+            if it == 0 and random:
                 rand_inv = lo + (hi - lo) * torch.rand(idx.shape[0], generator=gen)
                 _keep_best(cost, idx, rand_inv, random_normals(ray, gen), inv, normal, best, lo, hi)
 
@@ -222,10 +253,39 @@ def patchmatch(ref: View, srcs: Sequence[View], near: float, far: float, cfg: St
         its = cfg.iterations if f == 1.0 else cfg.coarse_iterations
         _iterate(pc, inv, normal, best, lo, hi, its, cfg.candidates, gen, scale0=1.0 if li == 0 else 0.25)
         prev = (pc.h, pc.w)
+    return _result(pc, inv, normal, best, cfg)
+
+
+def refine_geometric(ref: View, srcs: Sequence[View], src_depths: Sequence[torch.Tensor], start: DepthMap,
+                     near: float, far: float, cfg: StereoConfig, seed: int = 0) -> DepthMap:
+    """More PatchMatch iterations at the working resolution, from ``start``'s planes, with each
+    source's cost raised by ``geo_weight`` x the round-trip reprojection error through that
+    source's depth map (truncated at ``geo_max_px``): where the images alone are ambiguous, the
+    plane that the other cameras' depths agree with wins (Xu and Tao 2019, "ACMM")."""
+    h, w = ref.gray.shape
+    if not srcs or start.normal is None or cfg.geo_iterations <= 0:
+        return start
+    gen = torch.Generator().manual_seed(seed + 7919)
+    lo, hi = 1.0 / far, 1.0 / near
+    pc = PlaneCost(ref, srcs, cfg, src_depths)
+    idx = torch.arange(h * w)
+    d = start.plane_depth.reshape(-1)
+    inv = torch.where(d > 0, 1.0 / d.clamp_min(1e-12), torch.full_like(d, (lo + hi) / 2))
+    normal = start.normal.reshape(-1, 3).clone()
+    best = pc(idx, inv, normal)
+    _iterate(pc, inv, normal, best, lo, hi, cfg.geo_iterations, cfg.candidates, gen, scale0=0.25, random=False)
+    photometric = PlaneCost(ref, srcs, cfg)  # the confidence is the images' agreement alone
+    return _result(photometric, inv, normal, photometric(idx, inv, normal), cfg)
+
+
+def _result(pc: PlaneCost, inv: torch.Tensor, normal: torch.Tensor, best: torch.Tensor, cfg: StereoConfig) -> DepthMap:
+    h, w = pc.h, pc.w
     ncc = (1.0 - best).reshape(h, w)
+    plane_depth = 1.0 / inv.reshape(h, w).clamp_min(1e-12)
     ok = (ncc >= cfg.min_ncc) & (pc.ref_std.reshape(h, w) >= cfg.min_texture) & (inv.reshape(h, w) > 0)
-    depth = torch.where(ok, 1.0 / inv.reshape(h, w).clamp_min(1e-12), torch.zeros(h, w))
-    return DepthMap(depth.float(), torch.where(ok, ncc, torch.zeros_like(ncc)).float())
+    depth = torch.where(ok, plane_depth, torch.zeros(h, w))
+    return DepthMap(depth.float(), torch.where(ok, ncc, torch.zeros_like(ncc)).float(),
+                    plane_depth.float(), normal.reshape(h, w, 3).float())
 
 
 def patchmatch_cost_reference(ref: View, srcs: Sequence[View], pixel: tuple[int, int], inv: float,

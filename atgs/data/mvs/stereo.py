@@ -14,7 +14,7 @@ import torch
 from atgs.cameras import Camera
 from atgs.data.mvs.config import StereoConfig
 from atgs.data.mvs.fusion import capped_voxel_average, fuse_depth_maps
-from atgs.data.mvs.patchmatch import DepthMap, patchmatch
+from atgs.data.mvs.patchmatch import DepthMap, patchmatch, refine_geometric
 from atgs.data.mvs.views import View, depth_ranges, make_view, select_sources, view_scores
 
 MIN_OVERLAP = 0.05  # a camera may confirm a reference depth if it sees this much of the reference view
@@ -58,8 +58,17 @@ def _stereo_points(images, cameras, cfg, seed_points, depth_hints, on_camera) ->
     maps: list[DepthMap | None] = []
     for r, view in enumerate(views):
         maps.append(patchmatch(view, [views[j] for j in sources[r]], *ranges[r], cfg, seed=r) if sources[r] else None)
-        if on_camera is not None:
+        if on_camera is not None and cfg.geo_iterations <= 0:
             on_camera()
+    if cfg.geo_iterations > 0:  # second pass: agree with the other cameras' first-pass depths
+        first = maps
+        maps = []
+        for r, view in enumerate(views):
+            srcs = [j for j in sources[r] if first[j] is not None]
+            maps.append(None if first[r] is None else refine_geometric(
+                view, [views[j] for j in srcs], [first[j].depth for j in srcs], first[r], *ranges[r], cfg, seed=r))
+            if on_camera is not None:
+                on_camera()
     t2 = time.perf_counter()
     checks = [[j for j in range(len(views)) if j != r and max(overlap[r, j], overlap[j, r]) > MIN_OVERLAP]
               for r in range(len(views))]
