@@ -82,6 +82,7 @@ def coverage_mask_reference(cam: Camera, points: np.ndarray, spacing: float) -> 
 
 
 def working_camera(cam: Camera, long_side: int = DEFAULT_LONG_SIDE) -> Camera:
+    """``cam`` for its image box-downsampled to at most ``long_side`` pixels (stereo and coverage)."""
     s = min(1.0, float(long_side) / max(cam.width, cam.height))
     return cam if s == 1.0 else cam.scaled(s)
 

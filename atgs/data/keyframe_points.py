@@ -25,6 +25,7 @@ from atgs.data.colmap_ops import ColmapOptions, triangulate_known_poses
 from atgs.data.coverage import coverage_mask, point_spacing, scene_coverage, working_camera
 from atgs.data.errors import DataError
 from atgs.data.mvs import FillConfig, StereoConfig, stereo_points
+from atgs.data.mvs.stereo import stereo_steps
 from atgs.data.mvs.fill import frustum_fill
 from atgs.data.mvs.views import check_camera_layout, depth_ranges
 
@@ -59,7 +60,7 @@ def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs
     hints = None if depth_hints is None else [depth_hints[i] for i in use_idx]
     P, C, K, fill_mask = [], [], [], []
     counts: dict[str, list[int]] = {"sift": [], "stereo": [], "fill": []}
-    per_kf = len(use) if stereo.enabled else 1
+    per_kf = stereo_steps(len(use), stereo) if stereo.enabled else 1
     with tqdm(total=len(kfs) * per_kf, desc="keyframe points", unit="cam" if stereo.enabled else "kf",
               disable=not progress) as bar:
         for j, f in enumerate(kfs):

@@ -26,11 +26,10 @@ import tyro
 from PIL import Image
 
 from atgs.data.atomic import atomic_dir
-from atgs.data.coverage import scene_coverage
+from atgs.data.coverage import scene_coverage, working_camera
 from atgs.data.errors import DataError
 from atgs.data.mvs import StereoConfig
 from atgs.data.mvs.fusion import capped_voxel_average
-from atgs.data.mvs.views import working_camera
 from atgs.data.scene import PreparedScene, write_scene_metadata
 
 

@@ -41,7 +41,8 @@ def stereo_points(images: Sequence[np.ndarray], cameras: Sequence[Camera], cfg: 
     ``images[i]`` (H,W,3 uint8) was taken by ``cameras[i]`` (undistorted, posed). ``seed_points``
     (e.g. SIFT triangulation) set each camera's depth range and guide the choice of sources;
     without them ``depth_hints`` (per-camera near/far of the dataset) or the camera layout do.
-    ``on_camera`` is called after each depth map (progress bars).
+    ``on_camera`` is called after each depth map of each pass (progress bars; see
+    :func:`stereo_steps`).
     """
     with torch_threads(cfg.threads):
         return _stereo_points(images, cameras, cfg, seed_points, depth_hints, on_camera)
@@ -58,7 +59,7 @@ def _stereo_points(images, cameras, cfg, seed_points, depth_hints, on_camera) ->
     maps: list[DepthMap | None] = []
     for r, view in enumerate(views):
         maps.append(patchmatch(view, [views[j] for j in sources[r]], *ranges[r], cfg, seed=r) if sources[r] else None)
-        if on_camera is not None and cfg.geo_iterations <= 0:
+        if on_camera is not None:
             on_camera()
     if cfg.geo_iterations > 0:  # second pass: agree with the other cameras' first-pass depths
         first = maps
@@ -78,6 +79,11 @@ def _stereo_points(images, cameras, cfg, seed_points, depth_hints, on_camera) ->
     t3 = time.perf_counter()
     return StereoResult(pts, cols, voxel, views, maps, ranges, sources,
                         {"setup": t1 - t0, "depth": t2 - t1, "fusion": t3 - t2})
+
+
+def stereo_steps(num_cameras: int, cfg: StereoConfig) -> int:
+    """How many times :func:`stereo_points` calls ``on_camera``."""
+    return num_cameras * (2 if cfg.geo_iterations > 0 else 1)
 
 
 def idle_cores() -> int:

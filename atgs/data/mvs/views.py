@@ -11,6 +11,7 @@ import torch
 from PIL import Image
 
 from atgs.cameras import Camera
+from atgs.data.coverage import working_camera
 from atgs.data.errors import DataError
 
 # Source-camera choice: triangulation angles near PEAK_DEG are best; smaller angles give poor
@@ -25,15 +26,6 @@ class View:
     cam: Camera
     gray: torch.Tensor
     rgb: torch.Tensor
-
-
-def working_scale(cam: Camera, long_side: int) -> float:
-    return min(1.0, float(long_side) / max(cam.width, cam.height))
-
-
-def working_camera(cam: Camera, long_side: int) -> Camera:
-    s = working_scale(cam, long_side)
-    return cam if s == 1.0 else cam.scaled(s)
 
 
 def make_view(image: np.ndarray, cam: Camera, long_side: int) -> View:
