@@ -326,3 +326,20 @@ def test_an_empty_point_cloud_trains(tmp_path, capsys) -> None:
     assert "points.ply is empty" in capsys.readouterr().err and tr.model.num_anchors > 10
     rows = [tr.train_step() for _ in range(6)]
     assert all(np.isfinite(r.loss) for r in rows) and any(r.gaussians > 0 for r in rows)
+
+
+@pytest.mark.parametrize("case", ["one camera", "coincident cameras", "nothing in common"])
+def test_the_model_starts_without_points_on_degenerate_rigs(case, capsys) -> None:
+    from atgs.model.atgs_model import ATGSModel
+    from atgs.model.config import preset
+
+    eye = np.array([2.6, 0.0, 1.6])
+    cams = {"one camera": [_look(eye, [0, 0, 0.3], "a")],
+            "coincident cameras": [_look(eye, [0, y, 0.3], f"c{i}") for i, y in enumerate((-0.6, 0.0, 0.6))],
+            "nothing in common": [_look(eye, [0, 0, 0.3], "a"), _look(eye + [0, 0.1, 0], [6, 0.1, 1.6], "b")]}[case]
+    m, _ = preset("tiny")
+    model = ATGSModel.from_points(m, torch.zeros(0, 3), torch.zeros(0, dtype=torch.long), [0, 3], 4, 30.0, cams, cams)
+    mu = model.anchor_mu.numpy()
+    assert model.num_anchors > 100 and np.isfinite(mu).all() and np.ptp(mu, axis=0).max() > 0.1
+    # anchors are voxel averages of the fill: a few at the frustum edges fall just outside
+    assert np.mean(_seen_by(cams, mu.astype(np.float64)) >= 1) > 0.95 and "points.ply is empty" in capsys.readouterr().err

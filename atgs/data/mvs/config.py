@@ -17,10 +17,10 @@ class StereoConfig:
     """Dense multi-view stereo at every keyframe (--no-stereo: SIFT triangulation only)."""
     long_side: int = 400
     """Working resolution: images are box-downsampled to at most this many pixels on the long side."""
-    window: int = 7
-    """Side of the square NCC window, in working pixels."""
+    window: int = 5
+    """Side of the square NCC window, in working pixels (samples symmetric about the center)."""
     window_step: int = 2
-    """Sample every n-th pixel of the window (2: a 7-pixel window costs 16 samples instead of 49)."""
+    """Sample every n-th pixel of the window (5 px, step 2: 3 x 3 = 9 samples instead of 25)."""
     neighbors: int = 4
     """Source cameras per reference camera (chosen by triangulation angle and view overlap)."""
     top_k: int = 1

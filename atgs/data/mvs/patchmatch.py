@@ -4,12 +4,13 @@ Every pixel holds a plane (inverse depth along its ray and a normal facing the c
 cost is 1 - NCC between the reference window and the source image sampled where the window's
 pixels, lifted onto that plane, project: a slanted window, so ground planes and walls seen at
 grazing angles match as well as surfaces facing the camera (a fronto-parallel plane sweep fails
-there). Costs are averaged over the best ``top_k`` sources so one occluded source is outvoted.
+there). Costs are averaged over the best ``top_k`` sources (default 1: the best source alone).
 
 Red-black PatchMatch (Galliani et al. 2015, "Gipuma"): the pixels of one checkerboard colour try
-the planes of their neighbours of the other colour at distances 1 and 3, then random
-perturbations of their own plane, and keep the cheapest; then the other colour. Iterations run at
-half resolution from random planes, then at full resolution from the upsampled result.
+the planes of their cheapest neighbours of the other colour at distances 1 and 3, then random
+perturbations of their own plane, and keep the cheapest; then the other colour. Iterations run on
+a pyramid from random planes at the coarsest level, then at the working resolution; a second
+pass (:func:`refine_geometric`) adds the disagreement with the sources' first-pass depth maps.
 
 ``patchmatch_cost_reference`` evaluates the same cost one pixel, source and window sample at a
 time with NumPy; the tests compare the fast path with it.
@@ -47,7 +48,9 @@ MIN_LEVEL_SIDE = 32  # the coarsest level keeps at least this many pixels on its
 
 
 def window_offsets(window: int, step: int) -> torch.Tensor:
-    """(Q,2) integer offsets (dx, dy) of the window samples; the center is always one of them."""
+    """(Q,2) integer offsets (dx, dy) of the window samples: every ``step``-th pixel of a square of
+    side at most ``window``, symmetric about the center, which is always one of them (5, 2: the
+    offsets -2, 0, 2 in x and y, 9 samples)."""
     r = (window // 2) // step * step
     o = torch.arange(-r, r + 1, step)
     dy, dx = torch.meshgrid(o, o, indexing="ij")

@@ -81,7 +81,8 @@ def layout_depth_range(cam: Camera, cams: Sequence[Camera]) -> tuple[float, floa
     A = sum(np.eye(3) - np.outer(v, v) for v in d)
     b = sum((np.eye(3) - np.outer(v, v)) @ p for v, p in zip(d, c))
     base = np.linalg.norm(c[:, None] - c[None], axis=-1)
-    baseline = float(np.median(base[base > 0])) if (base > 0).any() else 1.0
+    apart = base > 1e-9 * max(1.0, float(np.abs(c).max()))
+    baseline = float(np.median(base[apart])) if apart.any() else 1.0  # coincident: no scale, say 1
     w = np.linalg.eigvalsh(A)
     if w[0] > 0.05 * w[-1]:  # the axes converge: their least-squares meeting point is the scene
         t = float((np.linalg.solve(A, b) - cam.center) @ cam.forward)
