@@ -122,8 +122,8 @@ class PlaneCost:
         h = (self.basis_t @ C.reshape(n_src, 3, -1)).reshape(n_src, -1, n_pix, 3)  # (N,Q,M,3)
         z = h[..., 2]
         grid = h[..., :2] / z.clamp_min(1e-9)[..., None]  # (N,Q,M,2)
-        gc = grid[:, self.center]
-        seen = front[None] & (z > 1e-9).all(1) & (gc >= -1).all(-1) & (gc <= 1).all(-1)
+        gc = grid[:, self.center]  # the window center must be in front of the source and inside its image
+        seen = front[None] & (z[:, self.center] > 1e-9) & (gc.abs().amax(-1) <= 1)
         if self.batch is not None:
             S = F.grid_sample(self.batch, grid, mode="bilinear", padding_mode="border", align_corners=False)[:, 0]
         else:
@@ -137,6 +137,8 @@ class PlaneCost:
         if self.src_depths is not None:
             cost = cost + self.geo_weight * self._reprojection(idx, gc).clamp(max=self.geo_max)
         k = min(self.top_k, cost.shape[0])
+        if k == 1:
+            return cost.amin(0)
         return cost.topk(k, dim=0, largest=False).values.mean(0) if k < cost.shape[0] else cost.mean(0)
 
 
