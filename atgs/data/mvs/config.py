@@ -33,7 +33,7 @@ class StereoConfig:
     """PatchMatch iterations at the working resolution."""
     candidates: int = 3
     """Neighbour planes a pixel tests per iteration: its cheapest of 8 (at distances 1 and 3)."""
-    geo_iterations: int = 2
+    geo_iterations: int = 1
     """Iterations of a second pass whose cost adds the disagreement with the sources' first-pass
     depth maps (0: no second pass)."""
     geo_weight: float = 0.2
