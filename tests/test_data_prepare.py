@@ -16,6 +16,7 @@ from atgs.cli.prepare import main as prepare_main
 from atgs.data.errors import DataError
 from atgs.errors import OutputError
 from layouts import write_colmap_frames_layout, write_easyvolcap_layout
+from atgs.data.mvs import StereoConfig
 from atgs.data.prepare import PrepareConfig, parse_frame_range, prepare
 from atgs.data.scene import PreparedScene
 from atgs.data.synth import load_ground_truth, synthesize
@@ -25,6 +26,9 @@ from atgs.data.video import iter_frames
 from atgs.io.video import VideoWriter
 
 CFG = SynthConfig(frames=6, cameras=12, width=256, height=192, seed=1, preset="large-motion")
+# Tests of the formats and the ingest do not need dense stereo (tests/test_data_mvs.py covers it);
+# the fixture's prepare runs it at a small working resolution to stay fast.
+NO_STEREO = StereoConfig(enabled=False)
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +44,8 @@ def synth(tmp_path_factory):
         for ci in (0, 3, 7):
             gt[ci, f] = r.render(cams[ci])
     r.release()
-    prepared = prepare(PrepareConfig(src=src, out=root / "prepared", keyframes=2, progress=False))
+    prepared = prepare(PrepareConfig(src=src, out=root / "prepared", keyframes=2, progress=False,
+                                     stereo=StereoConfig(long_side=128)))
     return {"root": root, "src": src, "scene": scene, "gt": gt, "cams": cams, "prepared": prepared}
 
 
@@ -83,11 +88,16 @@ def test_keyframe_points_lie_on_true_surfaces(synth) -> None:
         assert np.median(d) < 0.01 * size, (j, np.median(d))
     inside = np.all((s.points >= s.bounds[0]) & (s.points <= s.bounds[1]), axis=1)
     assert inside.mean() > 0.97  # bounds are robust (percentiles): far outliers may fall outside
+    meta = json.loads((Path(synth["prepared"]) / "scene.json").read_text())
+    counts, cov = meta["keyframe_points"], meta["coverage"]
+    assert all(n > 5 * m for n, m in zip(counts["stereo"], counts["sift"])), counts  # stereo is the dense part
+    assert set(cov["per_camera"]) == {c.name for c in s.cameras} and set(cov["test_cameras"]) == {"cam00"}
+    assert cov["test_cameras"]["cam00"] > 0.5 and cov["mean"] > 0.5, cov
 
 
 def test_frame_range_downscale_and_test_cams(synth, tmp_path) -> None:
     out = prepare(PrepareConfig(src=synth["src"], out=tmp_path / "p", frames="1:6:2", downscale=2.0,
-                                test_cams=("3", "cam07"), keyframes=1, progress=False))
+                                test_cams=("3", "cam07"), keyframes=1, progress=False, stereo=NO_STEREO))
     s = PreparedScene.load(out)
     assert s.num_frames == 3 and s.fps == CFG.fps / 2 and s.keyframes == [0]
     assert s.test_cameras == ["cam03", "cam07"]
@@ -115,7 +125,7 @@ def test_other_layouts_give_same_scene(synth, tmp_path, layout) -> None:
         write_easyvolcap_layout(src, cams, _gt_frame(synth), 2)
     else:
         write_colmap_frames_layout(src, cams, _gt_frame(synth), 2, model_in_first_frame=layout.endswith("frame"))
-    out = prepare(PrepareConfig(src=src, out=tmp_path / "p", keyframes=1, progress=False))
+    out = prepare(PrepareConfig(src=src, out=tmp_path / "p", keyframes=1, progress=False, stereo=NO_STEREO))
     s = PreparedScene.load(out)
     assert s.source["format"] == layout.replace("-model-in-frame", "")
     assert s.num_frames == 2 and [c.name for c in s.cameras] == [c.name for c in cams]
@@ -353,3 +363,20 @@ def test_calibration_at_other_resolution_is_rescaled_or_refused(synth, tmp_path)
     src = write_easyvolcap_layout(tmp_path / "ev2", squashed, half, 1)
     with pytest.raises(DataError, match="different aspect ratio"):
         _prep(src, tmp_path / "p2")
+
+
+def test_oracle_scene_has_true_surface_points_and_everything_else_equal(synth, tmp_path) -> None:
+    from atgs.data.oracle import make_oracle_scene
+
+    out = make_oracle_scene(synth["prepared"], tmp_path / "oracle", StereoConfig(long_side=128))
+    a, b = PreparedScene.load(synth["prepared"]), PreparedScene.load(out)
+    assert a.keyframes == b.keyframes and a.test_cameras == b.test_cameras and np.array_equal(a.bounds, b.bounds)
+    assert [c.to_dict() for c in a.cameras] == [c.to_dict() for c in b.cameras]
+    assert np.array_equal(a.image(5, 3), b.image(5, 3))
+    size = synth["scene"].cfg.scene_size
+    for j, f in enumerate(b.keyframes):
+        pts = b.points[b.point_keyframes == j]
+        d = distance_to_surfaces(synth["scene"], f, pts[:: max(1, len(pts) // 300)])
+        assert len(pts) > 1000 and np.max(d) < 0.01 * size  # voxel averages of exact surface points
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["coverage"]["test_cameras"]["cam00"] > 0.9 and meta["source"]["oracle"]["points"] == len(b.points)

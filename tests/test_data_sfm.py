@@ -10,6 +10,7 @@ import pytest
 from PIL import Image
 
 from atgs.data.align import pose_errors, umeyama
+from atgs.data.mvs import FillConfig, StereoConfig
 from atgs.data.prepare import PrepareConfig, prepare
 from atgs.data.scene import PreparedScene
 from atgs.data.synth import synthesize
@@ -53,7 +54,9 @@ def test_sfm_recovers_poses_from_unposed_input(tmp_path, unposed, layout) -> Non
                 Image.fromarray(img).save(src / v.stem / f"{i:04d}.png")
     else:
         src = raw
-    out = prepare(PrepareConfig(src=src, out=tmp_path / "p", keyframes=1, frames="0:1", progress=False))
+    # stereo and fill off: this tests the SfM poses and their SIFT points (tests/test_data_mvs.py: the rest)
+    out = prepare(PrepareConfig(src=src, out=tmp_path / "p", keyframes=1, frames="0:1", progress=False,
+                                stereo=StereoConfig(enabled=False), fill=FillConfig(enabled=False)))
     s = PreparedScene.load(out)
     assert s.source["format"] == layout
     truth = gt.cameras()

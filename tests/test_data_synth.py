@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from atgs.data.synth_render import MeshRenderer
-from atgs.data.synth_scene import PRESETS, SynthConfig, SynthScene, point_triangle_distance, sample_surface
+from atgs.data.synth_scene import (PRESETS, SynthConfig, SynthScene, distance_to_surfaces, point_triangle_distance,
+                                   sample_surface)
 
 CFG = SynthConfig(frames=2, cameras=12, width=256, height=192)
 
@@ -87,3 +88,53 @@ def test_motion_presets() -> None:
     # the blob deforms: its object-space vertices change over time
     blob = next(o for o in big.objects if o.name == "blob")
     assert np.abs(big.object_space_mesh(blob, 0).positions - big.object_space_mesh(blob, 15).positions).max() > 0.03
+
+
+def test_true_depth_lies_on_the_surfaces() -> None:
+    scene = SynthScene(CFG)
+    r = MeshRenderer(scene, CFG.width, CFG.height)
+    r.set_frame(1)
+    cam = scene.cameras()[4]
+    d = r.render_depth(cam)
+    r.release()
+    assert d.dtype == np.float32 and d.shape == (CFG.height, CFG.width) and (d > 0).mean() > 0.95
+    v, u = np.mgrid[0:CFG.height:5, 0:CFG.width:5]
+    z = d[v, u].astype(np.float64)
+    pc = np.stack([(u + 0.5 - cam.cx) / cam.fx * z, (v + 0.5 - cam.cy) / cam.fy * z, z], -1).reshape(-1, 3)
+    X = (pc[z.reshape(-1) > 0] - cam.t) @ cam.R
+    # float32 depth of surfaces 3-11 m away: exact to ~1e-6 relative, far below a texel
+    assert distance_to_surfaces(scene, 1, X).max() < 1e-4
+
+
+def test_new_layouts_and_the_unchanged_default_config() -> None:
+    from dataclasses import replace
+
+    from atgs.data.synth_scene import LAYOUTS
+
+    d = SynthConfig().to_dict()
+    assert "rig" not in d and "texture_contrast" not in d  # cache keys of existing scenes unchanged
+    front = replace(SynthConfig(), **LAYOUTS["front6"])
+    assert SynthConfig.from_dict(front.to_dict()) == front and front.to_dict()["rig"] == "front"
+    cams = SynthScene(front).cameras()
+    assert len(cams) == 6 and all(c.forward[1] > 0.9 for c in cams)  # all face +y: front-facing
+    assert np.ptp([c.center[1] for c in cams]) < 1e-9 and np.ptp([c.center[0] for c in cams]) > 1.0
+    flat = SynthScene(replace(CFG, texture_contrast=0.0))
+    assert all(np.ptp(t.reshape(-1, 3), axis=0).max() == 0 for t in flat.textures)
+    low = replace(SynthConfig(), **LAYOUTS["ring10-low"])
+    assert (low.cameras, low.width, low.height) == (10, 200, 150)
+
+
+def test_synthesize_writes_true_depth(tmp_path) -> None:
+    from atgs.data.synth import synthesize
+
+    cfg = SynthConfig(frames=2, cameras=3, width=48, height=32, texture_size=64)
+    out = synthesize(tmp_path / "raw", cfg, progress=False, depth=True)
+    scene = SynthScene(cfg)
+    r = MeshRenderer(scene, cfg.width, cfg.height)
+    for f in range(2):
+        r.set_frame(f)
+        with np.load(out / "depth" / f"{f:06d}.npz") as z:
+            assert sorted(z.files) == [c.name for c in scene.cameras()]
+            for c in scene.cameras():
+                assert np.array_equal(z[c.name], r.render_depth(c))
+    r.release()

@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated
 
 import tyro
 
 from atgs.data.synth import EncodeConfig, synthesize
-from atgs.data.synth_scene import Preset, SynthConfig
+from atgs.data.synth_scene import LAYOUTS, Layout, Preset, Rig, SynthConfig
 from atgs.io.cli import run_cli
 
 
@@ -36,7 +36,18 @@ class SynthArgs:
     seed: int = 0
     """Seed of textures, colors and motion phases."""
     arc_deg: float = 360.0
-    """Spread the cameras over this arc (360 = all around; e.g. 90 = front-facing rig)."""
+    """Spread the cameras over this arc of the ring (360 = all around; e.g. 90 = a converging arc)."""
+    rig: Rig = "ring"
+    """'ring': cameras on the ring looking at the center; 'front': an N3DV-like front-facing grid
+    (two rows, 1.6 m wide, nearly parallel axes)."""
+    texture_contrast: float = 1.0
+    """1: the textures as made; towards 0: flatter (0: textureless flat colours)."""
+    layout: Layout | None = None
+    """A named layout that sets cameras, size and rig (overrides those options): 'ring12' (the
+    default scene: 12 cameras, 256x192), 'ring10-low' (10 cameras, 200x150), 'front6' (6 cameras,
+    front-facing), 'ring12-flat' (the default with textureless surfaces)."""
+    depth: bool = False
+    """Also write the true depth of every frame (depth/<frame>.npz, docs/data.md)."""
     codec: str = "libx264rgb"
     """Video codec: libx264rgb with crf 0 is lossless; libx264 gives ordinary YUV files."""
     crf: int = 0
@@ -53,12 +64,15 @@ class SynthArgs:
 
 def main(argv: list[str] | None = None) -> int:
     a = tyro.cli(SynthArgs, args=argv, description=__doc__)
-    cfg = SynthConfig(frames=a.frames, cameras=a.cameras, width=a.width, height=a.height, seed=a.seed,
-                      preset=a.preset, fps=a.fps, arc_deg=a.arc_deg)
 
     def body() -> None:
+        cfg = SynthConfig(frames=a.frames, cameras=a.cameras, width=a.width, height=a.height, seed=a.seed,
+                          preset=a.preset, fps=a.fps, arc_deg=a.arc_deg, rig=a.rig,
+                          texture_contrast=a.texture_contrast)
+        if a.layout is not None:
+            cfg = replace(cfg, **LAYOUTS[a.layout])
         t = time.perf_counter()
-        synthesize(a.out, cfg, EncodeConfig(a.codec, a.crf, a.pix_fmt), overwrite=a.overwrite)
+        synthesize(a.out, cfg, EncodeConfig(a.codec, a.crf, a.pix_fmt), overwrite=a.overwrite, depth=a.depth)
         print(f"synthetic scene written to {a.out} in {time.perf_counter() - t:.1f} s")
         if a.prepare is not None:
             from atgs.data.prepare import PrepareConfig, prepare

@@ -4,8 +4,9 @@ Steps (each long one shows a progress bar):
 1. detect/open the source and check that every camera has the same number of frames;
 2. cameras: from the dataset's poses, or pycolmap SfM on the first selected frame (static rig);
 3. frames: decode lazily, undistort when the model has distortion, downscale, write PNG/JPG;
-4. keyframe points: pycolmap SIFT + exhaustive matching + triangulation with fixed poses at each
-   of K keyframes (CPU only; dense MVS would need CUDA);
+4. keyframe points at each of K keyframes (atgs.data.keyframe_points): pycolmap SIFT +
+   triangulation with fixed poses, CPU PatchMatch stereo fused across views, and a fill of the
+   space seen by two cameras where both leave pixels uncovered; coverage per camera;
 5. scene.json + points.ply; the directory is built as ``OUT.tmp-xxxx`` and renamed at the end.
 """
 
@@ -24,8 +25,10 @@ from PIL import Image
 
 from atgs.cameras import Camera
 from atgs.io.atomic import atomic_dir, check_output_dir
-from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras, triangulate_known_poses
+from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras
 from atgs.data.errors import DataError
+from atgs.data.keyframe_points import keyframe_points
+from atgs.data.mvs import FillConfig, StereoConfig
 from atgs.data.scene import save_frame, write_scene_metadata
 from atgs.data.sources import Source, SourceFormat, open_source
 from atgs.data.undistort import apply_undistort_map, build_undistort_map
@@ -53,7 +56,11 @@ class PrepareConfig:
     test_cams: tuple[str, ...] | None = None
     """Held-out camera names or indices (default: the dataset's convention, e.g. cam00)."""
     keyframes: int = 5
-    """Number of evenly spaced keyframes at which sparse points are triangulated."""
+    """Number of evenly spaced keyframes at which points are reconstructed."""
+    stereo: StereoConfig = StereoConfig()
+    """Dense multi-view stereo of the keyframe points (docs/data.md)."""
+    fill: FillConfig = FillConfig()
+    """Fallback points where stereo and SIFT leave cameras uncovered (docs/data.md)."""
     trim_mismatch: bool = False
     """If cameras have different frame counts, keep the shortest length (with a warning)."""
     overwrite: bool = False
@@ -184,7 +191,10 @@ def prepare(cfg: PrepareConfig) -> Path:
         timings["frames"] = time.perf_counter() - t
         t = time.perf_counter()
         kfs = evenly_spaced(num_frames, cfg.keyframes)  # the model's keyframe rule
-        pts, cols, pkf = _keyframe_points(tmp, out_cams, test, kfs, ext, work, colmap_opts, cfg.progress)
+        hints = src.extra.get("near_far")
+        kp = keyframe_points(tmp, out_cams, test, kfs, ext, work, colmap_opts, cfg.stereo, cfg.fill,
+                             depth_hints=[tuple(x) for x in hints] if hints else None, progress=cfg.progress,
+                             where=str(cfg.src))
         timings["points"] = time.perf_counter() - t
         shutil.rmtree(work, ignore_errors=True)
         fps = (cfg.fps or src.fps) / sel.step
@@ -197,8 +207,9 @@ def prepare(cfg: PrepareConfig) -> Path:
             source["synth"] = "synth.json"
         timings["total"] = time.perf_counter() - t0
         source["timings_s"] = {k: round(v, 2) for k, v in timings.items()}
-        write_scene_metadata(tmp, out_cams, num_frames, pts, cols, pkf, fps=fps, keyframes=kfs, test_cameras=test,
-                             name=cfg.name or out.name, source=source)
+        write_scene_metadata(tmp, out_cams, num_frames, kp.points, kp.colors, kp.keyframes, fps=fps, keyframes=kfs,
+                             test_cameras=test, name=cfg.name or out.name, source=source,
+                             extra={"coverage": kp.coverage, "keyframe_points": kp.counts})
     return out
 
 
@@ -239,40 +250,3 @@ def _sfm_cameras(src: Source, frame: int, work: Path, cfg: PrepareConfig, opts: 
                               cfg.sfm_shared_intrinsics)
 
 
-def _keyframe_points(root: Path, cams: list[Camera], test: list[str], kfs: list[int], ext: str, work: Path,
-                     opts: ColmapOptions, progress: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Known-pose triangulation at each keyframe; test cameras are held out when possible."""
-    from tqdm import tqdm
-
-    use = [c for c in cams if c.name not in test]
-    if len(use) < 2:
-        use = list(cams)
-    P, C, Kf = [], [], []
-    for j, f in enumerate(tqdm(kfs, desc="keyframe points", disable=not progress)):
-        names = [f"{c.name}/{f:06d}{ext}" for c in use]
-        xyz, rgb = triangulate_known_poses(root / "images", names, use, work / f"kf{j:04d}", opts)
-        P.append(xyz)
-        C.append(rgb)
-        Kf.append(np.full(len(xyz), j, np.int64))
-    pts = np.concatenate(P) if P else np.zeros((0, 3))
-    cols = np.concatenate(C) if C else np.zeros((0, 3), np.uint8)
-    kf = np.concatenate(Kf) if Kf else np.zeros(0, np.int64)
-    keep = gross_outlier_mask(pts)
-    pts, cols, kf = pts[keep], cols[keep], kf[keep]
-    if len(pts) == 0:
-        print("warning: no keyframe points could be triangulated (textureless or too few overlapping views); "
-              "the trainer will start from random points", file=sys.stderr)
-    return pts, cols, kf
-
-
-def gross_outlier_mask(pts: np.ndarray, margin: float = 0.5) -> np.ndarray:
-    """Keep points inside the 1-99 percentile box grown by ``margin`` of its size on each side.
-
-    Sparse triangulation leaves a few points far along poorly conditioned rays (e.g. metres
-    below the ground); they would become floaters when used as anchors.
-    """
-    if len(pts) < 50:
-        return np.ones(len(pts), bool)
-    lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
-    ext = (hi - lo) * margin
-    return np.all((pts >= lo - ext) & (pts <= hi + ext), axis=1)

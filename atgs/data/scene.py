@@ -227,17 +227,24 @@ def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 # --- builder (used by atgs-prepare and by tests to make toy scenes) --------------------------
 
+MIN_BOUNDS_POINTS = 100  # fewer points than this say nothing robust about the scene's extent
+
+
 def compute_bounds(points: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
-    """Scene bounds: the point cloud's box (robust 1-99 percentile, padded), or the camera
-    centers' box when there are no points."""
+    """Scene bounds, padded by 5% of the longest side: the 1-99 percentile box of the points
+    when there are at least MIN_BOUNDS_POINTS of them; else the box of the camera centers and of
+    the space in front of the cameras that at least two of them see (a handful of points would
+    give an arbitrary box, so they are ignored)."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(pts) >= 20:
+    if len(pts) >= MIN_BOUNDS_POINTS:
         lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
-    elif len(pts):
-        lo, hi = pts.min(0), pts.max(0)
     else:
         c = np.array([cam.center for cam in cameras])
-        lo, hi = c.min(0), c.max(0)
+        if len(cameras) >= 2:
+            from atgs.data.mvs.fill import fallback_points
+
+            c = np.concatenate([c, fallback_points(cameras, 2000)])
+        lo, hi = np.percentile(c, 1, axis=0), np.percentile(c, 99, axis=0)
     pad = 0.05 * max(float(np.max(hi - lo)), 1e-6)
     return np.stack([lo - pad, hi + pad])
 
@@ -302,8 +309,10 @@ def save_frame(root: Path, cam: Camera, frame: int, img: np.ndarray, image_ext: 
 def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int, points: np.ndarray,
                          point_colors: np.ndarray, point_keyframes: np.ndarray, *, fps: float,
                          keyframes: Sequence[int], test_cameras: Sequence[str], name: str,
-                         bounds: np.ndarray | None = None, source: dict | None = None) -> None:
-    """Write scene.json and points.ply into ``root`` (whose images/ already exist), then validate."""
+                         bounds: np.ndarray | None = None, source: dict | None = None,
+                         extra: dict | None = None) -> None:
+    """Write scene.json and points.ply into ``root`` (whose images/ already exist), then validate.
+    ``extra`` adds informational keys (e.g. "coverage") that readers may ignore."""
     root = Path(root)
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     if bounds is None:
@@ -319,6 +328,7 @@ def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int,
         "keyframes": keyframes,
         "bounds": {"min": np.asarray(bounds)[0].tolist(), "max": np.asarray(bounds)[1].tolist()},
         "source": dict(source or {}),
+        **(extra or {}),
     }
     write_points_ply(root / "points.ply", pts, point_colors, point_keyframes)
     (root / "scene.json").write_text(json.dumps(meta, indent=1))

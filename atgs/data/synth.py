@@ -22,6 +22,7 @@ from atgs.data.synth_scene import SynthConfig, SynthScene, sample_surface
 
 SIDECAR = "synth.json"
 SYNTH_VERSION = 2  # bump when the scene content changes, to invalidate caches
+PREPARE_VERSION = 2  # bump when atgs-prepare's output changes (2: dense stereo keyframe points)
 
 
 @dataclass(frozen=True)
@@ -34,8 +35,10 @@ class EncodeConfig:
 
 
 def synthesize(out: str | Path, cfg: SynthConfig = SynthConfig(), enc: EncodeConfig = EncodeConfig(),
-               overwrite: bool = False, progress: bool = True) -> Path:
-    """Render ``cfg`` into an N3DV-layout directory ``out`` (written atomically)."""
+               overwrite: bool = False, progress: bool = True, depth: bool = False) -> Path:
+    """Render ``cfg`` into an N3DV-layout directory ``out`` (written atomically). ``depth`` also
+    writes the true depth of every frame: ``depth/<frame:06d>.npz``, one float32 (H,W) array per
+    camera name, the OpenCV z of the nearest surface at each pixel center (0: none)."""
     from tqdm import tqdm
 
     from atgs.data.synth_render import MeshRenderer
@@ -53,11 +56,16 @@ def synthesize(out: str | Path, cfg: SynthConfig = SynthConfig(), enc: EncodeCon
                    for c in cams]
         try:
             with tqdm(total=cfg.frames * len(cams), desc="synth render+encode", unit="img", disable=not progress) as bar:
+                if depth:
+                    (tmp / "depth").mkdir()
                 for f in range(cfg.frames):
                     renderer.set_frame(f)
                     for cam, w in zip(cams, writers):
                         w.write(renderer.render(cam))
                         bar.update(1)
+                    if depth:
+                        np.savez_compressed(tmp / "depth" / f"{f:06d}.npz",
+                                            **{c.name: renderer.render_depth(c) for c in cams})
         finally:
             for w in writers:
                 w.close()
@@ -98,7 +106,8 @@ def ensure_default_scene(cache_dir: str | Path, cfg: SynthConfig | None = None, 
                          progress: bool = True) -> Path:
     """Prepared directory of a synthetic scene, synthesized and prepared once, then cached.
 
-    The cache key covers the config, the keyframe count and the synth/scene format versions;
+    The cache key covers the config, the keyframe count and the synth/scene format versions
+    (the prepared scene sits in a subdirectory named by PREPARE_VERSION);
     a half-written cache entry is never visible (both steps write atomically), and processes
     asking for the same entry at once build it once (the others wait on a lock file).
     """
@@ -109,7 +118,9 @@ def ensure_default_scene(cache_dir: str | Path, cfg: SynthConfig | None = None, 
     key = json.dumps({"cfg": cfg.to_dict(), "k": keyframes, "v": [SYNTH_VERSION, SCENE_VERSION]}, sort_keys=True)
     digest = hashlib.sha1(key.encode()).hexdigest()[:10]
     base = Path(cache_dir) / f"synth-{cfg.preset}-{digest}"
-    prepared = base / "prepared"
+    # the videos stay cached under the same key; the prepared scene is rebuilt when the keyframe
+    # points change (PREPARE_VERSION), not left stale
+    prepared = base / ("prepared" if PREPARE_VERSION == 1 else f"prepared-v{PREPARE_VERSION}")
     with interprocess_lock(base.with_name(base.name + ".lock")):
         if (prepared / "scene.json").is_file():
             try:

@@ -40,6 +40,25 @@ void main() {
 }
 """
 
+_DEPTH_VS = """
+#version 330 core
+uniform mat4 u_proj_view;
+uniform mat4 u_view;
+in vec3 in_pos;
+out float v_z;
+void main() {
+    v_z = -(u_view * vec4(in_pos, 1.0)).z;  // OpenGL cameras look down -z; OpenCV depth is +z
+    gl_Position = u_proj_view * vec4(in_pos, 1.0);
+}
+"""
+
+_DEPTH_FS = """
+#version 330 core
+in float v_z;
+out float f_depth;
+void main() { f_depth = v_z; }
+"""
+
 NEAR, FAR = 0.05, 60.0
 
 
@@ -72,17 +91,19 @@ class MeshRenderer:
             tex.repeat_x = tex.repeat_y = True
             tex.anisotropy = 1.0  # trilinear only: anisotropic filtering costs 2-4x on llvmpipe
             self.textures.append(tex)
-        self.vaos = []
+        self.vaos, self._ibos = [], []
         for obj in scene.objects:
             mesh = obj.mesh
             vbo = ctx.buffer(reserve=len(mesh.positions) * 8 * 4, dynamic=not obj.static)
             ibo = ctx.buffer(np.ascontiguousarray(mesh.faces.astype("i4")).tobytes())
             vao = ctx.vertex_array(self.prog, [(vbo, "3f 3f 2f", "in_pos", "in_nrm", "in_uv")], index_buffer=ibo)
             self.vaos.append((obj, vbo, vao))
+            self._ibos.append(ibo)
         samples = min(samples, ctx.max_samples)
         self.msaa = ctx.framebuffer(color_attachments=[ctx.renderbuffer((width, height), 4, samples=samples)],
                                     depth_attachment=ctx.depth_renderbuffer((width, height), samples=samples))
         self.resolve = ctx.framebuffer(color_attachments=[ctx.renderbuffer((width, height), 4)])
+        self._depth: tuple | None = None  # program, vertex arrays, framebuffer: made on first use
         self._frame: int | None = None
 
     def set_frame(self, frame: int) -> None:
@@ -114,6 +135,33 @@ class MeshRenderer:
         data = self.resolve.read(components=3, alignment=1)
         img = np.frombuffer(data, np.uint8).reshape(self.height, self.width, 3)
         return img[::-1].copy()  # OpenGL rows go bottom-up
+
+    def render_depth(self, cam: Camera) -> np.ndarray:
+        """True depth (H,W) float32: the OpenCV z of the nearest surface at each pixel center
+        (no multisampling), 0 where no surface is hit."""
+        import moderngl
+
+        if self._frame is None:
+            raise RuntimeError("call set_frame() first")
+        ctx = self.ctx
+        if self._depth is None:
+            prog = ctx.program(vertex_shader=_DEPTH_VS, fragment_shader=_DEPTH_FS)
+            vaos = [ctx.vertex_array(prog, [(vbo, "3f 20x", "in_pos")], index_buffer=ibo)
+                    for (_, vbo, _), ibo in zip(self.vaos, self._ibos)]
+            fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((self.width, self.height), 1, dtype="f4")],
+                                  depth_attachment=ctx.depth_renderbuffer((self.width, self.height)))
+            self._depth = (prog, vaos, fbo)
+        prog, vaos, fbo = self._depth
+        fbo.use()
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        prog["u_proj_view"].write((cam.gl_projection(NEAR, FAR) @ cam.gl_view()).T.astype("f4").tobytes())
+        prog["u_view"].write(cam.gl_view().T.astype("f4").tobytes())
+        for vao in vaos:
+            vao.render(moderngl.TRIANGLES)
+        data = fbo.read(components=1, dtype="f4", alignment=1)
+        return np.frombuffer(data, np.float32).reshape(self.height, self.width)[::-1].copy()
 
     def release(self) -> None:
         self.ctx.release()

@@ -25,6 +25,15 @@ from PIL import Image
 from atgs.cameras import Camera, look_at
 
 Preset = Literal["small-motion", "large-motion"]
+Rig = Literal["ring", "front"]
+Layout = Literal["ring12", "ring10-low", "front6", "ring12-flat"]
+# Named camera layouts of the benchmarks (SynthConfig overrides); "ring12" is the default scene.
+LAYOUTS: dict[str, dict] = {
+    "ring12": {"cameras": 12, "width": 256, "height": 192, "rig": "ring", "texture_contrast": 1.0},
+    "ring10-low": {"cameras": 10, "width": 200, "height": 150, "rig": "ring", "texture_contrast": 1.0},
+    "front6": {"cameras": 6, "width": 256, "height": 192, "rig": "front", "texture_contrast": 1.0},
+    "ring12-flat": {"cameras": 12, "width": 256, "height": 192, "rig": "ring", "texture_contrast": 0.0},
+}
 
 
 @dataclass(frozen=True)
@@ -65,9 +74,17 @@ class SynthConfig:
     fov_x_deg: float = 62.0
     arc_deg: float = 360.0  # cameras spread over this arc of the ring (360: all around; <360: front-facing rig)
     texture_size: int = 512
+    # Added after version 2; written by to_dict only when not at their defaults, so the configs
+    # (and the cache keys) of existing scenes do not change.
+    rig: Rig = "ring"  # "ring": on the ring looking at the center; "front": a planar grid facing +y
+    texture_contrast: float = 1.0  # 1 = the textures as made; 0 = flat colors (textureless surfaces)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        for name in _LATE_FIELDS:
+            if d[name] == SynthConfig.__dataclass_fields__[name].default:
+                del d[name]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "SynthConfig":
@@ -77,6 +94,9 @@ class SynthConfig:
     def scene_size(self) -> float:
         """Reference length for error tolerances: the diameter of the camera ring."""
         return 2.0 * self.ring_radius
+
+
+_LATE_FIELDS = ("rig", "texture_contrast")
 
 
 # --- meshes -----------------------------------------------------------------------------------
@@ -218,6 +238,13 @@ def make_texture(rng: np.random.Generator, size: tuple[int, int], base: np.ndarr
     return np.clip(arr, 0, 255).astype(np.uint8)
 
 
+def scale_contrast(tex: np.ndarray, contrast: float) -> np.ndarray:
+    """The texture pulled towards its mean color (0: one flat color, 1: unchanged)."""
+    mean = tex.reshape(-1, 3).mean(0)
+    out = mean + float(contrast) * (tex.astype(np.float64) - mean)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
 # --- the scene --------------------------------------------------------------------------------
 
 @dataclass
@@ -256,6 +283,8 @@ class SynthScene:
             make_texture(rng, (4 * ts, 4 * ts), np.array([0.55, 0.5, 0.42]), 0.7),  # ground, 1 tile
             make_texture(rng, (ts, 8 * ts), np.array([0.45, 0.52, 0.6]), 0.8),  # backdrop, 1 tile around
         ] + [make_texture(rng, (ts, ts), rng.uniform(0.3, 0.75, 3), 0.8, 300) for _ in range(5)]
+        if cfg.texture_contrast != 1.0:  # after all random draws: the rest of the scene is unchanged
+            self.textures = [scale_contrast(t, cfg.texture_contrast) for t in self.textures]
         ph = rng.uniform(0, 2 * np.pi, 8)
         self.objects = [
             SceneObject("ground", grid_plane(2 * cfg.wall_radius + 0.5, 8, 1.0), 0, static=True),
@@ -325,6 +354,8 @@ class SynthScene:
         cfg = self.cfg
         f = 0.5 * cfg.width / np.tan(np.radians(cfg.fov_x_deg) / 2)
         K = np.array([[f, 0, cfg.width / 2], [0, f, cfg.height / 2], [0, 0, 1]])
+        if cfg.rig == "front":
+            return self._front_cameras(K)
         cams = []
         for i in range(cfg.cameras):
             if cfg.arc_deg >= 360.0:
@@ -334,6 +365,22 @@ class SynthScene:
             height = 1.5 if i % 2 == 0 else 2.3  # two rings: a low dome
             eye = np.array([cfg.ring_radius * np.cos(a), cfg.ring_radius * np.sin(a), height])
             cams.append(Camera(f"cam{i:02d}", cfg.width, cfg.height, K, look_at(eye, np.array([0.0, 0.0, 0.6]))))
+        return cams
+
+    def _front_cameras(self, K: np.ndarray) -> list[Camera]:
+        """N3DV-like front-facing rig: a planar grid of cameras (two rows) on the -y side, 1.6 m
+        wide, every camera looking nearly straight ahead (+y) at a point 0.35x its own lateral
+        offset, so the optical axes converge only slightly."""
+        cfg = self.cfg
+        n = cfg.cameras
+        cols = (n + 1) // 2
+        cams = []
+        for i in range(n):
+            row, col = divmod(i, cols)
+            x = 1.6 * (col / max(1, cols - 1) - 0.5) if cols > 1 else 0.0
+            eye = np.array([x, -cfg.ring_radius, 1.3 + 0.6 * row])
+            target = np.array([0.35 * x, 0.0, 0.8])
+            cams.append(Camera(f"cam{i:02d}", cfg.width, cfg.height, K, look_at(eye, target)))
         return cams
 
     def describe(self) -> dict:

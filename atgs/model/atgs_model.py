@@ -120,10 +120,11 @@ class ATGSModel:
         if cfg.anchor_layout not in ANCHOR_LAYOUTS:
             raise ValueError(f"anchor_layout must be one of {ANCHOR_LAYOUTS}, got {cfg.anchor_layout!r}")
         split = cfg.anchor_layout == "split"
-        if points.shape[0] == 0:
-            raise ValueError("the scene has no points to initialize anchors from (points.ply is empty)")
+        fallback = points.shape[0] == 0
+        if fallback:  # an empty points.ply: start from the space the cameras see
+            points, kf = _fallback_points(train_cameras or cameras, tl.num_keyframes, split, seed)
         voxel = anchor_voxel_size(points, kf, cfg.voxel_size, gen)
-        if split:  # a coarse cell (2 voxels) so that triangulation noise does not read as motion
+        if split and not fallback:  # a coarse cell (2 voxels) so that triangulation noise does not read as motion
             kf = torch.where(split_static(points, kf, 2 * voxel, cfg.static_fraction), STATIC, kf)
         if cfg.random_anchors > 0:
             box = bounds.float() if bounds is not None else torch.stack([points.min(0).values, points.max(0).values])
@@ -321,3 +322,23 @@ class ATGSModel:
             model.set_sparse_tensor(name, value.float().contiguous())
         model.decoder.load_state_dict(state["decoder"])
         return model
+
+
+FALLBACK_POINTS = 4000
+
+
+def _fallback_points(cameras: list[Camera], num_keyframes: int, split: bool, seed: int
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points in the space seen by at least two cameras (atgs.data.mvs.fill), static with the
+    split layout, else repeated at every keyframe; a warning says so."""
+    import sys
+
+    from atgs.data.mvs.fill import fallback_points
+
+    # CPU, like the scene's points that from_points receives
+    pts = torch.as_tensor(fallback_points(cameras, FALLBACK_POINTS, seed), dtype=torch.float32, device="cpu")
+    print(f"warning: the scene has no points (points.ply is empty); starting from {len(pts)} points filling "
+          "the space the cameras see", file=sys.stderr)
+    if split:
+        return pts, torch.full((len(pts),), STATIC, dtype=torch.int64, device="cpu")
+    return pts.repeat(num_keyframes, 1), torch.arange(num_keyframes, device="cpu").repeat_interleave(len(pts))

@@ -1,0 +1,171 @@
+"""Cameras and images at the working resolution, per-camera depth ranges, and the choice of
+source cameras for each reference camera."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from PIL import Image
+
+from atgs.cameras import Camera
+from atgs.data.coverage import working_camera
+from atgs.data.errors import DataError
+
+# Source-camera choice: triangulation angles near PEAK_DEG are best; smaller angles give poor
+# depth resolution, larger ones distort the matching windows (Goesele et al. 2007, MVSNet).
+PEAK_DEG, SIGMA_BELOW_DEG, SIGMA_ABOVE_DEG, MIN_ANGLE_DEG = 12.0, 4.0, 20.0, 1.0
+
+
+@dataclass
+class View:
+    """One camera at the working resolution with its image: ``gray`` (H,W) and ``rgb`` (H,W,3) in [0,1]."""
+
+    cam: Camera
+    gray: torch.Tensor
+    rgb: torch.Tensor
+
+
+def make_view(image: np.ndarray, cam: Camera, long_side: int) -> View:
+    """Box-downsample an (H,W,3) uint8 image to the working resolution."""
+    wc = working_camera(cam, long_side)
+    img = np.asarray(image)
+    if img.shape[:2] != (cam.height, cam.width):
+        raise ValueError(f"image of {cam.name} is {img.shape[1]}x{img.shape[0]}, camera says {cam.width}x{cam.height}")
+    if (wc.width, wc.height) != (cam.width, cam.height):
+        img = np.asarray(Image.fromarray(img).resize((wc.width, wc.height), Image.BOX))
+    rgb = torch.from_numpy(np.array(img[..., :3], dtype=np.float32)) / 255.0
+    gray = rgb @ torch.tensor([0.299, 0.587, 0.114])
+    return View(wc, gray.contiguous(), rgb)
+
+
+def pixel_rays(cam: Camera) -> torch.Tensor:
+    """(3, H*W) camera-space rays K^-1 [u, v, 1] through the pixel centers, row-major."""
+    v, u = torch.meshgrid(torch.arange(cam.height, dtype=torch.float64) + 0.5,
+                          torch.arange(cam.width, dtype=torch.float64) + 0.5, indexing="ij")
+    pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(u.numel(), dtype=torch.float64)])
+    return torch.linalg.inv(torch.from_numpy(cam.K)) @ pix
+
+
+def project(cam: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points (N,3) -> pixel coordinates (N,2), depth (N,), and inside-the-image mask."""
+    uv, z = cam.project(X)
+    with np.errstate(invalid="ignore"):
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    return uv, z, inside
+
+
+# --- depth ranges ----------------------------------------------------------------------------
+
+def check_camera_layout(cams: Sequence[Camera], where: str = "cameras") -> None:
+    """One-line errors for layouts no multi-view method can use."""
+    if len(cams) < 2:
+        raise DataError(f"{where}: {len(cams)} camera(s); depth needs at least 2 cameras at different positions "
+                        "(hold out fewer test cameras with --test-cams)")
+    c = np.array([cam.center for cam in cams])
+    spread = float(np.linalg.norm(c - c.mean(0), axis=1).max())
+    if not np.isfinite(c).all():
+        raise DataError(f"{where}: a camera pose is not finite; check the poses")
+    if spread < 1e-9 * max(1.0, float(np.abs(c).max())):
+        raise DataError(f"{where}: all {len(cams)} cameras are at the same position, so no depth can be "
+                        "triangulated; the scene needs cameras at different positions")
+
+
+def layout_depth_range(cam: Camera, cams: Sequence[Camera]) -> tuple[float, float]:
+    """Near/far of ``cam`` from the camera layout alone (no points): around the distance at which
+    the optical axes meet (rings, converging rigs), or many baselines (parallel front-facing rigs)."""
+    c = np.array([x.center for x in cams])
+    d = np.array([x.forward for x in cams])
+    A = sum(np.eye(3) - np.outer(v, v) for v in d)
+    b = sum((np.eye(3) - np.outer(v, v)) @ p for v, p in zip(d, c))
+    base = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    apart = base > 1e-9 * max(1.0, float(np.abs(c).max()))
+    baseline = float(np.median(base[apart])) if apart.any() else 1.0  # coincident: no scale, say 1
+    w = np.linalg.eigvalsh(A)
+    if w[0] > 0.05 * w[-1]:  # the axes converge: their least-squares meeting point is the scene
+        t = float((np.linalg.solve(A, b) - cam.center) @ cam.forward)
+        if t > 0.5 * baseline:
+            return 0.25 * t, 4.0 * t
+    return 0.5 * baseline, 200.0 * baseline
+
+
+def depth_ranges(cams: Sequence[Camera], points: np.ndarray | None, min_points: int = 20,
+                 hints: Sequence[tuple[float, float]] | None = None) -> list[tuple[float, float]]:
+    """(near, far) per camera: the 1-99% depths of the seed points it sees, widened (x0.6, x1.6),
+    else the dataset's near/far hint, else the camera layout (:func:`layout_depth_range`)."""
+    pts = np.zeros((0, 3)) if points is None else np.asarray(points, np.float64).reshape(-1, 3)
+    out = []
+    for i, cam in enumerate(cams):
+        z = np.zeros(0)
+        if len(pts):
+            _, z, inside = project(cam, pts)
+            z = z[inside]
+        if len(z) >= min_points:
+            near, far = 0.6 * float(np.percentile(z, 1)), 1.6 * float(np.percentile(z, 99))
+        elif hints is not None and hints[i] is not None and 0 < hints[i][0] < hints[i][1]:
+            near, far = float(hints[i][0]), float(hints[i][1])
+        else:
+            near, far = layout_depth_range(cam, cams)
+        out.append((near, max(far, 1.5 * near)))
+    return out
+
+
+# --- source camera choice --------------------------------------------------------------------
+
+def _angle_weight(deg: np.ndarray) -> np.ndarray:
+    sigma = np.where(deg < PEAK_DEG, SIGMA_BELOW_DEG, SIGMA_ABOVE_DEG)
+    w = np.exp(-((deg - PEAK_DEG) ** 2) / (2 * sigma**2))
+    return np.where(deg < MIN_ANGLE_DEG, 0.0, w)
+
+
+def sample_view_points(cam: Camera, near: float, far: float, n_side: int = 12) -> np.ndarray:
+    """World points on a grid of pixels at three depths spread in inverse depth over [near, far]."""
+    u = (np.arange(n_side) + 0.5) / n_side * cam.width
+    v = (np.arange(n_side) + 0.5) / n_side * cam.height
+    U, V = np.meshgrid(u, v)
+    rays = np.stack([(U.ravel() - cam.cx) / cam.fx, (V.ravel() - cam.cy) / cam.fy, np.ones(U.size)], 1)
+    inv = np.linspace(1 / near, 1 / far, 5)[1:-1]
+    pc = np.concatenate([rays / i for i in inv])
+    return (pc - cam.t) @ cam.R
+
+
+def view_scores(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]],
+                points: np.ndarray | None = None, min_points: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """(N,N) score of camera j as a source for reference i: the mean, over points the reference
+    sees (seed points, else a grid of its rays at three depths), of ``j sees it`` x a weight of
+    the triangulation angle that peaks at PEAK_DEG and is 0 below MIN_ANGLE_DEG; and (N,N) the
+    overlap: the fraction of those points j sees at all."""
+    n = len(cams)
+    pts = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
+    S, O = np.zeros((n, n)), np.zeros((n, n))
+    for i, ref in enumerate(cams):
+        X = None
+        if pts is not None and len(pts):
+            _, _, inside = project(ref, pts)
+            if inside.sum() >= min_points:
+                X = pts[inside]
+        if X is None:
+            X = sample_view_points(ref, *ranges[i])
+        ri = X - ref.center
+        ri /= np.linalg.norm(ri, axis=1, keepdims=True)
+        for j, src in enumerate(cams):
+            if j == i:
+                continue
+            _, z, inside = project(src, X)
+            rj = X - src.center
+            rj /= np.linalg.norm(rj, axis=1, keepdims=True) + 1e-12
+            deg = np.degrees(np.arccos(np.clip((ri * rj).sum(1), -1, 1)))
+            S[i, j] = float(np.mean(inside * _angle_weight(deg)))
+            O[i, j] = float(np.mean(inside))
+    return S, O
+
+
+def select_sources(scores: np.ndarray, k: int, min_score: float = 0.02) -> list[list[int]]:
+    """The k best-scoring source cameras of each reference (those above ``min_score``)."""
+    out = []
+    for row in scores:
+        order = [int(j) for j in np.argsort(-row) if row[j] > min_score]
+        out.append(order[:k])
+    return out
