@@ -30,9 +30,17 @@ def test_loss_decreases_on_toy_scene(scene, tmp_path):
     assert last < 0.7 * first, (first, last)
     assert result["eval"]["psnr"] > before["psnr"] + 1.0
     assert (tmp_path / "ckpt.pt").is_file()
-    # the final evaluation (atgs.eval) with a comparison image of every evaluated view
-    assert len(list((tmp_path / "eval" / "images").rglob("*.png"))) == result["eval"]["views"]
+    # the final evaluation is atgs-eval's default: every frame of each test camera at full
+    # resolution, three comparison images per camera, the same mean PSNR
+    n_test = len(scene.test_indices)
+    assert result["eval"]["views"] == scene.num_frames * n_test
+    assert len(list((tmp_path / "eval" / "images").rglob("*.png"))) == 3 * n_test
     assert json.loads((tmp_path / "eval" / "summary.json").read_text())["num_views"] == result["eval"]["views"]
+    from atgs.eval.evaluate import EvalConfig, evaluate
+
+    again = evaluate(tr.model, scene, EvalConfig(lpips=False, progress=False, images_per_camera=0), None,
+                     background=t.background)
+    assert abs(again.mean("psnr") - result["eval"]["psnr"]) < 1e-6
 
 
 def test_nonfinite_loss_skips_step_and_keeps_state(scene, tmp_path):

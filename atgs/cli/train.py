@@ -174,7 +174,7 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
             raise Interrupted(f"stopped before the first step; nothing was written to {args.out}")
         raise Interrupted(f"checkpoint of step {trainer.step} saved to {ckpt}; continue with "
                           f"atgs-train --out {args.out} --resume")
-    result["eval"] = trainer.evaluate(args.out / "eval")
+    result["eval"] = trainer.final_evaluation(args.out / "eval")  # the figure atgs-eval gives
     trainer.run.write_result(result)
     ev = result.get("eval", {})
     print(f"{PROG}: done, {result['steps']} steps in {result['seconds']:.0f} s; "

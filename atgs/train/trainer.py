@@ -128,7 +128,8 @@ class Trainer:
         self.images = ImageCache(self._load_image, cfg.image_cache_mb, self.device)
         self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
-        self.budget = TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg)) if cfg.minutes > 0 else None
+        self.budget = (TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg), reserve_views=self.final_views())
+                       if cfg.minutes > 0 else None)
         self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
         self._session_start: float | None = None  # clock() when run_steps began
         self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
@@ -296,22 +297,37 @@ class Trainer:
         return evenly_spaced(self.model.num_frames, max(1, self.cfg.eval_max_frames))
 
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
-                 resolution_scale: float | None = None) -> dict:
+                 resolution_scale: float | None = None, images_per_camera: int | None = None) -> dict:
         """PSNR and SSIM on the test cameras (or the first training camera when there are none)
         through :func:`atgs.eval.evaluate.evaluate`, over ``frames`` (default :meth:`eval_frames`)
         at ``resolution_scale`` (default the training resolution). ``out``: also write that
-        evaluation directory (per_view.csv, summary.json, comparison images of every frame)."""
+        evaluation directory (per_view.csv, summary.json and ``images_per_camera`` comparison
+        images per camera, default one per evaluated frame)."""
         from atgs.eval.evaluate import EvalConfig, evaluate
 
         cams = self.test_idx or self.train_idx[:1]
         frames = tuple(self.eval_frames() if frames is None else frames)
+        if out is None:
+            images_per_camera = 0
+        elif images_per_camera is None:
+            images_per_camera = len(frames)
         cfg = EvalConfig(frames=frames, cameras=tuple(self.scene.cameras[i].name for i in cams),
-                         images_per_camera=len(frames) if out is not None else 0, lpips=False,
+                         images_per_camera=images_per_camera, lpips=False,
                          resolution_scale=self.cfg.resolution_scale if resolution_scale is None else resolution_scale,
                          backend=self.cfg.render_backend, progress=False)
         res = evaluate(self.model, self.scene, cfg, out, background=self.cfg.background)
         return {"psnr": res.mean("psnr"), "ssim": res.mean("ssim"), "views": res.summary["num_views"],
                 "on_test_cameras": bool(self.test_idx)}
+
+    def final_views(self) -> int:
+        """Views the final evaluation renders: every frame of each test camera."""
+        return len(self.test_idx or self.train_idx[:1]) * self.model.num_frames
+
+    def final_evaluation(self, out: Path | None) -> dict:
+        """What ``atgs-eval`` reports by default (every frame of the test cameras at full
+        resolution, three comparison images per camera; LPIPS aside), so the figure that
+        atgs-train prints at the end is the figure atgs-eval gives for the same checkpoint."""
+        return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3)
 
     # --- checkpoints ----------------------------------------------------------------------------
     def checkpoint_payload(self) -> dict:
@@ -375,6 +391,7 @@ class Trainer:
         saved = st.get("budget")
         if tr.budget is not None and saved is not None:  # the time used so far counts
             tr.budget = TimeBudget.resumed(saved, 60.0 * cfg.minutes)
+            tr.budget.reserve_views = tr.final_views()
             left = tr.budget.steps_left()
             if left is not None:  # provisional plan at the last pace; re-planned after calibration
                 rescale_schedule(cfg, tr.budget.base, max(tr.step, tr.step + left))
@@ -412,7 +429,7 @@ class Trainer:
         with ``final_renders``) unless the run stopped early."""
         result = self.run_steps(progress, stop_at, should_stop)
         if "stopped_early" not in result and (final_renders or self.cfg.eval_every > 0):
-            result["eval"] = self.evaluate(self.out / "eval" if final_renders else None)
+            result["eval"] = self.final_evaluation(self.out / "eval" if final_renders else None)
         return result
 
     def run_steps(self, progress: bool = True, stop_at: int | None = None,
