@@ -55,18 +55,31 @@ def num_segments_for(cfg: ModelConfig, num_frames: int) -> int:
     return max(1, cfg.num_segments)
 
 
-def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Tensor, timeline: Timeline
-                           ) -> tuple[torch.Tensor, torch.Tensor]:
+def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Tensor, timeline: Timeline,
+                           share: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Map points of the scene's keyframes onto the model's K keyframes: keyframe j takes the
-    points of the scene keyframe nearest to its frame. Returns (point mask, new keyframe index)."""
-    sk = torch.tensor(scene_keyframes, dtype=torch.int64, device=point_keyframes.device)
-    new_k = torch.full((len(scene_keyframes),), -1, dtype=torch.int64, device=point_keyframes.device)
+    points of the scene keyframe nearest to its frame. Without ``share`` a scene keyframe goes to
+    one model keyframe only (the first that picks it; the rest start empty); with ``share`` every
+    model keyframe takes a copy of its nearest scene keyframe's points, so a model with more
+    keyframes than the scene was prepared with has anchors at each (the split layout then merges
+    the copies of static content into one static anchor). Returns (point indices, keyframe index)."""
+    dev = point_keyframes.device
+    sk = torch.tensor(scene_keyframes, dtype=torch.int64, device=dev)
+    idx, kf, taken = [], [], set()
     for j, f in enumerate(timeline.keyframe_frames()):
         s = int((sk - f).abs().argmin())
-        if new_k[s] < 0:
-            new_k[s] = j
-    mapped = new_k[point_keyframes]
-    return mapped >= 0, mapped.clamp_min(0)
+        if s in taken and not share:
+            continue
+        taken.add(s)
+        sel = torch.nonzero(point_keyframes == s).flatten()
+        idx.append(sel)
+        kf.append(torch.full_like(sel, j))
+    if not idx:
+        empty = torch.zeros(0, dtype=torch.int64, device=dev)
+        return empty, empty.clone()
+    idx, kf = torch.cat(idx), torch.cat(kf)
+    order = torch.sort(idx, stable=True).indices  # the scene's point order, as the anchor init expects
+    return idx[order], kf[order]
 
 
 class ATGSModel:
@@ -114,12 +127,15 @@ class ATGSModel:
                     bounds: torch.Tensor | None = None) -> "ATGSModel":
         K = cfg.num_keyframes if cfg.num_keyframes > 0 else len(scene_keyframes)
         tl = Timeline(num_frames, K, cfg.window, num_segments_for(cfg, num_frames))
-        keep, kf = select_keyframe_points(scene_keyframes, point_keyframes.long(), tl)
-        gen = torch.Generator().manual_seed(seed)
-        points, kf = points[keep].float(), kf[keep]
         if cfg.anchor_layout not in ANCHOR_LAYOUTS:
             raise ValueError(f"anchor_layout must be one of {ANCHOR_LAYOUTS}, got {cfg.anchor_layout!r}")
         split = cfg.anchor_layout == "split"
+        # more model keyframes than prepared ones: each takes its nearest prepared keyframe's points
+        # (split only: there the copies of static content merge; per-keyframe would multiply it)
+        share = split and tl.num_keyframes > len(scene_keyframes)
+        pick, kf = select_keyframe_points(scene_keyframes, point_keyframes.long(), tl, share)
+        gen = torch.Generator().manual_seed(seed)
+        points = points[pick].float()
         fallback = points.shape[0] == 0
         if fallback:  # an empty points.ply: start from the space the cameras see
             points, kf = _fallback_points(train_cameras or cameras, tl.num_keyframes, split, seed)
