@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 from atgs.io.atomic import write_json_atomic as _write_json, write_text_atomic
@@ -30,6 +31,15 @@ def update_docs_table(path: Path, name: str, table: str, create_section: str | N
 def write_json_atomic(path: Path, data) -> None:
     """Results JSON (indent 2, as the committed bench/results files)."""
     _write_json(path, data, indent=2)
+
+
+def git_commit(repo: Path) -> str:
+    """The repository's short HEAD commit, recorded with a result ("unknown" outside git)."""
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True,
+                              text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def publish(result, json_out: Path, table: str, docs: Path | None, name: str) -> None:

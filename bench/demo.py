@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import tyro
+from _docs import git_commit  # bench/_docs.py (the script's own folder is on sys.path)
 
 from atgs.io.atomic import write_json_atomic
 
@@ -38,14 +39,6 @@ class DemoBench:
     out: Path = ROOT / "bench" / "results" / "demo.json"
     train_args: tuple[str, ...] = field(default_factory=tuple)
     """Extra atgs-train arguments (after --)."""
-
-
-def _git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                              text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def main() -> None:
@@ -86,7 +79,7 @@ def main() -> None:
         "budget_seconds": res.get("budget_seconds"), "seconds_per_step": res.get("seconds_per_step"),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "loadavg_before": list(load_before), "loadavg_after": list(os.getloadavg())},
-        "commit": _git_commit(), "date": time.strftime("%Y-%m-%d"),
+        "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d"),
     }
     write_json_atomic(args.out, out, indent=2)
     print(f"wrote {args.out}: held-out PSNR {out['psnr']:.2f} dB, SSIM {out['ssim']:.4f}, "

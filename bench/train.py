@@ -107,7 +107,9 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
             "anchors": trainer.model.num_anchors, "train_seconds": res["seconds"],
             "scene_seconds": t_data, "psnr": res["eval"]["psnr"], "ssim": res["eval"]["ssim"],
             "eval_views": res["eval"]["views"], "peak_rss_mb": peak_kb / 1024.0,
-            "model_overrides": spec.model_overrides, "torch_threads": torch.get_num_threads()}
+            "model_overrides": spec.model_overrides, "torch_threads": torch.get_num_threads(),
+            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+            "load_average": list(os.getloadavg())}  # 1, 5, 15 min at the end of the run
 
 
 def run_subprocess(spec: RunSpec, args: BenchArgs) -> dict:

@@ -1,0 +1,397 @@
+"""The README's results table, regenerated from the benchmarks' results (bench/results/*.json).
+
+    python bench/readme_table.py            # rewrite the table in README.md
+    python bench/readme_table.py --check    # exit 1 if README.md's table is not what the results give
+    python bench/readme_table.py --results DIR --readme FILE
+
+One function per row reads one results file and returns its cells: what was measured, the
+run's date and machine load (as far as the JSON records them), the figure, and whether the
+target is reached. Every number comes from a JSON field; only the targets (from the issues) are
+typed here. A row whose results file is missing says which bench script to run. The table sits
+between the `<!-- bench:readme:start/end -->` markers of README.md.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, NamedTuple
+
+import tyro
+from _docs import markers, update_docs_table  # bench/_docs.py (the script's own folder is on sys.path)
+
+ROOT = Path(__file__).resolve().parent.parent
+TABLE = "readme"  # README.md's bench:readme markers
+
+# Targets (issues 1-14); the verdicts compare against these numbers.
+RASTER_FB_MS, RASTER_SPEEDUP = 50, 30
+PSNR_DB, SSIM, TRAIN_MINUTES = 30, 0.93, 20
+STEREO_MEDIAN_PCT, STEREO_COVERAGE_PCT, STEREO_SECONDS = 1, 80, 30
+PACK_SPEEDUP = 3
+GPU_PAPER_STEPS_PER_S = 20
+PLAYBACK_FPS = 25
+SUITE_MINUTES = 15
+
+
+class TableError(Exception):
+    """A results file or the README cannot be used; the message is the one line to print."""
+
+
+class Cells(NamedTuple):
+    details: str  # what exactly was measured (numbers from the JSON), after the row's label
+    run: str  # date and machine load of the run
+    measured: str
+    verdict: str = ""  # against the row's target
+
+
+@dataclass(frozen=True)
+class Row:
+    result: str  # bench/results/<result>.json
+    script: str  # the bench script that writes it
+    label: str
+    target: str
+    cells: Callable[[Any], Cells]
+
+
+def span(values: Iterable[float], fmt: str = "{:.1f}") -> str:
+    """The values' range, 'lo-hi', or one figure when both ends print alike."""
+    values = list(values)
+    lo, hi = fmt.format(min(values)), fmt.format(max(values))
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def count(n: float) -> str:
+    """20k, 1M: how many Gaussians or anchors."""
+    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.0f}k"
+
+
+def run_of(date: str | None, loads: Iterable[float] = ()) -> str:
+    """Day of the run and the range of its 1-minute load averages."""
+    loads = list(loads)
+    if not date:
+        return f"date not recorded, load {span(loads)}" if loads else "date and load not recorded"
+    return f"{date[:10]}, load {span(loads)}" if loads else f"{date[:10]}, load not recorded"
+
+
+def one_minute(*records: dict, keys: tuple[str, str] = ("loadavg_before", "loadavg_after")) -> list[float]:
+    """The 1-minute load averages recorded before and after each record's run."""
+    return [rec[k][0] for rec in records for k in keys]
+
+
+def reached(ok: bool, why: str = "") -> str:
+    return ("**reached**" if ok else "**not reached**") + (f" ({why})" if why else "")
+
+
+def quality_verdict(psnr: float, ssim: float, seconds: float) -> str:
+    missed = [name for name, ok in (("PSNR", psnr >= PSNR_DB), ("SSIM", ssim >= SSIM),
+                                    ("time", seconds < TRAIN_MINUTES * 60)) if not ok]
+    return reached(not missed, "missed: " + ", ".join(missed) if missed else "")
+
+
+def rasterizer(r: dict) -> Cells:
+    t, m = r["target"], r["machine"]
+    x = next(x for x in r["results"] if (x["n"], x["width"], x["height"]) == (t["n"], t["width"], t["height"]))
+    fb, speedup = x["cpu"]["forward_backward_ms"], x["speedup_forward_backward"]
+    return Cells(f"{count(x['n'])} Gaussians at {x['width']}x{x['height']}",
+                 run_of(r["date"], one_minute(m, keys=("load_average_before", "load_average_after"))),
+                 f"{x['cpu']['forward_ms']:.1f} ms / {fb:.1f} ms, {speedup:.0f}x the torch reference",
+                 reached(fb < RASTER_FB_MS and speedup >= RASTER_SPEEDUP))
+
+
+def scene_prepare(r: dict) -> Cells:
+    s = r["default_scene"]
+    c = s["config"]
+    return Cells(f"{c['cameras']} cams x {c['frames']} frames, {c['width']}x{c['height']}, "
+                 f"{len(s['triangulation'])} keyframes", run_of(None),
+                 f"{s['synth_s']:.0f} s + {s['prepare_s']:.0f} s (of which keyframe points "
+                 f"{s['prepare_steps_s']['points']:.0f} s)")
+
+
+def triangulation(r: dict) -> Cells:
+    s = r["default_scene"]
+    rel = [100 * k["median_rel"] for k in s["triangulation"]]
+    return Cells(f"{len(rel)} keyframes of the built-in scene", run_of(None),
+                 f"{span(rel, '{:.2f}')} % of the scene size ({s['scene_size_m']} m)",
+                 reached(max(rel) < STEREO_MEDIAN_PCT))
+
+
+def stereo_layouts(r: dict) -> Cells:
+    # The textureless layout (SIFT finds nothing there) is the fill fallback's case, docs/data.md.
+    rows = [x for x in r["synthetic"] if x["sift_only"]["points"] > 0]
+    med = [x["stereo"]["median_pct"] for x in rows]
+    cov = [100 * x["stereo"]["coverage_cam00"] for x in rows]
+    sift = [100 * x["sift_only"]["coverage_cam00"] for x in rows]
+    return Cells(f"{len(rows)} textured synthetic layouts", run_of(None, [x["stereo"]["load"] for x in rows]),
+                 f"{span(med, '{:.2f}')} % / {span(cov, '{:.0f}')} % (SIFT alone: {span(sift, '{:.0f}')} %)",
+                 reached(max(med) <= STEREO_MEDIAN_PCT and min(cov) >= STEREO_COVERAGE_PCT))
+
+
+def stereo_n3dv(r: dict) -> Cells:
+    n = r["n3dv"]
+    stereo, sift = n["stereo"]["coverage_cam00"], n["sift_only"]["coverage_cam00"]
+    return Cells(f"--downscale {n['downscale']}, {n['test']} held out",
+                 run_of(None, [n["stereo"]["load_before"], n["stereo"]["load_after"]]),
+                 f"coverage {100 * stereo:.0f} % (SIFT alone {100 * sift:.0f} %)",
+                 f"**raised** ({stereo / sift:.1f}x)" if stereo > sift else "**not raised**")
+
+
+def stereo_timing(r: dict) -> Cells:
+    t = r["timing"]
+    secs = [x["seconds"] for x in t["runs"]]
+    w, h = t["size"]
+    return Cells(f"{t['cameras']} cameras at {w}x{h}, {len(secs)} runs",
+                 run_of(None, [v for x in t["runs"] for v in (x["load_before"], x["load_after"])]),
+                 f"{span(secs)} s", reached(max(secs) <= STEREO_SECONDS))
+
+
+def demo(r: dict) -> Cells:
+    figure = f"test PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f}"  # as atgs-train's last line shows them
+    if figure not in r["printed"]:
+        raise ValueError(f"its stored figures ({figure}) are not in the line atgs-train printed: {r['printed']!r}")
+    return Cells(f"`{r['command']}`, {r['eval_views']} held-out views",
+                 run_of(r["date"], one_minute(r["machine"])),
+                 f"{figure}; {r['steps']} steps in {r['train_seconds']:.0f} s of training, "
+                 f"{r['wall_seconds'] / 60:.0f} min in all",
+                 quality_verdict(r["psnr"], r["ssim"], r["train_seconds"]))
+
+
+def training(r: dict) -> Cells:
+    x = r["main"]
+    return Cells(f"preset `{x['preset']}`, {x['iterations']} steps, {x['cameras']} cameras x {x['frames']} frames "
+                 f"at {x['width']}x{x['height']}, {' and '.join(x['test_cameras'])} held out ({x['eval_views']} views), "
+                 f"torch threads {x['torch_threads']}" + (f"; {x['note']}" if "note" in x else ""),
+                 run_of(x.get("date"), x.get("load_average", [])[:1]),
+                 f"{x['psnr']:.1f} dB PSNR, {x['ssim']:.3f} SSIM in {x['train_seconds'] / 60:.0f} min, "
+                 f"{x['peak_rss_mb']:.0f} MB peak",
+                 quality_verdict(x["psnr"], x["ssim"], x["train_seconds"]) + ", see docs/training.md")
+
+
+def memory(r: dict) -> Cells:
+    a, b = (f(r["memory"], key=lambda x: x["frames"]) for f in (min, max))  # shortest, longest sequence
+    return Cells(f"{a['frames']} vs {b['frames']} frames, {a['cameras']} cameras at {a['width']}x{a['height']}, "
+                 f"{a['iterations']} steps", run_of(a.get("date"), [x["load_average"][0] for x in (a, b) if "load_average" in x]),
+                 f"{a['peak_rss_mb']:.0f} MB vs {b['peak_rss_mb']:.0f} MB "
+                 f"({100 * (b['peak_rss_mb'] / a['peak_rss_mb'] - 1):+.1f} % for {b['frames'] / a['frames']:.0f}x the frames)")
+
+
+def decode(runs: list) -> Cells:
+    per_thread = ", ".join(f"{x['fast_playback']['median_ms']:.0f} ms ({x['machine']['torch_threads']} "
+                           f"thread{'s' if x['machine']['torch_threads'] > 1 else ''})" for x in runs)
+    return Cells(f"{count(runs[0]['anchors'])} anchors, median over a played sequence",
+                 run_of(max(x["date"] for x in runs), one_minute(*(x["machine"] for x in runs))), per_thread)
+
+
+TARGET_NAMES = {"f1": "RGBA8", "f4": "float"}  # bench/viewer.py's render-target codes
+
+
+def viewer_counts(r: dict) -> Cells:
+    m = r["counts_machine"]
+    fps = {n: [x["fps_new_frame"] for x in r["per_count"] if x["gaussians"] == n] for n in (10_000, 50_000)}
+    return Cells(f"{m['gl'].split(' (')[0]} software GL, {' / '.join(count(n) for n in fps)} Gaussians "
+                 f"at {r['per_count'][0]['size']}, a new frame each, float and RGBA8 targets",
+                 run_of(r["counts_date"], one_minute(m)),
+                 " / ".join(f"{span(v)} FPS" for v in fps.values()))
+
+
+def viewer_pack(r: dict) -> Cells:
+    def cpu_ms(x: dict) -> float:
+        return x["pack_ms"] + x["sort_ms"] + x["upload_ms"]
+
+    n = max(x["gaussians"] for x in r["per_count"])
+    pairs = [(t, cpu_ms(b), cpu_ms(a)) for t in TARGET_NAMES
+             for b in r["per_count_before"] for a in r["per_count"]
+             if b["gaussians"] == a["gaussians"] == n and b["target"] == a["target"] == t]
+    speedups = [b / a for _, b, a in pairs]
+    return Cells(f"{count(n)} Gaussians, the code before ({r['before']}) and after in one run",
+                 run_of(r["counts_date"], one_minute(r["counts_machine"])),
+                 ", ".join(f"{b:.0f} -> {a:.0f} ms ({TARGET_NAMES[t]} target)" for t, b, a in pairs),
+                 reached(min(speedups) >= PACK_SPEEDUP, f"{span(speedups)}x"))
+
+
+def gpu(r: dict) -> Cells:
+    cuda = [x for x in r["rows"] if x["device"] == "cuda"]
+    cpu = [x for x in r["rows"] if x["device"] == "cpu"]
+    measured = [x for x in cuda if "status" not in x]
+    paper = [x for x in measured if x["part"] == "train" and x["preset"] == "paper"]
+    train = [x for x in cpu if x["part"] == "train"]
+    view = [x for x in cpu if x["part"] == "viewer"]
+    cpu_text = (f"CPU: training {span([x['steps_per_s'] for x in train], '{:.2f}')} steps/s at {train[0]['size']} "
+                f"({train[0]['cameras']} cameras), viewer {span([x['fps_new_frame'] for x in view], '{:.2f}')} FPS "
+                f"at {view[0]['size']}, "
+                f"decode {span([x['decode_ms'] for x in cpu if x['part'] == 'decode'], '{:.0f}')} ms (docs/gpu.md)")
+    cuda_text = (f"CUDA: {len(measured)} of {len(cuda)} rows measured" if measured
+                 else f"CUDA: {cuda[0]['status']}")
+    verdict = (reached(paper[0]["steps_per_s"] >= GPU_PAPER_STEPS_PER_S,
+                       f"{paper[0]['steps_per_s']:.1f} steps/s on {paper[0]['device_name']}")
+               if paper else "**not measured**")
+    counts = [x["gaussians"] for x in r["rows"] if x["part"] == "viewer"]
+    return Cells(f"N3DV-like scene, every preset; {count(min(counts))}-{count(max(counts))} Gaussians in the viewer",
+                 run_of(r["date"], one_minute(*(p["machine"] for p in r["parts"].values()))),
+                 f"{cuda_text}; {cpu_text}", verdict)
+
+
+def playback(r: dict) -> Cells:
+    full = [x for x in r["playback"] if not x["adaptive"] and x["min_alpha_255"] == 1]
+    demo_row = next(x for x in full if x["scene"].startswith("built-in demo scene"))
+    trained = next(x for x in full if "--preload" in x["scene"])
+    rows = (demo_row, trained)
+    counts = " / ".join(count(x["gaussians"]) for x in rows)
+    return Cells(f"{counts} Gaussians, {demo_row['size']}",
+                 run_of(r["date"], one_minute(*rows)),
+                 " / ".join(f"{x['fps']:.1f} FPS" for x in rows),
+                 reached(min(x["fps"] for x in rows) >= PLAYBACK_FPS))
+
+
+def window(r: dict) -> Cells:
+    demo_ui = next(x for x in r["rows"] if x["scene"].startswith("built-in") and x["mode"] == "streaming decode")
+    trained = [x for x in r["rows"] if not x["scene"].startswith("built-in")]
+    cached = next(x for x in trained if x["mode"].startswith("every frame cached"))
+    first = next(x for x in trained if x["mode"] == "streaming decode")
+    rows = (demo_ui, cached, first)
+    ok = [x["fps"] >= PLAYBACK_FPS for x in rows]
+    return Cells(f"{demo_ui['size']}, splats at {span([x['mean_scale'] for x in rows], '{:.2f}')} of the window "
+                 "while moving, full resolution when still",
+                 run_of(r["date"], one_minute(*rows)),
+                 f"{demo_ui['fps']:.1f} FPS / {cached['fps']:.1f} FPS / {first['fps']:.1f} FPS "
+                 f"({first['distinct_frames_shown']} distinct video frames in {first['frames_measured']} UI frames: "
+                 "decode-bound)",
+                 reached(all(ok), f"{sum(ok)} of {len(ok)} at or above it") + "; not at full resolution")
+
+
+def tradeoff(r: dict) -> Cells:
+    runs = list(r["runs"].values())
+    presets = [x for x in runs if x["group"] == "presets"]
+    best = {s: max((x for x in presets if x["scene"] == s), key=lambda x: x["psnr"])
+            for s in sorted({x["scene"] for x in presets})}
+    return Cells(f"{len(runs)} runs on {len(best)} scenes",
+                 run_of(None, one_minute(r["machine"], keys=("loadavg_start", "loadavg_end"))),
+                 "best preset after {} steps: ".format(presets[0]["iterations"])
+                 + ", ".join(f"{x['preset']} {x['psnr']:.2f} dB ({s})" for s, x in best.items())
+                 + "; plot below, docs/tradeoff.md")
+
+
+def suite_run(r: dict) -> Cells:
+    subset = f"subset `{' '.join(r['pytest_args'])}`, " if r["pytest_args"] else ""
+    return Cells(f"{subset}`{r['command']}`",
+                 run_of(r["date"], one_minute(r["machine"])),
+                 f"{r['passed']} passed, {r['skipped']} skipped, {r['failed'] + r['errors']} failed "
+                 f"in {r['seconds']:.0f} s",
+                 "not judged: a subset" if r["pytest_args"] else reached(r["seconds"] < SUITE_MINUTES * 60))
+
+
+ROWS = (
+    Row("rasterizer", "rasterizer.py", "rasterizer, forward / forward+backward",
+        f"< {RASTER_FB_MS} ms, >= {RASTER_SPEEDUP}x", rasterizer),
+    Row("data", "bench_data.py", "built-in scene: synthesize + prepare (with dense stereo)", "", scene_prepare),
+    Row("data", "bench_data.py", "known-pose triangulation, median distance to the true surfaces",
+        f"< {STEREO_MEDIAN_PCT} %", triangulation),
+    Row("stereo", "stereo.py", "CPU multi-view stereo keyframe points: median distance to the true surfaces / "
+        "coverage of the held-out camera", f"<= {STEREO_MEDIAN_PCT} % / >= {STEREO_COVERAGE_PCT} %", stereo_layouts),
+    Row("stereo", "stereo.py", "the same on the real N3DV frame", "raise it", stereo_n3dv),
+    Row("stereo", "stereo.py", "stereo for one keyframe", f"<= {STEREO_SECONDS} s", stereo_timing),
+    Row("demo", "demo.py", "the README's main job, `./scripts/demo.sh` on the built-in scene: held-out PSNR/SSIM "
+        "as atgs-train prints it", f"{PSNR_DB} dB, {SSIM}, < {TRAIN_MINUTES} min", demo),
+    Row("train", "train.py", "training, held-out PSNR/SSIM of the main run",
+        f"{PSNR_DB} dB, {SSIM}, < {TRAIN_MINUTES} min", training),
+    Row("train", "train.py", "peak memory against sequence length", "flat in frame count", memory),
+    Row("decode", "decode.py", "model decode of one frame", "", decode),
+    Row("viewer", "viewer.py", "viewer frame rate", "", viewer_counts),
+    Row("viewer", "viewer.py", "viewer: CPU work of a new frame, pack + sort + upload",
+        f"{PACK_SPEEDUP}x faster", viewer_pack),
+    Row("gpu", "gpu.py", "GPU end to end: training steps/s, viewer FPS, decode ms per frame",
+        f"`paper` >= {GPU_PAPER_STEPS_PER_S} steps/s on an H100", gpu),
+    Row("viewer", "viewer.py", "playback at full resolution, `atgs-view demo` / trained built-in scene (--preload)",
+        f"{PLAYBACK_FPS} FPS", playback),
+    Row("viewer_window", "viewer_window.py", "the same in the real window with its adaptive resolution, under Xvfb: "
+        "`atgs-view demo` with the UI / trained built-in scene, frames cached / its first loop",
+        f"{PLAYBACK_FPS} FPS", window),
+    Row("tradeoff", "tradeoff.py", "trade-off: presets, `--auto`, anchor layouts, knob sweeps", "", tradeoff),
+    Row("test_suite", "test_suite.py", "test suite (the pytest part of `./scripts/test.sh`)",
+        f"< {SUITE_MINUTES} min", suite_run),
+)
+
+
+def load_result(folder: Path, row: Row) -> Any | None:
+    path = folder / f"{row.result}.json"
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise TableError(f"{path}: not readable JSON ({e}); rerun bench/{row.script}") from None
+
+
+def row_line(row: Row, result: Any | None, path: Path) -> str:
+    script = f"`bench/{row.script}`"
+    if result is None:
+        what, measured, target = f"{row.label} ({script})", f"not measured (run {script})", row.target
+    else:
+        try:
+            c = row.cells(result)
+        except (KeyError, IndexError, StopIteration, TypeError, ValueError) as e:
+            why = f"no field {e}" if isinstance(e, KeyError) else str(e) or type(e).__name__
+            raise TableError(f"{path}: unusable for the row '{row.label}' ({why}); rerun {script}") from None
+        what = f"{row.label}, {c.details} ({script}, {c.run})"
+        measured = c.measured
+        target = f"{row.target}: {c.verdict}" if row.target and c.verdict else row.target or c.verdict
+    cells = (what, measured, target)
+    return "| " + " | ".join(cell.replace("|", "\\|") for cell in cells) + " |"
+
+
+def build_table(results: Path) -> str:
+    """The Markdown table the results give."""
+    if not results.is_dir():
+        raise TableError(f"{results}: no such results folder (the bench scripts write bench/results/)")
+    lines = ["| what | measured | target |", "|---|---|---|"]
+    loaded: dict[str, Any] = {}
+    for row in ROWS:
+        if row.result not in loaded:
+            loaded[row.result] = load_result(results, row)
+        lines.append(row_line(row, loaded[row.result], results / f"{row.result}.json"))
+    return "\n".join(lines)
+
+
+def readme_table(readme: Path) -> str:
+    """The table now between the README's markers."""
+    start, end = markers(TABLE)
+    try:
+        text = readme.read_text()
+    except OSError as e:
+        raise TableError(f"{readme}: cannot read it ({e.strerror})") from None
+    if start not in text or end not in text:
+        raise TableError(f"{readme}: no {start} ... {end} markers around the results table; add them")
+    return text.split(start, 1)[1].split(end, 1)[0].strip("\n")
+
+
+@dataclass
+class TableArgs:
+    results: Path = ROOT / "bench" / "results"
+    """Folder of the benchmarks' JSON results."""
+    readme: Path = ROOT / "README.md"
+    check: bool = False
+    """Change nothing; exit 1 if the README's table differs from what the results give."""
+
+
+def main(args: TableArgs) -> int:
+    try:
+        table = build_table(args.results)
+        current = readme_table(args.readme)
+    except TableError as e:
+        print(e, file=sys.stderr)
+        return 2
+    if args.check:
+        if current == table:
+            return 0
+        first = next((n for o, n in zip(current.splitlines(), table.splitlines()) if o != n), "the row count")
+        print(f"{args.readme}: the results table differs from {args.results} (first: {first[:70]}...); "
+              "regenerate it with python bench/readme_table.py", file=sys.stderr)
+        return 1
+    update_docs_table(args.readme, TABLE, table)
+    print(f"{args.readme}: results table {'unchanged' if current == table else 'updated'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(tyro.cli(TableArgs)))
