@@ -171,7 +171,7 @@ def table(res: dict) -> str:
             continue
         s, o = r["stereo"], r["oracle"]
         pts = lambda x: "/".join(f"{p:,}" for p in x["points_per_keyframe"])  # noqa: E731
-        verdict = "yes" if r["within_target"] else f"no (+{r['gap_db'] - TARGET_DB:.2f})"
+        verdict = "yes" if r["within_target"] else f"no ({r['gap_db'] - TARGET_DB:.2f} over)"
         lines.append(f"| {r['layout']} | {r['preset']} | {r['cameras']} | {pts(s)} ({pts(o)}) | "
                      f"{s['coverage']['cam00']:.0%} ({o['coverage']['cam00']:.0%}) | {s['psnr']:.2f} / {o['psnr']:.2f} | "
                      f"{r['gap_db']:+.2f} | {s['ssim']:.3f} / {o['ssim']:.3f} | {verdict} | "
