@@ -71,7 +71,7 @@ def main() -> None:
     res = json.loads((run / "result.json").read_text())
     last = [ln for ln in proc.stdout.splitlines() if "done," in ln]
     out = {
-        "command": "atgs-train --out runs/demo " + " ".join([*args.train_args, *extra]).strip(),
+        "command": " ".join(["atgs-train --out runs/demo", *args.train_args, *extra]),
         "printed": last[-1] if last else "",
         "psnr": res["eval"]["psnr"], "ssim": res["eval"]["ssim"], "eval_views": res["eval"]["views"],
         "steps": res["steps"], "train_seconds": res["seconds"], "wall_seconds": wall,
