@@ -33,9 +33,15 @@ def _env() -> dict[str, str]:
     return env
 
 
+def _default_sigint() -> None:
+    # A shell starts background jobs with SIGINT ignored, and exec keeps that: the child Python
+    # would then never see the Ctrl-C this test sends (pytest run with `&` hung here).
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _train(*args: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "atgs.cli.train", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, env=_env(), cwd=REPO)
+                            stderr=subprocess.PIPE, env=_env(), cwd=REPO, preexec_fn=_default_sigint)
 
 
 def _read_until(stream, pattern: str, timeout: float = 120.0) -> str:
