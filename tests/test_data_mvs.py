@@ -343,3 +343,73 @@ def test_the_model_starts_without_points_on_degenerate_rigs(case, capsys) -> Non
     assert model.num_anchors > 100 and np.isfinite(mu).all() and np.ptp(mu, axis=0).max() > 0.1
     # anchors are voxel averages of the fill: a few at the frustum edges fall just outside
     assert np.mean(_seen_by(cams, mu.astype(np.float64)) >= 1) > 0.95 and "points.ply is empty" in capsys.readouterr().err
+
+
+# --- surface extension into uncovered pixels (atgs.data.mvs.extend) ----------------------------
+
+def _down_camera() -> Camera:
+    """A camera 2 m above the ground looking straight down: the ground is fronto-parallel, its
+    depth is 2 at every pixel, so extending it at the neighbours' depth is exact."""
+    f = 0.8 * W
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    return Camera("down", W, H, K, look_at(np.array([0.0, 0.0, 2.0]), np.zeros(3), up=np.array([0.0, 1.0, 0.0])))
+
+
+def _ground_points(cam: Camera, first_row: int) -> np.ndarray:
+    """Ground points (z = 0) through every pixel center of ``cam`` from row ``first_row`` down."""
+    vv, uu = np.mgrid[first_row:cam.height, 0:cam.width]
+    d = np.stack([(uu + 0.5 - cam.cx) / cam.fx, (vv + 0.5 - cam.cy) / cam.fy, np.ones(uu.shape)], -1).reshape(-1, 3)
+    pc = d * 2.0  # depth 2 everywhere
+    return (pc - cam.t) @ cam.R
+
+
+def test_extension_continues_a_fronto_parallel_plane_into_the_uncovered_rows() -> None:
+    from atgs.data.mvs.extend import extend_surfaces
+
+    cam = _down_camera()
+    img, depth = raycast(cam, box=False)
+    assert np.allclose(depth, 2.0), "the analytic ground is at depth 2"
+    pts = _ground_points(cam, first_row=30)  # rows 0-29 uncovered
+    sp = point_spacing(pts)
+    ext, cols = extend_surfaces([cam], [img], pts, sp, long_side=W, reach=0.1, max_points=100_000)
+    assert len(ext) > 50
+    np.testing.assert_allclose(ext[:, 2], 0.0, atol=1e-9)  # on the plane: the depth is exact
+    uv, z = cam.project(ext)
+    assert np.all(uv[:, 1] < 30), "only uncovered pixels get points"
+    covered = coverage_mask(cam, pts, sp)
+    first_covered = int(np.nonzero(covered.any(1))[0][0])
+    reach_px = 0.1 * W
+    assert uv[:, 1].min() >= first_covered - reach_px - 3, "no further than the reach (+ the points' gaps)"
+    assert uv[:, 1].min() < first_covered - 0.5 * reach_px, "the extension reaches out"
+    # colours come from the image at those pixels
+    xi, yi = uv[:, 0].astype(int), uv[:, 1].astype(int)
+    np.testing.assert_allclose(cols, img[yi, xi] / 255.0, atol=1 / 255)
+
+
+def test_extension_adds_nothing_to_a_covered_camera_and_respects_its_caps() -> None:
+    from atgs.data.mvs.extend import extend_surfaces
+
+    cam = _down_camera()
+    img, _ = raycast(cam, box=False)
+    full = _ground_points(cam, first_row=0)
+    ext, _ = extend_surfaces([cam], [img], full, point_spacing(full), long_side=W, reach=0.2, max_points=1000)
+    assert len(ext) == 0
+    part = _ground_points(cam, first_row=30)
+    for reach, cap in ((0.0, 1000), (0.2, 0)):
+        ext, _ = extend_surfaces([cam], [img], part, point_spacing(part), long_side=W, reach=reach, max_points=cap)
+        assert len(ext) == 0
+    ext, _ = extend_surfaces([cam], [img], part, point_spacing(part), long_side=W, reach=0.2, max_points=7)
+    assert len(ext) == 7
+
+
+def test_grow_depth_fills_ring_by_ring_and_keeps_known_depths() -> None:
+    from atgs.data.mvs.extend import grow_depth
+
+    d = np.full((9, 9), np.nan)
+    d[4, 4] = 3.0
+    d[0, 0] = 1.0
+    g = grow_depth(d, 2)
+    assert g[4, 4] == 3.0 and g[0, 0] == 1.0
+    assert g[4, 6] == 3.0 and g[2, 4] == 3.0 and np.isnan(g[4, 7]), "two rings, 4-neighbour distance"
+    assert np.isnan(grow_depth(d, 0)[4, 5])
+    assert not np.isnan(grow_depth(d, 20)).any()

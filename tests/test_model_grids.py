@@ -113,3 +113,90 @@ def test_gather_rows_equals_plain_indexing():
     a, g = gather_rows(table, idx, track=True)
     assert torch.equal(a, table[idx])
     assert g.rows.tolist() == [0, 3, 7, 19]
+
+
+# --- the compiled CPU kernels (atgs/render/csrc/grids.cpp) against the torch reference ---------
+
+def _both(grid, query):
+    """(torch reference, compiled) results of ``query(grid)`` on the same float32 table."""
+    grid.backend = "torch"
+    ref = query(grid)
+    grid.backend = "auto"
+    return ref, query(grid)
+
+
+def _points(n: int, seed: int) -> torch.Tensor:
+    x = torch.rand(n, 3, generator=torch.Generator().manual_seed(seed))
+    # cell borders, the box faces and points outside it (clamped), as the decode sees them
+    x[:6] = torch.tensor([[0, 0, 0], [1, 1, 1], [1, 0, 0.5], [-0.2, 1.3, 0.5], [0.5, 0.5, 0.5], [0.25, 0.75, 1]])
+    return x
+
+
+@pytest.mark.parametrize("log2_table", [8, 14])  # hashed fine levels / every level dense
+def test_compiled_hash_grid_matches_torch_values_rows_and_gradients(log2_table):
+    from atgs.model.grids import _kernels
+
+    h = HashGrid4D(2, levels=5, features=2, log2_table=log2_table, base_res=3, growth=1.7, max_time_res=6,
+                   generator=torch.Generator().manual_seed(8))
+    assert _kernels(h.table, "auto") is not None, "the compiled grid kernels must build on this machine"
+    x = _points(3000, 9)
+    w = torch.randn(3000, 10, generator=torch.Generator().manual_seed(10))
+
+    def run(g):
+        out, rows = g.query(x, 0.43, 1, track=True)
+        (out * w).sum().backward()
+        return out.detach(), rows
+
+    (ref, gr), (got, gc) = _both(h, run)
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-7)
+    assert torch.equal(gc.rows, gr.rows), "the same table rows are touched"
+    torch.testing.assert_close(gc.leaf.grad, gr.leaf.grad, rtol=1e-4, atol=1e-5)
+    ref_nt, got_nt = _both(h, lambda g: g.query(x, 0.43, 1, track=False)[0])
+    torch.testing.assert_close(got_nt, ref_nt, rtol=1e-5, atol=1e-7)
+
+
+def test_compiled_spatial_grid_matches_torch_values_rows_and_gradients():
+    s = SpatialGrid(7, 5)
+    s.table = torch.randn(s.table.shape, generator=torch.Generator().manual_seed(11))
+    x = _points(4000, 12)
+    w = torch.randn(4000, 5, generator=torch.Generator().manual_seed(13))
+
+    def run(g):
+        out, rows = g.query(x, track=True)
+        (out * w).sum().backward()
+        return out.detach(), rows
+
+    (ref, gr), (got, gc) = _both(s, run)
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6)
+    assert float(got[3].abs().max()) == 0.0, "a point outside the box gets zero features"
+    assert torch.equal(gc.rows, gr.rows)
+    torch.testing.assert_close(gc.leaf.grad, gr.leaf.grad, rtol=1e-4, atol=1e-5)
+
+
+def test_compiled_grid_gradient_matches_finite_differences_in_float32():
+    h = HashGrid4D(1, levels=2, features=2, log2_table=6, base_res=2, growth=2.0, max_time_res=2,
+                   generator=torch.Generator().manual_seed(14))
+    x = _points(7, 15)
+    wts = torch.randn(7, 4, generator=torch.Generator().manual_seed(16))
+    out, g = h.query(x, 0.6, 0, track=True)
+    (out * wts).sum().backward()
+    eps = 1e-2  # the output is linear in the table: a large step is exact up to float32 round-off
+    for k in range(g.rows.numel()):
+        row = int(g.rows[k])
+        saved = h.table.clone()
+        h.table[row, 1] += eps
+        op, _ = h.query(x, 0.6, 0, track=False)
+        h.table = saved.clone()
+        h.table[row, 1] -= eps
+        om, _ = h.query(x, 0.6, 0, track=False)
+        h.table = saved
+        fd = float(((op - om) * wts).sum()) / (2 * eps)
+        assert g.leaf.grad[k, 1].item() == pytest.approx(fd, rel=1e-3, abs=1e-4)
+
+
+def test_compiled_grids_read_nan_positions_as_zero_instead_of_crashing():
+    h = HashGrid4D(1, levels=3, features=2, log2_table=6, base_res=2, growth=2.0, max_time_res=2)
+    x = torch.tensor([[float("nan"), 0.5, 0.5], [0.0, 0.5, 0.5]])
+    out, g = h.query(x, 0.2, 0, track=True)
+    out.sum().backward()
+    torch.testing.assert_close(out[0], out[1])

@@ -88,3 +88,45 @@ def test_view_without_gaussians_is_harmless(scene, tmp_path):
     r = tr.train_step()
     assert not r.skipped and r.gaussians == 0
     assert torch.equal(tr.model.anchor_feature, before)
+
+
+def test_cameras_per_frame_step_equals_the_mean_of_separate_renders(scene, tmp_path):
+    """One decode rendered from two cameras (``cameras_per_frame``) gives the decoder the
+    gradient of the mean of the two losses, computed here with a separate decode per camera."""
+    from atgs.render import rasterize_gaussians
+
+    m, t = preset("tiny")
+    m.frustum_cull = False  # the shared decode then holds the same anchors as each separate one
+    t.cameras_per_frame, t.grad_clip, t.iterations = 2, 0.0, 10
+    tr = Trainer(scene, m, t, tmp_path)
+    tr.train_step()  # past the first step: nonzero features
+    gen_state, queue = tr.gen.get_state(), list(tr.sampler.queue)
+    cams, f = tr.sampler.next_views(2)
+    assert len(set(cams)) == 2 and set(cams) <= set(tr.train_idx)
+    params = [p for name in tr.model.decoder.HEADS for p in getattr(tr.model.decoder, name).parameters()]
+    for p in params:
+        p.grad = None  # the first step's gradients are still there
+    total = 0.0
+    for ci in cams:  # the reference, on the same parameters, before the step changes them
+        dec = tr.model.decode_frame(f, tr.cams[ci], track=True)
+        out = rasterize_gaussians(dec.gaussians, tr.cams[ci], background=tr.fixed_background)
+        total = total + tr.compute_loss(dec, out, tr.images.get(ci, f))
+    (total / 2).backward()
+    expected = [p.grad.clone() for p in params]
+    tr.gen.set_state(gen_state)  # the step draws the same frame and cameras
+    tr.sampler.queue = queue
+    tr.train_step()
+    for p, e in zip(params, expected):
+        torch.testing.assert_close(p.grad, e, rtol=1e-4, atol=1e-7)
+
+
+def test_next_views_draws_distinct_cameras(scene):
+    from atgs.train.sampling import SegmentSampler
+
+    m, t = preset("tiny")
+    tr = Trainer(scene, m, t, "/nonexistent-unused")
+    s = SegmentSampler(tr.model.timeline, [0, 1, 2, 3], torch.Generator().manual_seed(0))
+    for _ in range(20):
+        cams, f = s.next_views(3)
+        assert len(cams) == len(set(cams)) == 3 and 0 <= f < scene.num_frames
+    assert sorted(s.next_views(9)[0]) == [0, 1, 2, 3], "more than there are: every camera once"

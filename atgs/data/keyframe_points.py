@@ -5,7 +5,9 @@ At each keyframe, from the training cameras (test cameras are held out):
    camera's depth range and guide the choice of stereo sources;
 2. PatchMatch stereo + cross-view fusion (:mod:`atgs.data.mvs`), when enabled;
 3. where the points of 1 and 2 cover less than ``fill.below`` of a training camera's pixels, fill
-   points in the space seen by at least two cameras through that camera's uncovered pixels.
+   points in the space seen by at least two cameras through that camera's uncovered pixels;
+4. the measured surfaces extended into the uncovered pixels near covered ones, at the depth of
+   their neighbours (:mod:`atgs.data.mvs.extend`, ``fill.extend_reach``).
 Coverage (:mod:`atgs.data.coverage`) of every camera by the measured points (1 + 2) is returned
 for scene.json.
 """
@@ -26,6 +28,7 @@ from atgs.data.coverage import coverage_mask, point_spacing, scene_coverage, wor
 from atgs.data.errors import DataError
 from atgs.data.mvs import FillConfig, StereoConfig, stereo_points
 from atgs.data.mvs.stereo import stereo_steps
+from atgs.data.mvs.extend import extend_surfaces
 from atgs.data.mvs.fill import frustum_fill
 from atgs.data.mvs.views import check_camera_layout, depth_ranges
 
@@ -37,7 +40,7 @@ class KeyframePoints:
     points: np.ndarray  # (P,3) float64
     colors: np.ndarray  # (P,3) uint8
     keyframes: np.ndarray  # (P,) int64, index into the keyframe list
-    counts: dict = field(default_factory=dict)  # {"sift": [...], "stereo": [...], "fill": [...]} per keyframe
+    counts: dict = field(default_factory=dict)  # {"sift", "stereo", "fill", "extend"}: a list per keyframe
     coverage: dict = field(default_factory=dict)  # scene_coverage of the measured (non-fill) points
 
 
@@ -62,7 +65,7 @@ def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs
     check_camera_layout(use, where)
     hints = None if depth_hints is None else [depth_hints[i] for i in use_idx]
     P, C, K, fill_mask = [], [], [], []
-    counts: dict[str, list[int]] = {"sift": [], "stereo": [], "fill": []}
+    counts: dict[str, list[int]] = {"sift": [], "stereo": [], "fill": [], "extend": []}
     per_kf = stereo_steps(len(use), stereo) if stereo.enabled else 1
     with tqdm(total=len(kfs) * per_kf, desc="keyframe points", unit="cam" if stereo.enabled else "kf",
               disable=not progress) as bar:
@@ -88,7 +91,12 @@ def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs
                 raise DataError(f"{where}: no two cameras see a common region (stereo, SIFT and the "
                                 "frustum intersection found nothing); check the poses (world-to-camera vs "
                                 "camera-to-world, units) and that the cameras overlap")
-            for arr, c, is_fill in ((measured, np.concatenate(cols), False), (fpts, fcols, True)):
+            epts, ecols = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
+            if fill.enabled and len(measured) >= 2:
+                epts, ecols = extend_surfaces(use, images, measured, point_spacing(measured), stereo.long_side,
+                                              fill.extend_reach, fill.extend_points, seed=j)
+            for arr, c, is_fill in ((measured, np.concatenate(cols), False), (fpts, fcols, True),
+                                    (epts, ecols, True)):
                 P.append(arr)
                 C.append(np.clip(np.round(c * 255), 0, 255).astype(np.uint8))
                 K.append(np.full(len(arr), j, np.int64))
@@ -96,6 +104,7 @@ def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs
             counts["sift"].append(int(len(sift)))
             counts["stereo"].append(int(n_stereo))
             counts["fill"].append(int(len(fpts)))
+            counts["extend"].append(int(len(epts)))
     pts, cols, kf, is_fill = (np.concatenate(x) for x in (P, C, K, fill_mask))
     cov = scene_coverage(cams, pts[~is_fill], kf[~is_fill], len(kfs), test, stereo.long_side)
     _report(counts, cov, test, progress)
@@ -125,7 +134,8 @@ def _fill(cams: Sequence[Camera], images: Sequence[np.ndarray], measured: np.nda
 def _report(counts: dict, cov: dict, test: Sequence[str], progress: bool) -> None:
     k = len(counts["sift"])
     line = (f"keyframe points (mean of {k}): {np.mean(counts['sift']):.0f} SIFT + {np.mean(counts['stereo']):.0f} "
-            f"stereo + {np.mean(counts['fill']):.0f} fill; coverage of the training cameras {cov['mean']:.0%}")
+            f"stereo + {np.mean(counts['fill']):.0f} fill + {np.mean(counts['extend']):.0f} "
+            f"extension; coverage of the training cameras by SIFT + stereo {cov['mean']:.0%}")
     if cov["test_cameras"]:
         line += ", test " + ", ".join(f"{n} {c:.0%}" for n, c in cov["test_cameras"].items())
     if progress:

@@ -10,6 +10,7 @@ A model is built on the CPU (the same initialisation whatever the device) and mo
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 import math
 
@@ -213,8 +214,9 @@ class ATGSModel:
         with torch.no_grad():
             return self._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), None, track=False).gaussians
 
-    def decode_frame(self, f: int, camera: Camera | None = None, track: bool = True) -> Decoded:
-        """Decode frame f for training (``track``: sparse leaves for the optimizer)."""
+    def decode_frame(self, f: int, camera: Camera | Sequence[Camera] | None = None, track: bool = True) -> Decoded:
+        """Decode frame f for training (``track``: sparse leaves for the optimizer); with
+        cameras, only the anchors near their frusta (the union for several) are decoded."""
         tl = self.timeline
         return self._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), camera, track)
 
@@ -241,10 +243,14 @@ class ATGSModel:
     def normalized_positions(self, mu: torch.Tensor) -> torch.Tensor:
         return (mu - self.bbox_min) / (self.bbox_max - self.bbox_min)
 
-    def _decode(self, f: int, m: int, tau: float, camera: Camera | None, track: bool) -> Decoded:
+    def _decode(self, f: int, m: int, tau: float, camera: Camera | Sequence[Camera] | None, track: bool) -> Decoded:
         mask = self.active_anchors(f)
         if camera is not None and self.cfg.frustum_cull:
-            mask &= self.in_frustum(camera)
+            cams = [camera] if isinstance(camera, Camera) else list(camera)
+            seen = self.in_frustum(cams[0])
+            for c in cams[1:]:
+                seen |= self.in_frustum(c)
+            mask &= seen
         active = mask.nonzero().squeeze(1)
         sparse: list[SparseLeaf] = []
 

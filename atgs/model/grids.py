@@ -5,10 +5,16 @@ Both are gather based: a query computes integer row indices into a 2D table (row
 and interpolation weights. :func:`gather_rows` turns the table rows touched by a query into a
 small leaf tensor, so that backward produces a gradient for the touched rows only (an
 index_add into a (U, D) tensor) and the optimizer updates only those rows.
+
+On the CPU the same lookups run as compiled kernels (atgs/render/csrc/grids.cpp, several times
+faster: no (N, L, 16) index tensors); the torch code here is their reference and the path for
+other devices. ``backend`` on a grid picks: "auto" (compiled when on the CPU and the kernels
+build) or "torch".
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 import math
 
@@ -42,6 +48,59 @@ def gather_rows(table: torch.Tensor, idx: torch.Tensor, track: bool) -> tuple[to
     return out, RowGather(rows, leaf)
 
 
+def _kernels(table: torch.Tensor, backend: str):
+    """The compiled grid kernels if they should serve a lookup into ``table``, else None."""
+    if backend not in ("auto", "torch"):
+        raise ValueError(f"grid backend must be 'auto' or 'torch', got {backend!r}")
+    if backend == "torch" or table.device.type != "cpu" or table.dtype != torch.float32:
+        return None
+    from atgs.render.build import GRIDS, cpu_backend_error, load_extension
+
+    return None if cpu_backend_error(GRIDS) else load_extension(GRIDS)
+
+
+_NO_REMAP = torch.empty(0, dtype=torch.int64)
+
+
+class _CompiledLookup(torch.autograd.Function):
+    """out = lookup(table); the gradient goes to ``leaf``, a copy of the table's ``rows``. The
+    forward reads the table itself (the same values). The backward scatters through ``remap``
+    (table row -> leaf row) into the leaf's gradient, or, without one, into a table-sized
+    gradient whose ``rows`` are then read out (csrc/grids.cpp says which suits which grid)."""
+
+    @staticmethod
+    def forward(ctx, leaf, table, rows, remap, x, fwd, bwd):  # type: ignore[override]
+        ctx.save_for_backward(x, rows, remap)
+        ctx.bwd, ctx.table_rows, ctx.leaf_rows = bwd, table.shape[0], leaf.shape[0]
+        return fwd(x, table)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        x, rows, remap = ctx.saved_tensors
+        if remap.numel():
+            grad = ctx.bwd(x, grad_out.contiguous(), ctx.leaf_rows, remap)
+        else:
+            grad = ctx.bwd(x, grad_out.contiguous(), ctx.table_rows, remap)[rows]
+        return grad, None, None, None, None, None, None
+
+
+def compiled_lookup(table: torch.Tensor, x: torch.Tensor, track: bool, touched: Callable, fwd: Callable,
+                    bwd: Callable, remap: bool) -> tuple[torch.Tensor, RowGather | None]:
+    """A grid lookup through compiled kernels, with the semantics of :func:`gather_rows` +
+    interpolation: with ``track`` the result depends on a leaf of the touched rows. ``remap``:
+    the backward scatters into the leaf rows directly (see :class:`_CompiledLookup`)."""
+    x, table = x.detach().float().contiguous(), table.detach().contiguous()
+    if not track:
+        return fwd(x, table), None
+    rows = touched(x).nonzero().squeeze(1)
+    leaf = table[rows].detach().requires_grad_(True)
+    to_leaf = _NO_REMAP
+    if remap:
+        to_leaf = torch.full((table.shape[0],), -1, dtype=torch.int64)
+        to_leaf[rows] = torch.arange(rows.numel())
+    return _CompiledLookup.apply(leaf, table, rows, to_leaf, x, fwd, bwd), RowGather(rows, leaf)
+
+
 def _corner_offsets(dims: int, device: torch.device) -> torch.Tensor:
     """(2^dims, dims) 0/1 offsets of the corners of a unit cell."""
     c = torch.arange(2**dims, device=device)
@@ -66,9 +125,10 @@ def interp_indices(x: torch.Tensor, res: list[int]) -> tuple[torch.Tensor, torch
 class SpatialGrid:
     """Dense grid of ``res^3`` vertices x D features over [0, 1]^3, trilinear, zero init."""
 
-    def __init__(self, res: int, dim: int, device: torch.device | str = "cpu") -> None:
+    def __init__(self, res: int, dim: int, device: torch.device | str = "cpu", backend: str = "auto") -> None:
         self.res, self.dim = int(res), int(dim)
         self.table = torch.zeros(self.res**3, self.dim, device=device)
+        self.backend = backend
 
     def indices(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         n = self.res - 1
@@ -79,9 +139,17 @@ class SpatialGrid:
     def query(self, x: torch.Tensor, track: bool) -> tuple[torch.Tensor, RowGather | None]:
         """Features (N, D) of points x (N, 3) in [0, 1]^3; points outside get zeros."""
         inside = ((x >= 0) & (x <= 1)).all(dim=1)
-        idx, w = self.indices(x)
-        feats, g = gather_rows(self.table, idx, track)
-        out = (feats * w[..., None]).sum(dim=1)
+        k = _kernels(self.table, self.backend)
+        if k is not None:
+            t = torch.get_num_threads()
+            out, g = compiled_lookup(
+                self.table, x, track, lambda p: k.dense_touched(p, self.res, t),
+                lambda p, v: k.dense_forward(p, self.res, v, t),
+                lambda p, go, n, r: k.dense_backward(p, self.res, go, n, r, t), remap=True)
+        else:
+            idx, w = self.indices(x)
+            feats, g = gather_rows(self.table, idx, track)
+            out = (feats * w[..., None]).sum(dim=1)
         return out * inside[:, None].to(out.dtype), g
 
 
@@ -95,7 +163,7 @@ class HashGrid4D:
 
     def __init__(self, num_grids: int, levels: int, features: int, log2_table: int, base_res: int,
                  growth: float, max_time_res: int, init_scale: float = 1e-4,
-                 generator: torch.Generator | None = None) -> None:
+                 generator: torch.Generator | None = None, backend: str = "auto") -> None:
         self.num_grids, self.levels, self.features = int(num_grids), int(levels), int(features)
         self.table_size = 2 ** int(log2_table)
         self.res = [max(1, int(math.floor(base_res * growth**lv))) for lv in range(self.levels)]
@@ -104,6 +172,7 @@ class HashGrid4D:
         # Instant-NGP initializes uniformly in [-1e-4, 1e-4].
         device = generator.device if generator is not None else "cpu"
         self.table = (torch.rand(rows, self.features, generator=generator, device=device) * 2 - 1) * init_scale
+        self.backend = backend
 
     def dense_level(self, lv: int) -> bool:
         r, rt = self.res[lv], self.time_res[lv]
@@ -167,6 +236,15 @@ class HashGrid4D:
 
     def query(self, x: torch.Tensor, tau: float, grid: int, track: bool) -> tuple[torch.Tensor, RowGather | None]:
         """Concatenated level features (N, L*F)."""
+        k = _kernels(self.table, self.backend)
+        if k is not None:
+            dense = [int(self.dense_level(lv)) for lv in range(self.levels)]
+            args = (float(tau), int(grid), self.res, self.time_res, dense, self.table_size)
+            t = torch.get_num_threads()
+            return compiled_lookup(
+                self.table, x, track, lambda p: k.hash_touched(p, *args, self.table.shape[0], t),
+                lambda p, v: k.hash_forward(p, *args, v, t),
+                lambda p, go, n, r: k.hash_backward(p, *args, go, n, r, t), remap=False)
         idx, w = self.indices(x, tau, grid)
         feats, g = gather_rows(self.table, idx, track)  # (N, L, 16, F)
         out = (feats * w[..., None]).sum(dim=2)

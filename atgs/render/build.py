@@ -1,7 +1,12 @@
-"""Compile-at-first-use of the C++/OpenMP rasterizer, cached by source hash."""
+"""Compile-at-first-use of the C++/OpenMP CPU kernels, cached by source hash.
+
+Two extensions: the rasterizer (:data:`RASTER`, used by atgs.render.cpu) and the feature-grid
+encodings of the model (:data:`GRIDS`, used by atgs.model.grids). Each is built on its first use
+and imported from the cache afterwards."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 import functools
 import hashlib
 import importlib.util
@@ -15,8 +20,20 @@ import torch
 from atgs.io.cache import cache_dir
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ("rasterize.cpp",)
-HEADERS = ("projection.h",)
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """One extension: its module-name prefix, sources and headers in csrc/, and what it is."""
+
+    prefix: str
+    sources: tuple[str, ...]
+    headers: tuple[str, ...]
+    what: str
+
+
+RASTER = Kernel("atgs_raster", ("rasterize.cpp",), ("projection.h",), "the ATGS CPU rasterizer")
+GRIDS = Kernel("atgs_grids", ("grids.cpp",), (), "the ATGS CPU grid encodings")
 BASE_CFLAGS = ("-O3", "-fopenmp", "-std=c++17")
 LDFLAGS = ("-fopenmp",)
 
@@ -41,19 +58,19 @@ def cache_root() -> Path:
     return cache_dir() / "torch_extensions"
 
 
-def build_key() -> str:
+def build_key(kernel: Kernel = RASTER) -> str:
     """Hash of the sources, flags, torch and Python versions: any change triggers a rebuild."""
     h = hashlib.sha256()
-    for name in SOURCES + HEADERS:
+    for name in kernel.sources + kernel.headers:
         h.update((CSRC / name).read_bytes())
     h.update(repr((compile_flags(), LDFLAGS, torch.__version__, sys.version_info[:2])).encode())
     return h.hexdigest()[:16]
 
 
-@functools.lru_cache(maxsize=1)
-def load_extension() -> ModuleType:
+@functools.lru_cache(maxsize=None)
+def load_extension(kernel: Kernel = RASTER) -> ModuleType:
     """Import the compiled extension, compiling it first if this source version is new."""
-    name = f"atgs_raster_{build_key()}"
+    name = f"{kernel.prefix}_{build_key(kernel)}"
     build_dir = cache_root() / name
     built = build_dir / f"{name}.so"
     if built.exists():  # the name is a hash of sources and flags: import without re-checking
@@ -66,10 +83,10 @@ def load_extension() -> ModuleType:
 
     build_dir.mkdir(parents=True, exist_ok=True)
     # stderr: stays visible when stdout is piped or captured
-    print(f"compiling the ATGS CPU rasterizer (first use, ~1 min), cached in {build_dir}", file=sys.stderr, flush=True)
+    print(f"compiling {kernel.what} (first use, ~1 min), cached in {build_dir}", file=sys.stderr, flush=True)
     return load(
         name=name,
-        sources=[str(CSRC / s) for s in SOURCES],
+        sources=[str(CSRC / s) for s in kernel.sources],
         extra_cflags=list(compile_flags()),
         extra_ldflags=list(LDFLAGS),
         build_directory=str(build_dir),
@@ -77,11 +94,12 @@ def load_extension() -> ModuleType:
     )
 
 
-@functools.lru_cache(maxsize=1)
-def cpu_backend_error() -> str | None:
-    """None if the extension loads, else a one-line reason (used by backend='auto')."""
+@functools.lru_cache(maxsize=None)
+def cpu_backend_error(kernel: Kernel = RASTER) -> str | None:
+    """None if the extension loads, else a one-line reason (used by backend='auto', and by the
+    grids to fall back to their torch version)."""
     try:
-        load_extension()
+        load_extension(kernel)
     except Exception as exc:  # compiler missing, headers missing, ...
         return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
     return None

@@ -28,14 +28,22 @@ class SegmentSampler:
         self.queue: list[int] = []
 
     def next(self) -> tuple[int, int]:
+        cams, f = self.next_views(1)
+        return cams[0], f
+
+    def next_views(self, cameras: int) -> tuple[list[int], int]:
+        """A frame and ``cameras`` distinct training cameras that see it (all of them when
+        there are fewer); with one camera the draws are those of earlier versions."""
         if not self.queue:
             perm = torch.randperm(len(self.segments), generator=self.gen, device=self.gen.device).tolist()
             self.queue = [self.segments[i] for i in perm]
         m = self.queue.pop()
         frames = self.timeline.frames_of_segment(m)
         f = frames[int(torch.randint(len(frames), (1,), generator=self.gen, device=self.gen.device))]
-        c = self.cams[int(torch.randint(len(self.cams), (1,), generator=self.gen, device=self.gen.device))]
-        return c, f
+        if cameras <= 1:
+            return [self.cams[int(torch.randint(len(self.cams), (1,), generator=self.gen, device=self.gen.device))]], f
+        pick = torch.randperm(len(self.cams), generator=self.gen, device=self.gen.device)[:cameras].tolist()
+        return [self.cams[i] for i in pick], f
 
     def state_dict(self) -> dict:
         return {"queue": torch.tensor(self.queue, dtype=torch.int64, device="cpu")}  # saved with the checkpoint

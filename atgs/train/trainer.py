@@ -97,6 +97,9 @@ class Trainer:
         a given ``model`` is moved there."""
         self.device = torch.device(device)
         check_backend(self.device, cfg.render_backend)
+        if cfg.views_per_step < 1 or cfg.cameras_per_frame < 1:
+            raise UserError(f"--train.views-per-step {cfg.views_per_step} and --train.cameras-per-frame "
+                            f"{cfg.cameras_per_frame}: both must be >= 1")
         self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
         self.out = Path(out_dir)
         self.run = RunDir(self.out)
@@ -193,31 +196,37 @@ class Trainer:
         grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {}
         losses, psnrs, n_gauss, bad = [], [], 0, False
         segments: list[int] = []
+        per_view = cfg.views_per_step * cfg.cameras_per_frame
         for _ in range(cfg.views_per_step):
-            ci, f = self.sampler.next()
-            cam = self.cams[ci]
-            gt = self.images.get(ci, f)
-            dec = model.decode_frame(f, cam, track=True)
+            cis, f = self.sampler.next_views(cfg.cameras_per_frame)
+            cams = [self.cams[ci] for ci in cis]
+            dec = model.decode_frame(f, cams, track=True)
             segments.append(dec.segment)
             # one host-device synchronisation for the five tensors
             if not bool(torch.stack([torch.isfinite(x).all() for x in dec.gaussians.as_tuple()]).all()):
                 bad = True
                 break
-            if len(dec.gaussians) == 0:  # nothing of the model in this view: nothing to learn
+            if len(dec.gaussians) == 0:  # nothing of the model in these views: nothing to learn
                 continue
-            bg = self._background()
-            out = rasterize_gaussians(dec.gaussians, cam, background=bg, backend=self.cfg.render_backend)
-            out.means2d.retain_grad()
-            loss = self.compute_loss(dec, out, gt)
-            if not bool(torch.isfinite(loss)):
+            outs, total = [], None
+            for ci, cam in zip(cis, cams):  # one decode, rendered from each camera
+                gt = self.images.get(ci, f)
+                out = rasterize_gaussians(dec.gaussians, cam, background=self._background(),
+                                          backend=self.cfg.render_backend)
+                out.means2d.retain_grad()
+                loss = self.compute_loss(dec, out, gt)
+                total = loss if total is None else total + loss
+                outs.append((cam, out))
+                losses.append(loss.detach())  # read back once at the end of the step
+                psnrs.append(psnr(out.image, gt))
+                n_gauss += len(dec.gaussians)
+            if not bool(torch.isfinite(total)):
                 bad = True
                 break
-            (loss / cfg.views_per_step).backward()
-            losses.append(loss.detach())  # read back once at the end of the step
-            psnrs.append(psnr(out.image, gt))
-            n_gauss += len(dec.gaussians)
-            g2d = out.means2d.grad
-            self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
+            (total / per_view).backward()
+            for cam, out in outs:
+                g2d = out.means2d.grad
+                self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
             for s in dec.sparse:
                 if s.leaf.grad is not None:
                     grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))

@@ -72,3 +72,9 @@ class FillConfig:
     """Fill points per keyframe at most."""
     min_views: int = 2
     """A fill point must project inside at least this many cameras, within their near/far range."""
+    extend_reach: float = 0.1
+    """Extend the measured surfaces into each training camera's uncovered pixels up to this fraction
+    of the image's long side from covered ones, at the depth of the nearest covered pixels
+    (atgs.data.mvs.extend; 0: never)."""
+    extend_points: int = 4000
+    """Extension points per keyframe at most."""
