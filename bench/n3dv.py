@@ -27,6 +27,8 @@ import tyro
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _docs import publish  # noqa: E402
 
+from atgs.train.config import preset  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_SRC = ROOT.parent / "shared" / "data" / "n3dv_flame_steak_frame0"
 CASES = {"stereo": [], "sift_only": ["--no-stereo"]}
@@ -92,7 +94,7 @@ def main() -> None:
         rows[case].update(psnr=res["eval"]["psnr"], ssim=res["eval"]["ssim"], eval_views=res["eval"]["views"],
                           steps=res["steps"], train_s=round(res["seconds"], 1))
     result = {"source": str(args.src), "downscale": 4, "test_camera": "cam00", "preset": args.preset,
-              "minutes": args.minutes if args.minutes is not None else "preset default",
+              "minutes": args.minutes if args.minutes is not None else preset(args.preset)[1].minutes,
               "threads_per_run": 1, "runs_side_by_side": True, "cases": rows,
               "loadavg_before": load_before, "loadavg_after": list(os.getloadavg()),
               "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
@@ -102,7 +104,7 @@ def main() -> None:
 def table(res: dict) -> str:
     lines = ["| keyframe points | points | cam00 coverage | training-camera coverage | held-out PSNR / SSIM (cam00) | "
              "steps | prepare s |", "|---|---|---|---|---|---|---|"]
-    names = {"stereo": "stereo + SIFT (default)", "sift_only": "SIFT alone (`--no-stereo`)"}
+    names = {"stereo": "stereo + SIFT (default; + extension)", "sift_only": "SIFT alone (`--no-stereo`; + fill, extension)"}
     for case, r in res["cases"].items():
         lines.append(f"| {names[case]} | {r['points']:,} | {r['coverage_cam00']:.0%} | {r['coverage_train_mean']:.0%} | "
                      f"{r['psnr']:.2f} dB / {r['ssim']:.3f} | {r['steps']:,} | {r['prepare_s']} |")

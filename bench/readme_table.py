@@ -165,6 +165,30 @@ def demo_builtin(r: dict) -> Cells:
                  f"{r['psnr']:.2f} dB", reached(r["psnr"] >= BUILTIN_PSNR_DB))
 
 
+def train_step(r: dict) -> Cells:
+    rows = r["rows"]
+    pick = {(x["case"], x["threads"]): x for x in rows}
+    two = [t for t in sorted({x["threads"] for x in rows}, reverse=True)][0]
+    base, fast = pick[("torch grids", two)], pick[("compiled grids", two)]
+    three = pick.get(("compiled, 3 cameras/frame", two))
+    extra = (f"; 3 cameras per decoded frame {three['images_per_second']:.1f} images/s" if three else "")
+    return Cells(f"preset `cpu`, built-in scene, {fast['anchors']:,} anchors, {two} torch threads",
+                 run_of(r["date"], [x["loadavg"][0] for x in rows]),
+                 f"{base['seconds_per_step']:.3f} -> {fast['seconds_per_step']:.3f} s per step "
+                 f"({base['seconds_per_step'] / fast['seconds_per_step']:.2f}x){extra}; docs/training.md")
+
+
+def short_runs(r: dict) -> Cells:
+    rows = r["rows"]
+    best = max(rows, key=lambda x: x["psnr"])
+    worst = min(rows, key=lambda x: x["psnr"])
+    x = rows[0]
+    return Cells(f"preset `cpu`, {x['minutes']:g}-minute budget, {len(rows)} cases, one change each",
+                 run_of(max(y["date"] for y in rows), [y["loadavg"][0] for y in rows if y.get("loadavg")]),
+                 f"held-out {worst['psnr']:.2f} ({worst['case']}) to {best['psnr']:.2f} dB ({best['case']}, "
+                 f"{best['label']}); docs/training.md")
+
+
 def oracle_gap(r: dict) -> Cells:
     cases = r["cases"]
     gaps = [x["gap_db"] for x in cases]
@@ -341,6 +365,9 @@ ROWS = (
         "as atgs-train prints it", f"{PSNR_DB} dB, {SSIM}, < {TRAIN_MINUTES} min", demo),
     Row("demo", "demo.py", "the same run against the built-in scene's target", f">= {BUILTIN_PSNR_DB} dB", demo_builtin),
     Row("moving", "moving.py", "what limits moving content", "", moving),
+    Row("step", "step.py", "CPU training step: compiled grid kernels vs torch gathers", "", train_step),
+    Row("short_runs", "short_runs.py", "short CPU runs: growth threshold, learning rates, cameras per frame, "
+        "surface extension", "", short_runs),
     Row("train", "train.py", "training, held-out PSNR/SSIM of the main run",
         f"{PSNR_DB} dB, {SSIM}, < {TRAIN_MINUTES} min", training),
     Row("train", "train.py", "peak memory against sequence length", "flat in frame count", memory),

@@ -59,7 +59,7 @@ def _kernels(table: torch.Tensor, backend: str):
     return None if cpu_backend_error(GRIDS) else load_extension(GRIDS)
 
 
-_NO_REMAP = torch.empty(0, dtype=torch.int64)
+_NO_REMAP = torch.empty(0, dtype=torch.int64, device="cpu")  # the compiled kernels run on the CPU
 
 
 class _CompiledLookup(torch.autograd.Function):
@@ -96,8 +96,8 @@ def compiled_lookup(table: torch.Tensor, x: torch.Tensor, track: bool, touched: 
     leaf = table[rows].detach().requires_grad_(True)
     to_leaf = _NO_REMAP
     if remap:
-        to_leaf = torch.full((table.shape[0],), -1, dtype=torch.int64)
-        to_leaf[rows] = torch.arange(rows.numel())
+        to_leaf = torch.full((table.shape[0],), -1, dtype=torch.int64, device=table.device)
+        to_leaf[rows] = torch.arange(rows.numel(), device=table.device)
     return _CompiledLookup.apply(leaf, table, rows, to_leaf, x, fwd, bwd), RowGather(rows, leaf)
 
 
