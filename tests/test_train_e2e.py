@@ -120,11 +120,11 @@ def test_cameras_per_frame_step_equals_the_mean_of_separate_renders(scene, tmp_p
         torch.testing.assert_close(p.grad, e, rtol=1e-4, atol=1e-7)
 
 
-def test_next_views_draws_distinct_cameras(scene):
+def test_next_views_draws_distinct_cameras(scene, tmp_path):
     from atgs.train.sampling import SegmentSampler
 
     m, t = preset("tiny")
-    tr = Trainer(scene, m, t, "/nonexistent-unused")
+    tr = Trainer(scene, m, t, tmp_path)
     s = SegmentSampler(tr.model.timeline, [0, 1, 2, 3], torch.Generator().manual_seed(0))
     for _ in range(20):
         cams, f = s.next_views(3)
