@@ -49,6 +49,30 @@ def synth(tmp_path_factory):
     return {"root": root, "src": src, "scene": scene, "gt": gt, "cams": cams, "prepared": prepared}
 
 
+def test_motion_points_lie_on_the_moving_objects(synth) -> None:
+    """The motion keyframes contain the geometry ones, and their points sit on what moves."""
+    s = PreparedScene.load(synth["prepared"])
+    assert set(s.keyframes) <= set(s.motion_keyframes) and len(s.motion_keyframes) > len(s.keyframes)
+    scene, size = synth["scene"], synth["scene"].cfg.scene_size
+    # 6 frames are 0.2 s: in the middle frames the objects overlap their own median background,
+    # so the first and last keyframes are the ones sure to differ from it
+    counts = [int((s.motion_point_keyframes == j).sum()) for j in range(len(s.motion_keyframes))]
+    assert counts[0] > 50 and counts[-1] > 50, counts
+    for j, f in enumerate(s.motion_keyframes):
+        pts = s.motion_points[s.motion_point_keyframes == j]
+        if len(pts) == 0:
+            continue
+        moving = [m for o, m in scene.meshes_at(f) if not o.static]
+        T = np.concatenate([m.positions[m.faces] for m in moving]).astype(np.float64)
+        sub = pts[:: max(1, len(pts) // 200)]
+        from atgs.data.synth_scene import point_triangle_distance
+        d = np.concatenate([point_triangle_distance(sub[i:i + 64, None], T[None, :, 0], T[None, :, 1],
+                                                    T[None, :, 2]).min(1) for i in range(0, len(sub), 64)])
+        assert np.median(d) < 0.03 * size, (f, np.median(d))  # a hull, not a surface: ~1/3 of an object
+    meta = json.loads((Path(synth["prepared"]) / "scene.json").read_text())
+    assert meta["motion_points"]["keyframes"] == len(s.motion_keyframes) and meta["motion_points"]["moving_fraction"] > 0
+
+
 def test_synth_videos_are_lossless(synth) -> None:
     frames = dict(iter_frames(synth["src"] / "cam03.mp4"))
     assert sorted(frames) == list(range(CFG.frames))

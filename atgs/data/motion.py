@@ -284,7 +284,8 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
     centers = np.array([c.center for c in scene.cameras])
     spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 0.0
     spacing = point_spacing(pts, np.asarray(scene.point_keyframes), cfg.max_spacing_points) if len(pts) else 0.0
-    nkf = len(scene.keyframes)
+    # keyframes with points: the geometry keyframes, or the denser motion keyframes where the moving content has points
+    nkf = max(len(scene.keyframes), len(getattr(scene, "motion_keyframes", []) or []))
     return MotionStats(
         num_frames=F, fps=float(scene.fps), scene_keyframes=nkf,
         cameras_used=[scene.cameras[i].name for i in cams], frames_used=[int(f) for f in frames],

@@ -92,6 +92,8 @@ def make_oracle_scene(prepared: Path, out: Path, stereo: StereoConfig = StereoCo
     with atomic_dir(Path(out), overwrite) as tmp:
         shutil.copytree(Path(prepared) / "images", tmp / "images", copy_function=_link_or_copy)
         shutil.copy2(Path(prepared) / "synth.json", tmp / "synth.json")
+        if (Path(prepared) / "motion_points.ply").is_file():  # the moving-content points stay as they are
+            shutil.copy2(Path(prepared) / "motion_points.ply", tmp / "motion_points.ply")
         cov = scene_coverage(scene.cameras, pts, kf, len(scene.keyframes), scene.test_cameras, stereo.long_side)
         source = dict(scene.source, oracle={"from": str(Path(prepared).resolve()), "points": int(len(pts))})
         write_scene_metadata(tmp, scene.cameras, scene.num_frames, pts, cols, kf, fps=scene.fps,

@@ -7,7 +7,9 @@ Steps (each long one shows a progress bar):
 4. keyframe points at each of K keyframes (atgs.data.keyframe_points): pycolmap SIFT +
    triangulation with fixed poses, CPU PatchMatch stereo fused across views, and a fill of the
    space seen by two cameras where both leave pixels uncovered; coverage per camera;
-5. scene.json + points.ply; the directory is built as ``OUT.tmp-xxxx`` and renamed at the end.
+5. points on moving content at per_interval times as many keyframes, from motion masks and their
+   visual hull (atgs.data.motion_points), cheap where stereo is not;
+6. scene.json + points.ply (+ motion_points.ply); the directory is built as ``OUT.tmp-xxxx`` and renamed at the end.
 """
 
 from __future__ import annotations
@@ -28,8 +30,9 @@ from atgs.io.atomic import atomic_dir, check_output_dir
 from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras
 from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
+from atgs.data.motion_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
 from atgs.data.mvs import FillConfig, StereoConfig
-from atgs.data.scene import save_frame, write_scene_metadata
+from atgs.data.scene import compute_bounds, frame_path, save_frame, write_scene_metadata
 from atgs.data.sources import Source, SourceFormat, open_source
 from atgs.data.undistort import apply_undistort_map, build_undistort_map
 from atgs.timeline import evenly_spaced
@@ -61,6 +64,8 @@ class PrepareConfig:
     """Dense multi-view stereo of the keyframe points (docs/data.md)."""
     fill: FillConfig = FillConfig()
     """Fallback points where stereo and SIFT leave cameras uncovered (docs/data.md)."""
+    motion: MotionPointsConfig = MotionPointsConfig()
+    """Points on moving content at more keyframes, from motion masks (docs/data.md)."""
     trim_mismatch: bool = False
     """If cameras have different frame counts, keep the shortest length (with a warning)."""
     overwrite: bool = False
@@ -196,6 +201,9 @@ def prepare(cfg: PrepareConfig) -> Path:
                              depth_hints=[tuple(x) for x in hints] if hints else None, progress=cfg.progress,
                              where=str(cfg.src))
         timings["points"] = time.perf_counter() - t
+        t = time.perf_counter()
+        motion = _motion_points(tmp, out_cams, test, num_frames, ext, kp, cfg)
+        timings["motion_points"] = time.perf_counter() - t
         shutil.rmtree(work, ignore_errors=True)
         fps = (cfg.fps or src.fps) / sel.step
         source = {"path": str(Path(cfg.src).resolve()), "format": src.kind, "frames": [sel.start, sel.stop, sel.step],
@@ -209,8 +217,33 @@ def prepare(cfg: PrepareConfig) -> Path:
         source["timings_s"] = {k: round(v, 2) for k, v in timings.items()}
         write_scene_metadata(tmp, out_cams, num_frames, kp.points, kp.colors, kp.keyframes, fps=fps, keyframes=kfs,
                              test_cameras=test, name=cfg.name or out.name, source=source,
-                             extra={"coverage": kp.coverage, "keyframe_points": kp.counts})
+                             extra={"coverage": kp.coverage, "keyframe_points": kp.counts,
+                                    "motion_points": motion.stats if motion is not None else {"enabled": False}},
+                             motion=motion)
     return out
+
+
+def _load_frame(root: Path, cam: Camera, frame: int, ext: str) -> np.ndarray:
+    with Image.open(frame_path(root, cam.name, frame, ext)) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def _motion_points(root: Path, cams: list[Camera], test: list[str], num_frames: int, ext: str,
+                   kp, cfg: PrepareConfig) -> MotionPoints | None:
+    """Moving-content points at the motion keyframes, from the training cameras' frames."""
+    if not cfg.motion.enabled:
+        return None
+    cfg.motion.validate()
+    train = [c for c in cams if c.name not in test] or list(cams)
+    kfs = motion_keyframes(num_frames, cfg.keyframes, cfg.motion.per_interval)
+    box = compute_bounds(kp.points, cams)
+    mp = motion_points(lambda ci, f: _load_frame(root, train[ci], f, ext), train, num_frames, kfs, box,
+                       cfg.motion, progress=cfg.progress)
+    if cfg.progress:
+        n = mp.stats["points"]
+        print(f"motion points: {sum(n)} at {mp.stats['keyframes']} keyframes (mean {np.mean(n) if n else 0:.0f}); "
+              f"{mp.stats['moving_fraction']:.1%} of the pixels move", file=sys.stderr)
+    return mp
 
 
 def _match_frame_size(cam: Camera, size: tuple[int, int], where: Path) -> Camera:

@@ -9,6 +9,8 @@ Layout (contract, see docs/ARCHITECTURE.md and docs/data.md)::
                     "bounds": {"min": [x,y,z], "max": [x,y,z]}, "source": {...}}
       images/<camera name>/<frame:06d>.png  (or .jpg)   frame 0 .. num_frames-1
       points.ply   x y z red green blue keyframe   (keyframe = index into "keyframes")
+      motion_points.ply   optional, same columns: points on moving content only, keyframe =
+                   index into scene.json's "motion_keyframes" (atgs.data.motion_points)
 
 Frames are never held in memory: :meth:`PreparedScene.image` decodes one file per call.
 :class:`MemoryScene` is the same interface over frames held in memory (tests, benchmarks).
@@ -55,6 +57,10 @@ class PreparedScene:
     point_keyframes: np.ndarray  # (P,) int64, index into ``keyframes``
     source: dict = field(default_factory=dict)
     image_ext: str = ".png"
+    # points on moving content at more keyframes than ``keyframes`` (empty: none, or a static scene)
+    motion_keyframes: list[int] = field(default_factory=list)
+    motion_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    motion_point_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     # --- loading ------------------------------------------------------------------------
     @classmethod
@@ -98,11 +104,12 @@ class PreparedScene:
         pts, cols, kfs = read_points_ply(root / "points.ply")
         if len(kfs) and (kfs.min() < 0 or kfs.max() >= len(keyframes)):
             raise DataError(f"{root / 'points.ply'}: keyframe index out of range [0, {len(keyframes)})")
+        mkfs, mpts, mk = _read_motion_points(root, meta, meta_path, num_frames)
         return cls(
             root=root, name=str(meta.get("name", root.name)), fps=fps, num_frames=num_frames,
             cameras=cameras, test_cameras=test_cameras, keyframes=keyframes, bounds=bounds,
             points=pts, point_colors=cols, point_keyframes=kfs, source=dict(meta.get("source", {})),
-            image_ext=ext,
+            image_ext=ext, motion_keyframes=mkfs, motion_points=mpts, motion_point_keyframes=mk,
         )
 
     # --- camera splits ------------------------------------------------------------------
@@ -163,6 +170,9 @@ class MemoryScene:
     test_cameras: list[str]
     frames: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
     bounds: np.ndarray | None = None  # (2, 3) min and max corner, as PreparedScene.bounds
+    motion_keyframes: list[int] = field(default_factory=list)  # as PreparedScene's
+    motion_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    motion_point_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def train_indices(self) -> list[int]:
@@ -185,6 +195,26 @@ def resize_frame(img: np.ndarray, width: int, height: int) -> np.ndarray:
     if img.shape[:2] == (height, width):
         return img
     return np.asarray(Image.fromarray(img).resize((width, height), Image.Resampling.LANCZOS))
+
+
+def _read_motion_points(root: Path, meta: dict, meta_path: Path, num_frames: int
+                        ) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """The optional moving-content points: (motion keyframes, points, their keyframe indices)."""
+    try:
+        mkfs = [int(k) for k in meta.get("motion_keyframes", [])]
+    except (TypeError, ValueError):
+        raise DataError(f"{meta_path}: 'motion_keyframes' must be a list of frame indices; re-run atgs-prepare") from None
+    path = root / "motion_points.ply"
+    if not mkfs:
+        return [], np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+    if sorted(set(mkfs)) != mkfs or mkfs[0] < 0 or mkfs[-1] >= num_frames:
+        raise DataError(f"{meta_path}: 'motion_keyframes' must be ascending unique frame indices in [0, {num_frames})")
+    if not path.is_file():
+        raise DataError(f"{path}: not found but scene.json lists motion keyframes; re-run atgs-prepare")
+    pts, _, kfs = read_points_ply(path)
+    if len(kfs) and (kfs.min() < 0 or kfs.max() >= len(mkfs)):
+        raise DataError(f"{path}: keyframe index out of range [0, {len(mkfs)}); re-run atgs-prepare")
+    return mkfs, pts, kfs
 
 
 # --- points.ply -----------------------------------------------------------------------------
@@ -267,6 +297,7 @@ def write_prepared_scene(
     image_ext: str = ".png",
     overwrite: bool = False,
     progress: bool = False,
+    motion=None,
 ) -> Path:
     """Write a prepared scene atomically and return its path.
 
@@ -292,7 +323,8 @@ def write_prepared_scene(
                     save_frame(tmp, cam, f, np.asarray(frames_fn(ci, f)), image_ext)
                     bar.update(1)
         write_scene_metadata(tmp, cameras, num_frames, pts, cols, kfs, fps=fps, keyframes=keyframes,
-                             test_cameras=test_cameras, name=name or out.name, bounds=bounds, source=source)
+                             test_cameras=test_cameras, name=name or out.name, bounds=bounds, source=source,
+                             motion=motion)
     return out
 
 
@@ -310,9 +342,10 @@ def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int,
                          point_colors: np.ndarray, point_keyframes: np.ndarray, *, fps: float,
                          keyframes: Sequence[int], test_cameras: Sequence[str], name: str,
                          bounds: np.ndarray | None = None, source: dict | None = None,
-                         extra: dict | None = None) -> None:
+                         extra: dict | None = None, motion=None) -> None:
     """Write scene.json and points.ply into ``root`` (whose images/ already exist), then validate.
-    ``extra`` adds informational keys (e.g. "coverage") that readers may ignore."""
+    ``extra`` adds informational keys (e.g. "coverage") that readers may ignore; ``motion`` (an
+    :class:`atgs.data.motion_points.MotionPoints`) adds motion_points.ply and "motion_keyframes"."""
     root = Path(root)
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     if bounds is None:
@@ -330,6 +363,9 @@ def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int,
         "source": dict(source or {}),
         **(extra or {}),
     }
+    if motion is not None and len(motion.keyframes):
+        meta["motion_keyframes"] = [int(k) for k in motion.keyframes]
+        write_points_ply(root / "motion_points.ply", motion.points, motion.colors, motion.point_keyframes)
     write_points_ply(root / "points.ply", pts, point_colors, point_keyframes)
     (root / "scene.json").write_text(json.dumps(meta, indent=1))
     PreparedScene.load(root)  # validate what we wrote before it becomes visible

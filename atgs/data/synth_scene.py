@@ -446,10 +446,12 @@ def distance_to_surfaces(scene: SynthScene, frame: int, points: np.ndarray, chun
 
 
 def sample_surface(scene: SynthScene, frame: int, n: int, rng: np.random.Generator | None = None,
-                   max_radius: float | None = None) -> np.ndarray:
-    """Area-weighted random points on the surfaces at ``frame`` (optionally within a radius of the z axis)."""
+                   max_radius: float | None = None, moving_only: bool = False) -> np.ndarray:
+    """Area-weighted random points on the surfaces at ``frame`` (optionally within a radius of the
+    z axis, or on the moving objects only)."""
     rng = rng or np.random.default_rng(0)
-    T = np.concatenate([m.positions[m.faces].astype(np.float64) for _, m in scene.meshes_at(frame)])
+    T = np.concatenate([m.positions[m.faces].astype(np.float64) for o, m in scene.meshes_at(frame)
+                        if not (moving_only and o.static)])
     area = 0.5 * np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1)
     idx = rng.choice(len(T), size=n, p=area / area.sum())
     u, v = rng.random(n), rng.random(n)

@@ -60,16 +60,20 @@ def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Te
                            share: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Map points of the scene's keyframes onto the model's K keyframes: keyframe j takes the
     points of the scene keyframe nearest to its frame. Without ``share`` a scene keyframe goes to
-    one model keyframe only (the first that picks it; the rest start empty); with ``share`` every
+    one model keyframe only, the one nearest its frame (the rest start empty); with ``share`` every
     model keyframe takes a copy of its nearest scene keyframe's points, so a model with more
     keyframes than the scene was prepared with has anchors at each (the split layout then merges
     the copies of static content into one static anchor). Returns (point indices, keyframe index)."""
     dev = point_keyframes.device
     sk = torch.tensor(scene_keyframes, dtype=torch.int64, device=dev)
+    frames = timeline.keyframe_frames()
+    mk = torch.tensor(frames, dtype=torch.int64, device=dev)
     idx, kf, taken = [], [], set()
-    for j, f in enumerate(timeline.keyframe_frames()):
+    for j, f in enumerate(frames):
         s = int((sk - f).abs().argmin())
-        if s in taken and not share:
+        # without sharing, a scene keyframe goes to the model keyframe nearest to it: with more
+        # model keyframes, the first one that picks it may be frames earlier than its own
+        if not share and (s in taken or int((mk - scene_keyframes[s]).abs().argmin()) != j):
             continue
         taken.add(s)
         sel = torch.nonzero(point_keyframes == s).flatten()
@@ -125,15 +129,25 @@ class ATGSModel:
     def from_points(cls, cfg: ModelConfig, points: torch.Tensor, point_keyframes: torch.Tensor,
                     scene_keyframes: list[int], num_frames: int, fps: float, cameras: list[Camera],
                     train_cameras: list[Camera] | None = None, seed: int = 0,
-                    bounds: torch.Tensor | None = None) -> "ATGSModel":
-        K = cfg.num_keyframes if cfg.num_keyframes > 0 else len(scene_keyframes)
+                    bounds: torch.Tensor | None = None, motion_points: torch.Tensor | None = None,
+                    motion_point_keyframes: torch.Tensor | None = None,
+                    motion_keyframes: list[int] | None = None) -> "ATGSModel":
+        """Anchors from the scene's keyframe points. ``motion_points`` (points on moving content
+        only, at ``motion_keyframes``, atgs.data.motion_points) become per-keyframe anchors of the
+        model keyframe nearest their frame; by default the model then has as many keyframes as
+        the denser of the two lists."""
+        has_motion = motion_points is not None and len(motion_points) > 0 and bool(motion_keyframes)
+        K = cfg.num_keyframes if cfg.num_keyframes > 0 else max(
+            len(scene_keyframes), len(motion_keyframes) if has_motion else 0)
         tl = Timeline(num_frames, K, cfg.window, num_segments_for(cfg, num_frames))
         if cfg.anchor_layout not in ANCHOR_LAYOUTS:
             raise ValueError(f"anchor_layout must be one of {ANCHOR_LAYOUTS}, got {cfg.anchor_layout!r}")
         split = cfg.anchor_layout == "split"
         # more model keyframes than prepared ones: each takes its nearest prepared keyframe's points
         # (split only: there the copies of static content merge; per-keyframe would multiply it)
-        share = split and tl.num_keyframes > len(scene_keyframes)
+        # (not with motion points: those place moving content at the other keyframes, where a copy
+        # of the nearest keyframe's moving points would be in the wrong place)
+        share = split and tl.num_keyframes > len(scene_keyframes) and not has_motion
         pick, kf = select_keyframe_points(scene_keyframes, point_keyframes.long(), tl, share)
         gen = torch.Generator().manual_seed(seed)
         points = points[pick].float()
@@ -143,6 +157,11 @@ class ATGSModel:
         voxel = anchor_voxel_size(points, kf, cfg.voxel_size, gen)
         if split and not fallback:  # a coarse cell (2 voxels) so that triangulation noise does not read as motion
             kf = torch.where(split_static(points, kf, 2 * voxel, cfg.static_fraction), STATIC, kf)
+        if has_motion:  # moving by construction: never static, never part of the split's vote
+            mshare = split and tl.num_keyframes > len(motion_keyframes)
+            mpick, mkf = select_keyframe_points(list(motion_keyframes), motion_point_keyframes.long(), tl, mshare)
+            points = torch.cat([points, motion_points[mpick].float().to(points.device)])
+            kf = torch.cat([kf, mkf.to(kf.device)])
         if cfg.random_anchors > 0:
             box = bounds.float() if bounds is not None else torch.stack([points.min(0).values, points.max(0).values])
             extra = box[0] + torch.rand(cfg.random_anchors, 3, generator=gen, device=gen.device) * (box[1] - box[0])

@@ -114,7 +114,11 @@ class Trainer:
                 model_cfg, torch.as_tensor(np.asarray(scene.points, dtype=np.float32), device="cpu"),
                 torch.as_tensor(np.asarray(scene.point_keyframes, dtype=np.int64), device="cpu"), list(scene.keyframes),
                 scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in self.train_idx],
-                seed=cfg.seed, bounds=_bounds(scene))
+                seed=cfg.seed, bounds=_bounds(scene),
+                motion_points=torch.as_tensor(np.asarray(scene.motion_points, dtype=np.float32), device="cpu"),
+                motion_point_keyframes=torch.as_tensor(np.asarray(scene.motion_point_keyframes, dtype=np.int64),
+                                                       device="cpu"),
+                motion_keyframes=list(scene.motion_keyframes))
         self.model = model.to(self.device)
         self.model.test_camera_names = list(scene.test_cameras)
         self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
