@@ -16,6 +16,7 @@ from atgs.cli.prepare import main as prepare_main
 from atgs.data.errors import DataError
 from atgs.errors import OutputError
 from layouts import write_colmap_frames_layout, write_easyvolcap_layout
+from atgs.data.motion_points import MotionPointsConfig
 from atgs.data.mvs import StereoConfig
 from atgs.data.prepare import PrepareConfig, parse_frame_range, prepare
 from atgs.data.scene import PreparedScene
@@ -121,9 +122,13 @@ def test_keyframe_points_lie_on_true_surfaces(synth) -> None:
 
 def test_frame_range_downscale_and_test_cams(synth, tmp_path) -> None:
     out = prepare(PrepareConfig(src=synth["src"], out=tmp_path / "p", frames="1:6:2", downscale=2.0,
-                                test_cams=("3", "cam07"), keyframes=1, progress=False, stereo=NO_STEREO))
+                                test_cams=("3", "cam07"), keyframes=1, progress=False, stereo=NO_STEREO,
+                                motion=MotionPointsConfig(enabled=False)))
     s = PreparedScene.load(out)
     assert s.num_frames == 3 and s.fps == CFG.fps / 2 and s.keyframes == [0]
+    # --no-motion-points: no file, no motion keyframes, and scene.json says it was off
+    assert not (out / "motion_points.ply").exists() and s.motion_keyframes == [] and len(s.motion_points) == 0
+    assert json.loads((out / "scene.json").read_text())["motion_points"] == {"enabled": False}
     assert s.test_cameras == ["cam03", "cam07"]
     c = s.cameras[3]
     assert (c.width, c.height) == (128, 96)
