@@ -35,17 +35,11 @@ from atgs.data.mvs import StereoConfig  # noqa: E402
 from atgs.data.prepare import PrepareConfig, prepare  # noqa: E402
 from atgs.data.scene import PreparedScene  # noqa: E402
 from atgs.data.synth import load_ground_truth, synthesize  # noqa: E402
-from atgs.data.synth_scene import LAYOUTS, SynthConfig, point_triangle_distance, sample_surface  # noqa: E402
+from atgs.data.synth_scene import LAYOUTS, SynthConfig, distance_to_surfaces, sample_surface  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = [("ring12", "large-motion"), ("ring10-low", "large-motion"), ("front6", "large-motion"),
          ("front6", "small-motion"), ("ring12-flat", "large-motion")]
-
-
-def _moving_distance(scene, frame: int, pts: np.ndarray) -> np.ndarray:
-    T = np.concatenate([m.positions[m.faces] for o, m in scene.meshes_at(frame) if not o.static]).astype(np.float64)
-    return np.concatenate([point_triangle_distance(pts[i:i + 128, None], T[None, :, 0], T[None, :, 1],
-                                                   T[None, :, 2]).min(1) for i in range(0, len(pts), 128)])
 
 
 def run_case(tmp: Path, layout: str, preset: str, frames: int, select: str = "photo") -> dict:
@@ -65,7 +59,7 @@ def run_case(tmp: Path, layout: str, preset: str, frames: int, select: str = "ph
         npts.append(len(pts))
         if len(pts) == 0:
             continue
-        d = _moving_distance(gt, f, pts[:: max(1, len(pts) // 400)])
+        d = distance_to_surfaces(gt, f, pts[:: max(1, len(pts) // 400)], moving_only=True)
         prec.append(float(np.median(d)) / size * 100)
         near.append(float((d < tol).mean()))
         samples = sample_surface(gt, f, 400, rng, moving_only=True)

@@ -63,12 +63,7 @@ def test_motion_points_lie_on_the_moving_objects(synth) -> None:
         pts = s.motion_points[s.motion_point_keyframes == j]
         if len(pts) == 0:
             continue
-        moving = [m for o, m in scene.meshes_at(f) if not o.static]
-        T = np.concatenate([m.positions[m.faces] for m in moving]).astype(np.float64)
-        sub = pts[:: max(1, len(pts) // 200)]
-        from atgs.data.synth_scene import point_triangle_distance
-        d = np.concatenate([point_triangle_distance(sub[i:i + 64, None], T[None, :, 0], T[None, :, 1],
-                                                    T[None, :, 2]).min(1) for i in range(0, len(sub), 64)])
+        d = distance_to_surfaces(scene, f, pts[:: max(1, len(pts) // 200)], moving_only=True)
         assert np.median(d) < 0.03 * size, (f, np.median(d))  # a hull, not a surface: ~1/3 of an object
     meta = json.loads((Path(synth["prepared"]) / "scene.json").read_text())
     assert meta["motion_points"]["keyframes"] == len(s.motion_keyframes) and meta["motion_points"]["moving_fraction"] > 0

@@ -81,7 +81,8 @@ def test_hull_of_a_sphere_hugs_the_sphere() -> None:
     masks = [_sphere_mask(cam, c, r) for cam in cams]
     box = np.array([[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]])
     cfg = MotionPointsConfig(resolution=32, subdivide=4)
-    pts, fine = visual_hull(cams, masks, box, cfg)
+    hull, on_surface, fine = visual_hull(cams, masks, box, cfg)
+    pts = hull[on_surface]
     assert len(pts) > 200
     dist = np.linalg.norm(pts - c, axis=1) - r
     # a hull contains the object: no surface voxel inside the sphere by more than a voxel diagonal

@@ -20,12 +20,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from atgs.cameras import Camera
 from atgs.data.colmap_ops import ColmapOptions, triangulate_known_poses
 from atgs.data.coverage import coverage_mask, point_spacing, scene_coverage, working_camera
 from atgs.data.errors import DataError
+from atgs.data.scene import read_rgb
 from atgs.data.mvs import FillConfig, StereoConfig, stereo_points
 from atgs.data.mvs.stereo import stereo_steps
 from atgs.data.mvs.extend import extend_surfaces
@@ -42,11 +42,6 @@ class KeyframePoints:
     keyframes: np.ndarray  # (P,) int64, index into the keyframe list
     counts: dict = field(default_factory=dict)  # {"sift", "stereo", "fill", "extend"}: a list per keyframe
     coverage: dict = field(default_factory=dict)  # scene_coverage of the measured (non-fill) points
-
-
-def _load(path: Path) -> np.ndarray:
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
 
 
 def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs: Sequence[int], ext: str, work: Path,
@@ -74,7 +69,7 @@ def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs
             sift, sift_rgb = triangulate_known_poses(root / "images", names, use, work / f"kf{j:04d}", colmap)
             keep = gross_outlier_mask(sift)
             sift, sift_rgb = sift[keep], sift_rgb[keep]
-            images = [_load(root / "images" / n) for n in names]
+            images = [read_rgb(root / "images" / n) for n in names]
             pts, cols = [sift], [sift_rgb.astype(np.float32) / 255.0]
             n_stereo = 0
             if stereo.enabled:

@@ -285,7 +285,7 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
     spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 0.0
     spacing = point_spacing(pts, np.asarray(scene.point_keyframes), cfg.max_spacing_points) if len(pts) else 0.0
     # keyframes with points: the geometry keyframes, or the denser motion keyframes where the moving content has points
-    nkf = max(len(scene.keyframes), len(getattr(scene, "motion_keyframes", []) or []))
+    nkf = max(len(scene.keyframes), len(scene.motion_keyframes))
     return MotionStats(
         num_frames=F, fps=float(scene.fps), scene_keyframes=nkf,
         cameras_used=[scene.cameras[i].name for i in cams], frames_used=[int(f) for f in frames],

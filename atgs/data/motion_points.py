@@ -15,7 +15,9 @@ motion keyframe:
    object from a camera or two). A voxel's test uses masks
    dilated by its projected radius, so a coarse voxel is kept when any part of it may be inside;
    the kept coarse voxels are then subdivided, and a fine voxel is kept when its centre is inside;
-3. the hull's surface voxels (a face neighbour outside the hull) become points, coloured with
+3. along each masked pixel's ray, the hull voxel whose colour nearby cameras agree on best
+   becomes a point (``select="photo"``; :func:`photo_consistent`), or the hull's surface voxels
+   do (``select="surface"``, also the fallback where no two nearby views agree), coloured with
    the median of their pixels over the cameras whose masks hold them, at most ``max_points``.
 
 A static scene gives empty masks and no points. Everything is deterministic.
@@ -170,9 +172,10 @@ def hull_votes(centers: np.ndarray, half_size: float, cams: Sequence[Camera], ma
     return (n_see >= min_see) & (n_in >= min_views) & (n_in >= n_see - slack)
 
 
-def visual_hull(cams: Sequence[Camera], masks: Sequence[np.ndarray], box: np.ndarray, cfg: MotionPointsConfig,
-                surface: bool = True) -> tuple[np.ndarray, float]:
-    """Centres of the fine voxels of the hull (its surface only, or all), and the fine voxel edge."""
+def visual_hull(cams: Sequence[Camera], masks: Sequence[np.ndarray], box: np.ndarray, cfg: MotionPointsConfig
+                ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centres of the fine voxels of the hull, which of them are on its surface, and the fine
+    voxel edge."""
     lo, hi = np.asarray(box, np.float64)
     size = float(np.max(hi - lo)) / cfg.resolution
     dims = np.maximum(1, np.ceil((hi - lo) / size).astype(int))
@@ -184,14 +187,14 @@ def visual_hull(cams: Sequence[Camera], masks: Sequence[np.ndarray], box: np.nda
     s = cfg.subdivide
     fine_size = size / s
     if len(coarse) == 0:
-        return np.zeros((0, 3)), fine_size
+        return np.zeros((0, 3)), np.zeros(0, bool), fine_size
     sub = np.stack(np.meshgrid(*[np.arange(s)] * 3, indexing="ij"), -1).reshape(-1, 3)
     fine = (coarse[:, None, :] * s + sub[None]).reshape(-1, 3)
     fcent = lo + (fine + 0.5) * fine_size
     # fine voxels: the centre's pixel decides (a dilated test would pad the hull by a voxel or two)
     fkeep = hull_votes(fcent, fine_size / 2, cams, masks, cfg.min_views, cfg.slack, min_see, dilate=False).numpy()
     fine = fine[fkeep]
-    return (_surface(fine, lo, fine_size) if surface else lo + (fine + 0.5) * fine_size), fine_size
+    return lo + (fine + 0.5) * fine_size, _surface(fine), fine_size
 
 
 def _masked_pixels(points: np.ndarray, cam: Camera, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -251,10 +254,10 @@ def photo_consistent(points: np.ndarray, cams: Sequence[Camera], masks: Sequence
     return chosen.numpy()
 
 
-def _surface(cells: np.ndarray, lo: np.ndarray, size: float) -> np.ndarray:
-    """Centres of the cells (integer coordinates) with a face neighbour that is not a cell."""
+def _surface(cells: np.ndarray) -> np.ndarray:
+    """(N,) bool: cells (integer coordinates) with a face neighbour that is not a cell."""
     if len(cells) == 0:
-        return np.zeros((0, 3))
+        return np.zeros(0, bool)
     span = cells.max(0) + 3
     key = lambda c: ((c[:, 0] + 1) * span[1] + (c[:, 1] + 1)) * span[2] + (c[:, 2] + 1)  # noqa: E731
     keys = np.sort(key(cells))
@@ -266,7 +269,7 @@ def _surface(cells: np.ndarray, lo: np.ndarray, size: float) -> np.ndarray:
             k = key(nb)
             pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
             border |= keys[pos] != k
-    return lo + (cells[border] + 0.5) * size
+    return border
 
 
 def point_colors(points: np.ndarray, cams: Sequence[Camera], masks: Sequence[np.ndarray],
@@ -317,13 +320,12 @@ def motion_points(frame_of: Callable[[int, int], np.ndarray], cams: Sequence[Cam
                 masks.append(motion_mask(img, bgs[ci], cfg))
                 bar.update(1)
             fractions.append(float(np.mean([m.mean() for m in masks])))
+            hull, on_surface, _ = visual_hull(cams, masks, box, cfg)
+            pts = hull[on_surface]
             if cfg.select == "photo":
-                pts, _ = visual_hull(cams, masks, box, cfg, surface=False)
-                chosen = pts[photo_consistent(pts, cams, masks, imgs)]
+                chosen = hull[photo_consistent(hull, cams, masks, imgs)]
                 # no agreement anywhere (no two nearby views): the hull's surface is the better guess
-                pts = chosen if len(chosen) >= cfg.min_points else visual_hull(cams, masks, box, cfg)[0]
-            else:
-                pts, _ = visual_hull(cams, masks, box, cfg)
+                pts = chosen if len(chosen) >= cfg.min_points else pts
             if len(pts) < cfg.min_points:
                 pts = np.zeros((0, 3))
             if cfg.max_points > 0 and len(pts) > cfg.max_points:

@@ -32,7 +32,7 @@ from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
 from atgs.data.motion_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
 from atgs.data.mvs import FillConfig, StereoConfig
-from atgs.data.scene import compute_bounds, frame_path, save_frame, write_scene_metadata
+from atgs.data.scene import compute_bounds, frame_path, read_rgb, save_frame, write_scene_metadata
 from atgs.data.sources import Source, SourceFormat, open_source
 from atgs.data.undistort import apply_undistort_map, build_undistort_map
 from atgs.timeline import evenly_spaced
@@ -223,11 +223,6 @@ def prepare(cfg: PrepareConfig) -> Path:
     return out
 
 
-def _load_frame(root: Path, cam: Camera, frame: int, ext: str) -> np.ndarray:
-    with Image.open(frame_path(root, cam.name, frame, ext)) as im:
-        return np.asarray(im.convert("RGB"))
-
-
 def _motion_points(root: Path, cams: list[Camera], test: list[str], num_frames: int, ext: str,
                    kp, cfg: PrepareConfig) -> MotionPoints | None:
     """Moving-content points at the motion keyframes, from the training cameras' frames."""
@@ -237,7 +232,7 @@ def _motion_points(root: Path, cams: list[Camera], test: list[str], num_frames: 
     train = [c for c in cams if c.name not in test] or list(cams)
     kfs = motion_keyframes(num_frames, cfg.keyframes, cfg.motion.per_interval)
     box = compute_bounds(kp.points, cams)
-    mp = motion_points(lambda ci, f: _load_frame(root, train[ci], f, ext), train, num_frames, kfs, box,
+    mp = motion_points(lambda ci, f: read_rgb(frame_path(root, train[ci].name, f, ext)), train, num_frames, kfs, box,
                        cfg.motion, progress=cfg.progress)
     if cfg.progress:
         n = mp.stats["points"]

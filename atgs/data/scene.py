@@ -142,8 +142,7 @@ class PreparedScene:
     def image_uint8(self, cam_index: int, frame: int) -> np.ndarray:
         path = self.image_path(cam_index, frame)
         try:
-            with Image.open(path) as im:
-                arr = np.asarray(im.convert("RGB"))
+            arr = read_rgb(path)
         except FileNotFoundError:
             raise DataError(f"{path}: frame file missing; re-run atgs-prepare") from None
         except OSError as e:
@@ -187,6 +186,12 @@ class MemoryScene:
 
     def image(self, cam_index: int, frame: int) -> np.ndarray:
         return self.image_uint8(cam_index, frame).astype(np.float32) / 255.0
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """(H,W,3) uint8 of an image file (any mode converted to RGB)."""
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
 
 
 def resize_frame(img: np.ndarray, width: int, height: int) -> np.ndarray:

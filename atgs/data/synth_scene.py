@@ -430,10 +430,14 @@ def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.n
     return np.linalg.norm(p - closest, axis=-1)
 
 
-def distance_to_surfaces(scene: SynthScene, frame: int, points: np.ndarray, chunk: int = 256) -> np.ndarray:
-    """Exact distance from each point (N,3) to the nearest rendered triangle at ``frame``."""
+def distance_to_surfaces(scene: SynthScene, frame: int, points: np.ndarray, chunk: int = 256,
+                         moving_only: bool = False) -> np.ndarray:
+    """Exact distance from each point (N,3) to the nearest rendered triangle at ``frame`` (of the
+    moving objects only, if asked)."""
     tris = []
-    for _, mesh in scene.meshes_at(frame):
+    for obj, mesh in scene.meshes_at(frame):
+        if moving_only and obj.static:
+            continue
         tris.append(mesh.positions[mesh.faces].astype(np.float64))
     T = np.concatenate(tris)  # (F,3,3)
     pts = np.asarray(points, np.float64).reshape(-1, 3)
