@@ -90,6 +90,9 @@ def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>", device:
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path}: checkpoint contents are inconsistent ({type(e).__name__}: {e})") from None
     model.test_camera_names = list(data.get("test_cameras", []))
+    bg = (data.get("train_config") or {}).get("background")
+    if bg is not None and len(bg) == 3:
+        model.background = tuple(float(c) for c in bg)
     return model.to(usable_device(device))
 
 

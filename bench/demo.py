@@ -13,7 +13,6 @@ writes bench/results/demo.json. bench/readme_table.py turns it into the README r
 from __future__ import annotations
 
 import json
-import math
 import os
 import platform
 import shutil
@@ -25,6 +24,7 @@ from pathlib import Path
 
 import tyro
 from _docs import git_commit  # bench/_docs.py (the script's own folder is on sys.path)
+from _splits import held_out_splits
 
 from atgs.io.atomic import write_json_atomic
 
@@ -40,39 +40,8 @@ class DemoBench:
     out: Path = ROOT / "bench" / "results" / "demo.json"
     train_args: tuple[str, ...] = field(default_factory=tuple)
     """Extra atgs-train arguments (after --)."""
-
-
-def moving_static_psnr(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
-    """Held-out PSNR on the pixels that move and on the rest: a pixel moves at a frame when it
-    differs from its camera's background (atgs.data.motion_points.motion_mask at full size)."""
-    import numpy as np
-    import torch
-
-    import atgs
-    from atgs.data.motion import box_downsample
-    from atgs.data.motion_points import MotionPointsConfig, background, motion_mask
-    from atgs.data.scene import PreparedScene
-    from atgs.render import rasterize_gaussians
-    from atgs.timeline import evenly_spaced
-
-    scene, model, cfg = PreparedScene.load(scene_dir), atgs.load(ckpt), MotionPointsConfig()
-    se, n = {True: 0.0, False: 0.0}, {True: 0, False: 0}
-    for ci in scene.test_indices:
-        side = max(scene.cameras[ci].width, scene.cameras[ci].height)
-        bg = background([box_downsample(scene.image_uint8(ci, f), side) for f in evenly_spaced(scene.num_frames, 48)])
-        for f in range(0, scene.num_frames, every):
-            gt = scene.image_uint8(ci, f)
-            mask = motion_mask(box_downsample(gt, side), bg, cfg)
-            with torch.no_grad():
-                img = rasterize_gaussians(model.gaussians_at_frame(f), scene.cameras[ci]).image.clamp(0, 1).numpy()
-            err = ((img - gt.astype(np.float32) / 255.0) ** 2).mean(-1)
-            for moving in (True, False):
-                sel = mask == moving
-                se[moving] += float(err[sel].sum())
-                n[moving] += int(sel.sum())
-    db = lambda k: round(-10 * math.log10(se[k] / max(n[k], 1)), 2) if n[k] else None  # noqa: E731
-    return {"psnr_moving": db(True), "psnr_static": db(False),
-            "moving_fraction": round(n[True] / max(n[True] + n[False], 1), 4), "every_nth_frame": every}
+    what: str = ""
+    """What this run changed (kept with its figures in previous_runs when the next run replaces it)."""
 
 
 def main() -> None:
@@ -117,7 +86,16 @@ def main() -> None:
     }
     scenes = sorted((Path(env.get("ATGS_CACHE_DIR", Path.home() / ".cache" / "atgs"))).glob("synth-*/prepared-v*"))
     if scenes and not extra and not args.train_args:  # the built-in scene the run trained on
-        out["split"] = moving_static_psnr(run / "ckpt.pt", scenes[-1])
+        out["split"] = held_out_splits(run / "ckpt.pt", scenes[-1])
+    if args.what:
+        out["what"] = args.what
+    if args.out.exists():  # the run this one replaces goes to previous_runs
+        old = json.loads(args.out.read_text())
+        sp = old.get("split") or {}
+        out["previous_runs"] = [*old.get("previous_runs", []), {
+            "what": old.get("what", f"commit {old.get('commit', '?')}"), "psnr": round(old["psnr"], 2),
+            "ssim": round(old["ssim"], 3), "steps": old["steps"], "date": old.get("date"),
+            **{k: sp[k] for k in ("psnr_moving", "psnr_static", "psnr_seen", "psnr_unseen") if k in sp}}]
     write_json_atomic(args.out, out, indent=2)
     print(f"wrote {args.out}: held-out PSNR {out['psnr']:.2f} dB, SSIM {out['ssim']:.4f}, "
           f"{out['steps']} steps, {wall / 60:.1f} min wall")

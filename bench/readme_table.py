@@ -164,6 +164,9 @@ def demo_builtin(r: dict) -> Cells:
     sp = r.get("split")
     split = (f" (moving pixels {sp['psnr_moving']:.2f} dB, the other {sp['psnr_static']:.2f} dB; "
              f"{sp['moving_fraction']:.0%} of the pixels move)" if sp else "")
+    if sp and sp.get("psnr_seen") is not None:
+        split += (f"; {sp['psnr_seen']:.2f} dB on the pixels a training camera sees, {sp['psnr_unseen']:.2f} dB "
+                  f"on the {sp['unseen_fraction']:.1%} none sees")
     return Cells(f"default preset, {r['train_seconds'] / 60:.0f} min of training", run_of(r["date"], one_minute(r["machine"])),
                  f"{r['psnr']:.2f} dB{split}", reached(r["psnr"] >= BUILTIN_PSNR_DB))
 

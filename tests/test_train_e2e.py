@@ -39,7 +39,7 @@ def test_loss_decreases_on_toy_scene(scene, tmp_path):
     from atgs.eval.evaluate import EvalConfig, evaluate
 
     again = evaluate(tr.model, scene, EvalConfig(lpips=False, progress=False, images_per_camera=0), None,
-                     background=t.background)
+                     background=tr.cfg.background)
     assert abs(again.mean("psnr") - result["eval"]["psnr"]) < 1e-6
 
 
@@ -130,3 +130,62 @@ def test_next_views_draws_distinct_cameras(scene, tmp_path):
         cams, f = s.next_views(3)
         assert len(cams) == len(set(cams)) == 3 and 0 <= f < scene.num_frames
     assert sorted(s.next_views(9)[0]) == [0, 1, 2, 3], "more than there are: every camera once"
+
+
+def test_background_from_images_is_the_mean_colour_of_a_textured_capture_and_is_saved(scene, tmp_path):
+    import numpy as np
+
+    from atgs.checkpoint import read_checkpoint
+    from atgs.data.scene import MemoryScene
+
+    # textured everywhere (no backdrop): the toy scene's cameras over noise images
+    rng = np.random.default_rng(0)
+    frames = {(c, f): rng.integers(40, 256, (scene.cameras[0].height, scene.cameras[0].width, 3), dtype=np.uint8)
+              for c in range(len(scene.cameras)) for f in range(scene.num_frames)}
+    textured = MemoryScene(scene.cameras, scene.num_frames, scene.fps, scene.keyframes, scene.points,
+                           scene.point_keyframes, scene.test_cameras, frames)
+    m, t = preset("tiny")
+    t.iterations, t.eval_max_frames = 2, 1
+    assert t.background_from_images  # the default
+    tr = Trainer(textured, m, t, tmp_path)
+    # independent reference: the mean over every training camera and every frame (the trainer
+    # samples 24 (camera, frame) pairs)
+    dense = np.mean([frames[(c, f)].reshape(-1, 3).mean(0) / 255.0
+                     for c in textured.train_indices for f in range(scene.num_frames)], axis=0)
+    assert np.allclose(tr.cfg.background, dense, atol=0.01), (tr.cfg.background, dense)
+    assert torch.allclose(tr.fixed_background, torch.tensor(dense, dtype=torch.float32), atol=0.01)
+    tr.train(progress=False, final_renders=False)
+    saved = read_checkpoint(tmp_path / "ckpt.pt")["train_config"]["background"]
+    assert np.allclose(saved, tr.cfg.background)  # atgs-eval and atgs-view render over the saved colour
+    assert t.background == (0.0, 0.0, 0.0)  # the caller's config is not mutated
+
+
+def test_background_from_images_keeps_a_uniform_backdrop(scene, tmp_path):
+    """The toy scene's objects float over black: its backdrop colour, not the mean, is used."""
+    import numpy as np
+
+    m, t = preset("tiny")
+    tr = Trainer(scene, m, t, tmp_path)
+    mean = np.mean([scene.frames[(c, 0)].reshape(-1, 3).mean(0) / 255.0 for c in scene.train_indices], axis=0)
+    assert mean.max() > 0.03  # the mean would not be black
+    assert max(tr.cfg.background) < 0.01
+    t.background_from_images = False
+    t.background = (0.2, 0.3, 0.4)
+    assert Trainer(scene, m, t, tmp_path / "fixed").cfg.background == (0.2, 0.3, 0.4)
+
+
+def test_resume_keeps_the_background_the_run_trained_over(scene, tmp_path):
+    """A checkpoint from before background_from_images (no such key) resumes over its saved
+    colour, not over a newly computed mean."""
+    from atgs.checkpoint import read_checkpoint, save_checkpoint
+
+    m, t = preset("tiny")
+    t.iterations, t.eval_every = 4, 0
+    t.background_from_images, t.background = False, (0.1, 0.2, 0.3)
+    Trainer(scene, m, t, tmp_path).train(progress=False, stop_at=2)
+    data = read_checkpoint(tmp_path / "ckpt.pt")
+    del data["train_config"]["background_from_images"]
+    save_checkpoint(tmp_path / "ckpt.pt", data)
+    resumed = Trainer.resume(scene, tmp_path / "ckpt.pt", tmp_path)
+    assert resumed.cfg.background == (0.1, 0.2, 0.3)
+    assert torch.allclose(resumed.fixed_background, torch.tensor([0.1, 0.2, 0.3]))

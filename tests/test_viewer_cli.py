@@ -201,3 +201,27 @@ def test_device_option(ckpt: Path, tmp_path: Path, capsys: pytest.CaptureFixture
         err = capsys.readouterr().err.strip()
         assert "--device cuda" in err and "--device cpu" in err and err.count("\n") == 0
         assert not out.exists()
+
+
+def test_default_background_is_the_trained_one(tmp_path: Path) -> None:
+    """Without --background, atgs-view draws over the checkpoint's training background (what
+    atgs-eval renders over); --background overrides it."""
+    import atgs
+    from atgs.checkpoint import read_checkpoint, save_checkpoint
+
+    data = read_checkpoint(write_tiny_checkpoint(tmp_path / "plain.pt"))
+    data["train_config"] = {"background": [0.2, 0.5, 0.8]}
+    ckpt = tmp_path / "ckpt.pt"
+    save_checkpoint(ckpt, data)
+    model = atgs.load(ckpt)
+    assert model.background == (0.2, 0.5, 0.8)
+    cam = resized(model.cameras[0], (48, 36))
+    alpha = rasterize_gaussians(model.gaussians_at_frame(0), cam, backend="torch").alpha.numpy()
+    empty = alpha < 1e-3
+    assert empty.any() and (~empty).any()
+    for extra, want in (([], (0.2, 0.5, 0.8)), (["--background", "0", "0", "0"], (0.0, 0.0, 0.0))):
+        out = tmp_path / f"bg{len(extra)}.png"
+        assert main([str(ckpt), "--headless", "--frame", "0", "--size", "48x36", "--out", str(out), "--gl", "osmesa",
+                     *extra]) == 0
+        img = np.asarray(Image.open(out), dtype=np.float64) / 255.0
+        assert np.abs(img[empty] - np.asarray(want)).max() < 2.0 / 255, extra

@@ -47,7 +47,9 @@ class ViewConfig:
     largest window of the camera's shape within 80% of the screen, at least 960 px wide where it fits."""
     mode: Literal["color", "depth", "alpha"] = "color"
     scale_modifier: float = 1.0
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    background: tuple[float, float, float] | None = None
+    """R G B in [0, 1]; default: the colour the model was trained over (a checkpoint's
+    train_config.background: black, or the mean image colour with --train.background-from-images), black for PLY input."""
     min_alpha: float = 1 / 255
     """Alpha cutoff: 1/255 is the training rasterizer's rule; e.g. 4/255 = 0.0157 culls faint
     Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
@@ -91,7 +93,9 @@ class RenderConfig:
     gl: Literal["auto", "egl", "osmesa"] = "auto"
     mode: Literal["color", "depth", "alpha"] = "color"
     scale_modifier: float = 1.0
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    background: tuple[float, float, float] | None = None
+    """R G B in [0, 1]; default: the colour the model was trained over (a checkpoint's
+    train_config.background: black, or the mean image colour with --train.background-from-images), black for PLY input."""
     min_alpha: float = 1 / 255
     """Alpha cutoff (see atgs-view --help)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
@@ -103,8 +107,16 @@ def render_settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
         raise ViewerError(f"--scale-modifier {cfg.scale_modifier}: must be > 0")
     if not 0.0 < cfg.min_alpha < 0.99:
         raise ViewerError(f"--min-alpha {cfg.min_alpha}: must be in (0, 0.99); 1/255 = 0.0039 is the rasterizer's cutoff")
-    return RenderSettings(mode=cfg.mode, scale_modifier=cfg.scale_modifier, background=tuple(cfg.background),
+    background = (0.0, 0.0, 0.0) if cfg.background is None else tuple(cfg.background)
+    return RenderSettings(mode=cfg.mode, scale_modifier=cfg.scale_modifier, background=background,
                           min_alpha=cfg.min_alpha)
+
+
+def use_trained_background(settings: RenderSettings, cfg: ViewConfig | RenderConfig, source) -> None:
+    """Without --background, draw over the colour the model was trained over (what atgs-eval
+    renders over too), so what no camera saw looks as it did in the evaluation."""
+    if cfg.background is None:
+        settings.background = tuple(float(c) for c in getattr(source, "background", (0.0, 0.0, 0.0)))
 
 
 def run_headless(cfg: ViewConfig) -> Path:
@@ -115,6 +127,7 @@ def run_headless(cfg: ViewConfig) -> Path:
     size = parse_size(cfg.size)
     device = resolve_device(cfg.device)
     source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians, cfg.fps), device)
+    use_trained_background(settings, cfg, source)
     n = source.num_frames
     if cfg.frame is not None:
         if not 0 <= cfg.frame < n:
@@ -141,6 +154,7 @@ def run_window(cfg: ViewConfig) -> None:
     settings = render_settings(cfg)
     device = resolve_device(cfg.device)
     source = place_source(load_source(cfg.checkpoint, cfg.demo_gaussians, cfg.fps), device)
+    use_trained_background(settings, cfg, source)
     preloaded = preload_frames(source, cfg.preload_mb, device) if cfg.preload else None
     app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
                     cache_mb=cfg.cache_mb, device=device, path_file=cfg.path)
@@ -182,6 +196,7 @@ def render_video(cfg: RenderConfig) -> Path:
     camera_path = _camera_path_arg(cfg.path)
     device = resolve_device(cfg.device)
     source = place_source(load_source(cfg.checkpoint), device)
+    use_trained_background(settings, cfg, source)
     F = source.num_frames
     default_n = F if camera_path is None else camera_path.frame_count(cfg.fps)
     n = cfg.frames if cfg.frames is not None else default_n

@@ -95,6 +95,8 @@ class ATGSModel:
         self.cameras, self.fps, self.extent = list(cameras), float(fps), float(extent)
         self.voxel_size = anchors.voxel_size
         self.test_camera_names: list[str] = []
+        # the RGB training rendered over (its train_config.background): viewers and evaluation use it
+        self.background: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.bbox_min, self.bbox_max = bbox_min.float(), bbox_max.float()
         gen = torch.Generator().manual_seed(seed)
         d = cfg.feature_dim

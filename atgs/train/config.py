@@ -67,6 +67,11 @@ class TrainConfig:
     lambda_volume: float = 0.001
     volume_reduction: str = "sum"  # "sum" (paper) or "mean" (authors' code)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Train (and evaluate) over a colour taken from the training images instead of `background`:
+    # the backdrop's colour when the images' borders are one uniform colour, else the images' mean
+    # colour. What no training camera sees has no Gaussians; the mean is the least-squares guess
+    # for it, where black is the worst one (docs/training.md, "Window and background").
+    background_from_images: bool = True
     random_background: bool = False
     grad_clip: float = 10.0
     adam_eps: float = 1e-15

@@ -10,7 +10,7 @@ growth candidates on every device, and checkpoints hold CPU tensors."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 from pathlib import Path
 import time
@@ -68,6 +68,32 @@ def _bounds(scene: SceneData) -> torch.Tensor | None:
     return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32), device="cpu").reshape(2, 3)
 
 
+def background_from_images(scene: SceneData, cams: Sequence[int], samples: int = 24,
+                           border: int = 2, tolerance: float = 0.04, backdrop_fraction: float = 0.5
+                           ) -> tuple[float, float, float]:
+    """The colour to train and render over, from ``samples`` (camera, frame) images spread over
+    ``cams`` and the sequence. A capture with a uniform backdrop (at least ``backdrop_fraction``
+    of the pixels of the images' ``border``-pixel frames within ``tolerance`` of their median
+    colour) gets that colour, so empty space stays empty; any other capture gets the mean colour
+    of the images, the least-squares guess for what no training camera sees (black, the usual
+    default, is the worst guess there)."""
+    if not cams:
+        return (0.0, 0.0, 0.0)
+    n = max(samples, len(cams))
+    frames = evenly_spaced(scene.num_frames, min(n, scene.num_frames))
+    means, edges = [], []
+    for i in range(n):
+        img = scene.image_uint8(cams[i % len(cams)], frames[i % len(frames)])[..., :3].astype(np.float32) / 255.0
+        means.append(img.reshape(-1, 3).mean(axis=0))
+        b = max(1, min(border, min(img.shape[:2]) // 2))
+        edges += [img[:b].reshape(-1, 3), img[-b:].reshape(-1, 3), img[:, :b].reshape(-1, 3), img[:, -b:].reshape(-1, 3)]
+    edge = np.concatenate(edges)
+    median = np.median(edge, axis=0)
+    if np.mean(np.abs(edge - median).max(axis=1) <= tolerance) >= backdrop_fraction:
+        return tuple(float(v) for v in median)
+    return tuple(float(v) for v in np.mean(means, axis=0))
+
+
 class NonFiniteError(UserError, RuntimeError):
     """Training diverged (too many non-finite steps in a row); the message names the fix."""
 
@@ -100,6 +126,8 @@ class Trainer:
         if cfg.views_per_step < 1 or cfg.cameras_per_frame < 1:
             raise UserError(f"--train.views-per-step {cfg.views_per_step} and --train.cameras-per-frame "
                             f"{cfg.cameras_per_frame}: both must be >= 1")
+        if cfg.background_from_images:  # resolved once; the saved config carries the colour
+            cfg = replace(cfg, background=background_from_images(scene, list(scene.train_indices)))
         self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
         self.out = Path(out_dir)
         self.run = RunDir(self.out)
@@ -121,6 +149,7 @@ class Trainer:
                 motion_keyframes=list(scene.motion_keyframes))
         self.model = model.to(self.device)
         self.model.test_camera_names = list(scene.test_cameras)
+        self.model.background = tuple(float(c) for c in cfg.background)
         self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
         dec = model.decoder
         self.dense_opt = torch.optim.Adam(
@@ -382,6 +411,9 @@ class Trainer:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
         model_cfg = from_dict(ModelConfig, data["model_config"])
         cfg = from_dict(TrainConfig, data["train_config"])
+        # the saved background is the colour the run trained over (resolved at its start); older
+        # checkpoints lack the flag and would otherwise switch to the mean colour mid-run
+        cfg.background_from_images = False
         if iterations is not None:
             cfg.iterations, cfg.minutes = iterations, 0.0
         if minutes is not None:

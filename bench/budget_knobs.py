@@ -1,0 +1,162 @@
+"""Knobs of the default run at a fixed time budget, on the built-in large-motion scene.
+
+    python bench/budget_knobs.py                       # every case, two at a time, 1 torch thread each
+    python bench/budget_knobs.py --cases w3 w7 --minutes 8
+
+Each case trains preset `cpu` on the built-in scene (as `atgs-train` with no arguments prepares
+it: dense stereo, the extension, motion points at 21 keyframes) for `--minutes` of wall time,
+changing one or two knobs, and evaluates the held-out camera over every frame (the figure
+`atgs-train` prints) and split by pixel (`bench/_splits.py`): moving / static, and *seen* (the
+surface is visible in at least one training camera) / *unseen*. A knob that makes steps cheaper
+buys more of them: the comparison is at equal time, not at equal steps.
+Results: bench/results/budget_knobs.json (merged by case) and the bench:budget-knobs table in
+docs/training.md.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+import json
+import os
+from pathlib import Path
+import shutil
+import subprocess
+import sys
+import time
+
+import tyro
+
+from _docs import git_commit, publish  # bench/_docs.py (the script's own folder is on sys.path)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# case -> (description, model overrides, train overrides)
+CASES: dict[str, tuple[str, dict, dict]] = {
+    "w7": ("window W=7 (paper), black background", {"window": 7}, {"background_from_images": False}),
+    "w3": ("W=3, black background", {"window": 3}, {"background_from_images": False}),
+    "w1": ("W=1, black background", {"window": 1}, {"background_from_images": False}),
+    "w7-mean": ("W=7, mean image colour as background", {"window": 7}, {"background_from_images": True}),
+    "w3-mean": ("W=3, mean image colour as background", {"window": 3}, {"background_from_images": True}),
+    "w1-mean": ("W=1, mean image colour as background", {"window": 1}, {"background_from_images": True}),
+}
+
+
+@dataclass
+class BudgetKnobs:
+    cases: tuple[str, ...] = tuple(CASES)
+    minutes: float = 8.0
+    jobs: int = 2
+    work_dir: Path = Path("/tmp/atgs-bench-knobs")
+    out: Path = ROOT / "bench" / "results" / "budget_knobs.json"
+    docs: Path = ROOT / "docs" / "training.md"
+    worker: str = ""  # internal: run this one case in this process
+    rescore: bool = False  # recompute the per-pixel split of existing runs (their checkpoints), no training
+
+
+def built_in_scene() -> Path:
+    from atgs.data.synth import ensure_default_scene
+    from atgs.io.cache import cache_dir
+
+    return ensure_default_scene(cache_dir(), progress=True)
+
+
+def run_case(args: BudgetKnobs, name: str) -> dict:
+    import torch
+
+    from _splits import held_out_splits
+    from atgs.data.scene import PreparedScene
+    from atgs.train.config import preset
+    from atgs.train.trainer import Trainer
+
+    _, model_over, train_over = CASES[name]
+    scene_dir = built_in_scene()
+    scene = PreparedScene.load(scene_dir)
+    m, t = preset("cpu", minutes=args.minutes)
+    for k, v in model_over.items():
+        setattr(m, k, v)
+    for k, v in train_over.items():
+        setattr(t, k, v)
+    t.eval_every = t.save_every = 0
+    t.threads = 1
+    torch.manual_seed(0)
+    run = args.work_dir / f"run-{name}"
+    shutil.rmtree(run, ignore_errors=True)
+    tr = Trainer(scene, m, t, run)
+    t0 = time.perf_counter()
+    res = tr.train(progress=False, final_renders=True)  # the final evaluation (eval/ holds its images)
+    secs = time.perf_counter() - t0
+    return {"case": name, "what": CASES[name][0], "model_overrides": model_over, "train_overrides": train_over,
+            "minutes": args.minutes, "steps": tr.step, "train_s": round(secs, 1), "anchors": tr.model.num_anchors,
+            "keyframes": tr.model.num_keyframes, "psnr": round(res["eval"]["psnr"], 2),
+            "ssim": round(res["eval"]["ssim"], 4), "views": res["eval"]["views"],
+            "split": held_out_splits(run / "ckpt.pt", scene_dir), "loadavg": list(os.getloadavg()),
+            "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
+
+
+def table(rows: dict) -> str:
+    lines = ["| case | steps | anchors | PSNR | SSIM | moving | static | seen | unseen | change at window switches / other frames |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name in CASES:
+        r = rows.get(name)
+        if r is None:
+            continue
+        s = r["split"]
+        lines.append(f"| {r['what']} | {r['steps']:,} | {r['anchors']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+                     f"{s['psnr_moving']:.2f} | {s['psnr_static']:.2f} | {s['psnr_seen']:.2f} | {s['psnr_unseen']:.2f} | "
+                     f"{s['psnr_change_switch']:.2f} / {s['psnr_change_steady']:.2f} |")
+    r = next(iter(rows.values()))
+    s = r["split"]
+    lines += ["", f"Built-in large-motion scene, preset cpu, {r['minutes']:g} minutes per run, two runs at once with one "
+              f"torch thread each (2-core machine), {r['date']}. PSNR/SSIM: held-out cam00, all {r['views']} frames; "
+              f"the split (every {s['every_nth_frame']}th frame): {s['moving_fraction']:.1%} of the pixels move, "
+              f"{s['unseen_fraction']:.1%} show a surface no training camera sees; last column: the PSNR of the "
+              f"change between consecutive frames (render against ground truth), over the pairs where the keyframe "
+              f"window changes and over the others (popping lowers the first). `python bench/budget_knobs.py`."]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    args = tyro.cli(BudgetKnobs)
+    if args.worker:
+        print(json.dumps(run_case(args, args.worker)), flush=True)
+        return
+    unknown = [c for c in args.cases if c not in CASES]
+    if unknown:
+        sys.exit(f"bench/budget_knobs.py: unknown case(s) {unknown}; choose from {list(CASES)}")
+    built_in_scene()  # prepared once, before the workers start
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+    rows = json.loads(args.out.read_text())["cases"] if args.out.exists() else {}
+
+    def one(name: str) -> dict:
+        cmd = [sys.executable, __file__, "--worker", name, "--minutes", str(args.minutes),
+               "--work-dir", str(args.work_dir)]
+        log = args.work_dir / f"{name}.log"
+        with open(log, "w") as fh:
+            proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=fh, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"case {name} failed (exit {proc.returncode}); see {log}")
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    if args.rescore:
+        from _splits import held_out_splits
+
+        def rescore(name: str) -> dict:
+            return held_out_splits(args.work_dir / f"run-{name}" / "ckpt.pt", built_in_scene())
+
+        names = [c for c in args.cases if c in rows]
+        with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+            for name, split in zip(names, pool.map(rescore, names)):
+                rows[name]["split"] = split
+        publish({"cases": rows}, args.out, table(rows), args.docs, "budget-knobs")
+        return
+
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+        for name, r in zip(args.cases, pool.map(one, args.cases)):
+            print(f"[budget-knobs] {name}: {r['psnr']:.2f} dB, {r['steps']} steps", flush=True)
+            rows[name] = r
+    publish({"cases": rows}, args.out, table(rows), args.docs, "budget-knobs")
+
+
+if __name__ == "__main__":
+    main()
