@@ -239,6 +239,19 @@ def moving(r: dict) -> Cells:
                  f"{best['case']} (static pixels ~{base['psnr_static']:.0f} dB); docs/training.md")
 
 
+def budget_knobs(r: dict) -> Cells:
+    c = r["cases"]
+    w7, w1, w7m, w1m = (c.get(k) for k in ("w7", "w1", "w7-mean", "w1-mean"))
+    if not all((w7, w1, w7m, w1m)):
+        return Cells("window W and background colour at a fixed time", run_of(None), "incomplete: rerun bench/budget_knobs.py")
+    pop = lambda x: x["split"]["psnr_change_steady"] - x["split"]["psnr_change_switch"]  # noqa: E731
+    return Cells(f"built-in scene, an equal {w7['minutes']:g}-minute budget, preset `cpu`, {len(c)} runs",
+                 run_of(w7["date"], [x["loadavg"][0] for x in c.values()]),
+                 f"mean-colour background {w7m['psnr'] - w7['psnr']:+.2f} dB at W=7 (unseen pixels "
+                 f"{w7['split']['psnr_unseen']:.1f} -> {w7m['split']['psnr_unseen']:.1f} dB); W=1 {w1m['psnr'] - w7m['psnr']:+.2f} dB "
+                 f"but pops ({pop(w1m):.1f} dB worse frame-to-frame at window switches, W=7 {pop(w7m):.1f} dB); docs/training.md")
+
+
 def training(r: dict) -> Cells:
     x = r["main"]
     return Cells(f"preset `{x['preset']}`, {x['iterations']} steps, {x['cameras']} cameras x {x['frames']} frames "
@@ -383,6 +396,7 @@ ROWS = (
     Row("moving", "moving.py", "what limits moving content", "", moving),
     Row("motion_points", "motion_points.py", "moving-content points from motion masks (visual hull) at 4x the "
         "keyframes", "", motion_points),
+    Row("budget_knobs", "budget_knobs.py", "temporal window W and background colour", "", budget_knobs),
     Row("step", "step.py", "CPU training step: compiled grid kernels vs torch gathers", "", train_step),
     Row("short_runs", "short_runs.py", "short CPU runs: growth threshold, learning rates, cameras per frame, "
         "surface extension", "", short_runs),
