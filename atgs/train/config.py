@@ -72,7 +72,7 @@ class TrainConfig:
     # colour. What no training camera sees has no Gaussians; the mean is the least-squares guess
     # for it, where black is the worst one (docs/training.md, "Window and background").
     background_from_images: bool = True
-    random_background: bool = False
+    random_background: bool = False  # a random colour per step; evaluation still renders over `background`
     grad_clip: float = 10.0
     adam_eps: float = 1e-15
     max_bad_steps: int = 50  # consecutive non-finite losses before giving up
