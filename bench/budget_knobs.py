@@ -16,7 +16,7 @@ docs/training.md.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import json
 import os
 from pathlib import Path
@@ -31,14 +31,29 @@ from _docs import git_commit, publish  # bench/_docs.py (the script's own folder
 
 ROOT = Path(__file__).resolve().parent.parent
 
+# The paper's decode (no anchor motion), for the cases measured before motion became the default.
+NO_MOTION = {"temporal_fade": False, "anchor_velocity": False}
+
 # case -> (description, model overrides, train overrides)
 CASES: dict[str, tuple[str, dict, dict]] = {
-    "w7": ("window W=7 (paper), black background", {"window": 7}, {"background_from_images": False}),
-    "w3": ("W=3, black background", {"window": 3}, {"background_from_images": False}),
-    "w1": ("W=1, black background", {"window": 1}, {"background_from_images": False}),
-    "w7-mean": ("W=7, mean image colour as background", {"window": 7}, {"background_from_images": True}),
-    "w3-mean": ("W=3, mean image colour as background", {"window": 3}, {"background_from_images": True}),
-    "w1-mean": ("W=1, mean image colour as background", {"window": 1}, {"background_from_images": True}),
+    "w7": ("window W=7 (paper), black background", {"window": 7, **NO_MOTION}, {"background_from_images": False}),
+    "w3": ("W=3, black background", {"window": 3, **NO_MOTION}, {"background_from_images": False}),
+    "w1": ("W=1, black background", {"window": 1, **NO_MOTION}, {"background_from_images": False}),
+    "w7-mean": ("W=7, mean image colour as background", {"window": 7, **NO_MOTION}, {"background_from_images": True}),
+    "w3-mean": ("W=3, mean image colour as background", {"window": 3, **NO_MOTION}, {"background_from_images": True}),
+    "w1-mean": ("W=1, mean image colour as background", {"window": 1, **NO_MOTION}, {"background_from_images": True}),
+    # anchor motion (atgs.model.motion), over the mean colour
+    "w7-fade": ("W=7, mean colour, anchors fade with their keyframe distance",
+                {"window": 7, "temporal_fade": True, "anchor_velocity": False}, {"background_from_images": True}),
+    "w7-fade-velocity": ("W=7, mean colour, anchors fade and move (velocity): the default since 2026-11-24",
+                         {"window": 7, "temporal_fade": True, "anchor_velocity": True}, {"background_from_images": True}),
+    "w7-fade-velocity-narrow": ("W=7, mean colour, fade and velocity, initial fade width 0.4 (not 0.6)",
+                                {"window": 7, "temporal_fade": True, "anchor_velocity": True, "fade_width": 0.4},
+                                {"background_from_images": True}),
+    # the 3D smoothing filter (atgs.model.smoothing) on top of anchor motion
+    "w7-motion-smooth": ("W=7, mean colour, fade and velocity, 3D smoothing filter 0.2 px^2",
+                         {"window": 7, "temporal_fade": True, "anchor_velocity": True, "smoothing_3d": 0.2},
+                         {"background_from_images": True}),
 }
 
 
@@ -80,7 +95,7 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
     t.eval_every = t.save_every = 0
     t.threads = 1
     torch.manual_seed(0)
-    run = args.work_dir / f"run-{name}"
+    run = args.work_dir / f"run-{row_key(name, args.minutes)}"
     shutil.rmtree(run, ignore_errors=True)
     tr = Trainer(scene, m, t, run)
     t0 = time.perf_counter()
@@ -94,21 +109,24 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
             "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
 
 
+def row_key(case: str, minutes: float) -> str:
+    """Results are kept per case and budget: the 8-minute runs under the case name, others with it."""
+    return case if minutes == 8 else f"{case}@{minutes:g}min"
+
+
 def table(rows: dict) -> str:
-    lines = ["| case | steps | anchors | PSNR | SSIM | moving | static | seen | unseen | change at window switches / other frames |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for name in CASES:
-        r = rows.get(name)
-        if r is None:
-            continue
+    lines = ["| case | minutes | run on | steps | anchors | PSNR | SSIM | moving | static | seen | unseen | change at window switches / other frames |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for key, r in sorted(rows.items(), key=lambda kv: (kv[1]["minutes"], list(CASES).index(kv[1]["case"]))):
         s = r["split"]
-        lines.append(f"| {r['what']} | {r['steps']:,} | {r['anchors']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+        lines.append(f"| {r['what']} | {r['minutes']:g} | {r['date']} | {r['steps']:,} | {r['anchors']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
                      f"{s['psnr_moving']:.2f} | {s['psnr_static']:.2f} | {s['psnr_seen']:.2f} | {s['psnr_unseen']:.2f} | "
                      f"{s['psnr_change_switch']:.2f} / {s['psnr_change_steady']:.2f} |")
     r = next(iter(rows.values()))
     s = r["split"]
-    lines += ["", f"Built-in large-motion scene, preset cpu, {r['minutes']:g} minutes per run, two runs at once with one "
-              f"torch thread each (2-core machine), {r['date']}. PSNR/SSIM: held-out cam00, all {r['views']} frames; "
+    lines += ["", f"Built-in large-motion scene, preset cpu, two runs at once with one "
+              f"torch thread each (2-core machine). Rows run on different days saw machines of different speed "
+              f"(the steps column): compare rows of one day. PSNR/SSIM: held-out cam00, all {r['views']} frames; "
               f"the split (every {s['every_nth_frame']}th frame): {s['moving_fraction']:.1%} of the pixels move, "
               f"{s['unseen_fraction']:.1%} show a surface no training camera sees; last column: the PSNR of the "
               f"change between consecutive frames (render against ground truth), over the pairs where the keyframe "
@@ -131,7 +149,7 @@ def main() -> None:
     def one(name: str) -> dict:
         cmd = [sys.executable, __file__, "--worker", name, "--minutes", str(args.minutes),
                "--work-dir", str(args.work_dir)]
-        log = args.work_dir / f"{name}.log"
+        log = args.work_dir / f"{row_key(name, args.minutes)}.log"
         with open(log, "w") as fh:
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=fh, text=True)
         if proc.returncode != 0:
@@ -144,7 +162,7 @@ def main() -> None:
         def rescore(name: str) -> dict:
             return held_out_splits(args.work_dir / f"run-{name}" / "ckpt.pt", built_in_scene())
 
-        names = [c for c in args.cases if c in rows]
+        names = [row_key(c, args.minutes) for c in args.cases if row_key(c, args.minutes) in rows]
         with ThreadPoolExecutor(max(1, args.jobs)) as pool:
             for name, split in zip(names, pool.map(rescore, names)):
                 rows[name]["split"] = split
@@ -153,8 +171,8 @@ def main() -> None:
 
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         for name, r in zip(args.cases, pool.map(one, args.cases)):
-            print(f"[budget-knobs] {name}: {r['psnr']:.2f} dB, {r['steps']} steps", flush=True)
-            rows[name] = r
+            print(f"[budget-knobs] {name} ({args.minutes:g} min): {r['psnr']:.2f} dB, {r['steps']} steps", flush=True)
+            rows[row_key(name, args.minutes)] = r
     publish({"cases": rows}, args.out, table(rows), args.docs, "budget-knobs")
 
 

@@ -20,7 +20,6 @@ llvmpipe is the CPU).
 
 from __future__ import annotations
 
-import sys
 
 from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
 from _viewer_scenes import random_gaussians, time_frames, untrained_model, warm_renderer  # noqa: E402

@@ -137,7 +137,9 @@ def test_training_prunes_anchors_outside_every_view(tmp_path):
     tr.model.add_anchors(far, torch.zeros(4, m.feature_dim), tr.model.anchor_log_scale[:4].clone(),
                          torch.full((4,), STATIC))
     tr.stats.append(4, m.gaussians_per_anchor)
-    for name in ("anchor_feature", "anchor_log_scale"):
+    from atgs.model.atgs_model import ANCHOR_TABLES
+
+    for name in ANCHOR_TABLES:
         tr.sparse_opt.append_rows(name, 4)
     n0 = tr.model.num_anchors
     need = 2 * len(tr.train_idx) * tr.model.num_keyframes

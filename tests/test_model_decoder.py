@@ -53,13 +53,20 @@ def test_active_anchors_follow_window_and_static_flag():
     assert model.active_anchors(5).all()
 
 
-def test_gaussians_at_time_and_frame_agree_and_count():
-    model = _toy_model()
+@pytest.mark.parametrize("fade", [False, True])
+def test_gaussians_at_time_and_frame_agree_and_count(fade):
+    model = _toy_model(temporal_fade=fade)
     q = model.cfg.gaussians_per_anchor
     for f in (0, 4, 12):
         a = model.gaussians_at_frame(f)
         b = model.gaussians_at(f / (model.num_frames - 1))
-        assert len(a) == q * int(model.active_anchors(f).sum())
+        active = model.active_anchors(f).nonzero().squeeze(1)
+        # with the fade, anchors faded below the cut are not decoded; without it, all are
+        shown = int((model.fade_of(f, active)[1] >= model.fade_cut()).sum())
+        if not fade:
+            assert shown == len(active)
+        assert shown > 0
+        assert len(a) == q * shown
         for x, y in zip(a.as_tuple(), b.as_tuple()):
             torch.testing.assert_close(x, y)
         assert not a.means.requires_grad
@@ -86,7 +93,9 @@ def test_tracked_decode_touches_only_active_rows_and_sampled_segment():
     dec = model.decode_frame(f, track=True)
     dec.gaussians.colors.sum().backward()
     names = {s.name: s for s in dec.sparse}
-    assert torch.equal(names["anchor_feature"].rows, model.active_anchors(f).nonzero().squeeze(1))
+    active = model.active_anchors(f).nonzero().squeeze(1)
+    active = active[model.fade_of(f, active)[1] >= model.fade_cut()]
+    assert torch.equal(names["anchor_feature"].rows, active)
     assert names["tmlp_w1"].rows.tolist() == [model.timeline.segment_of_frame(f)]
     per_grid = model.hash.levels * model.hash.table_size
     assert (names["hash"].rows // per_grid == dec.segment).all()

@@ -11,7 +11,7 @@ A model is built on the CPU (the same initialisation whatever the device) and mo
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 
 import numpy as np
@@ -24,10 +24,12 @@ from atgs.model.config import ModelConfig
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
+from atgs.model.smoothing import filter_variance, sampling_rates, smooth
+from atgs.model.motion import MIN_FADE, MOTION_TABLES, fade_weight, initial_fade, keyframe_distance, max_fade_width
 from atgs.timeline import Timeline
 
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
-ANCHOR_TABLES = ("anchor_feature", "anchor_log_scale")
+ANCHOR_TABLES = ("anchor_feature", "anchor_log_scale") + MOTION_TABLES
 TEMPORAL_MLP = ("tmlp_w1", "tmlp_b1", "tmlp_w2", "tmlp_b2")
 ANCHOR_LAYOUTS = ("split", "per-keyframe")
 
@@ -48,6 +50,13 @@ class Decoded:
     raw: DecodedGaussians  # all q Gaussians of each decoded anchor (for statistics)
     segment: int
     sparse: list[SparseLeaf] = field(default_factory=list)
+    shift: torch.Tensor | None = None  # (N, 3) the anchor-velocity displacement in the means, if any
+
+    def keyframe_means(self) -> torch.Tensor:
+        """The Gaussians' means without the velocity displacement: where they are at their anchor's
+        keyframe (anchors grown from them are placed there, since they inherit the velocity)."""
+        means = self.gaussians.means.detach()
+        return means if self.shift is None else means - self.shift.detach()
 
 
 def num_segments_for(cfg: ModelConfig, num_frames: int) -> int:
@@ -104,6 +113,9 @@ class ATGSModel:
         self.anchor_keyframe = anchors.keyframe.long()
         self.anchor_feature = torch.zeros(self.num_anchors, d, device=self.anchor_mu.device)
         self.anchor_log_scale = anchors.log_scale.float().clone()
+        # anchor motion (atgs.model.motion): velocity per keyframe interval, log fade width
+        self.anchor_velocity = torch.zeros(self.num_anchors, 3, device=self.anchor_mu.device)
+        self.anchor_fade = torch.full((self.num_anchors, 1), self.initial_fade(), device=self.anchor_mu.device)
         self.spatial = SpatialGrid(cfg.spatial_resolution if cfg.use_spatial_grid else 2, d)
         h = cfg.hash
         M = timeline.num_segments
@@ -125,6 +137,7 @@ class ATGSModel:
                                            cfg.hidden_cov, cfg.hidden_color, cfg.hidden_offset)
         # Time-invariant quantities of the inference decode; invalidated by tensor versions.
         self.inference_cache = InferenceCache()
+        self._smoothing: tuple | None = None  # (key, variance) of smoothing_variance()
 
     # --- construction -------------------------------------------------------------------
     @classmethod
@@ -215,6 +228,43 @@ class ATGSModel:
         self.inference_cache.clear()
         return self
 
+    def initial_fade(self) -> float:
+        return initial_fade(self.cfg.fade_width, self.timeline)
+
+    @property
+    def has_motion(self) -> bool:
+        return bool(self.cfg.temporal_fade or self.cfg.anchor_velocity)
+
+    def fade_of(self, f: int, anchors: torch.Tensor, log_fade: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(keyframe distances, fade weights) of ``anchors`` (global ids) at frame f; weights are
+        1 without ``temporal_fade``. ``log_fade``: the anchors' stored fades (a tracked leaf)."""
+        d = keyframe_distance(self.timeline, f, self.anchor_keyframe[anchors])
+        if not self.cfg.temporal_fade:
+            return d, torch.ones_like(d)
+        lf = self.anchor_fade[anchors] if log_fade is None else log_fade
+        return d, fade_weight(lf, d, max_fade_width(self.timeline))
+
+    def fade_cut(self) -> float:
+        """Anchors whose fade is below this are not decoded (their Gaussians cannot show)."""
+        return max(MIN_FADE, float(self.cfg.opacity_threshold))
+
+    def smoothing_variance(self) -> torch.Tensor | None:
+        """(A,) variance of each anchor's 3D smoothing filter (atgs.model.smoothing) from the
+        training cameras (the model's cameras less ``test_camera_names``); None when off. Cached
+        until the anchors or the held-out cameras change."""
+        if self.cfg.smoothing_3d <= 0:
+            return None
+        mu, names = self.anchor_mu, tuple(self.test_camera_names)
+        if self._smoothing is not None:
+            (ref, version, held_out), var = self._smoothing
+            if ref is mu and version == mu._version and held_out == names:
+                return var
+        train = [c for c in self.cameras if c.name not in names] or self.cameras
+        var = filter_variance(sampling_rates(mu, train), float(self.cfg.smoothing_3d))
+        self._smoothing = ((mu, mu._version, names), var)
+        return var
+
     def window_at(self, t: float) -> tuple[int, int]:
         return self.timeline.window_at(t)
 
@@ -273,6 +323,8 @@ class ATGSModel:
                 seen |= self.in_frustum(c)
             mask &= seen
         active = mask.nonzero().squeeze(1)
+        if self.cfg.temporal_fade:  # anchors faded out at this frame cannot show: skip them
+            active = active[self.fade_of(f, active)[1] >= self.fade_cut()]
         sparse: list[SparseLeaf] = []
 
         def rows_of(name: str, rows: torch.Tensor) -> torch.Tensor:
@@ -301,35 +353,60 @@ class ATGSModel:
         ft = torch.relu((h * inside) @ w1 + b1) @ w2 + b2
         fw = torch.cat([fa, ft], dim=1)
         raw = self.decoder(fw, mu, log_scale)
+        var = self.smoothing_variance()
+        if var is not None:
+            scales, opacities = smooth(raw.scales, raw.opacities, var[active])
+            raw = DecodedGaussians(raw.means, raw.quats, scales, opacities, raw.colors)
         q = self.cfg.gaussians_per_anchor
         anchor_ids = active[:, None].expand(-1, q).reshape(-1)
         slot_ids = torch.arange(q, device=active.device).repeat(active.numel())
-        opac = raw.opacities.reshape(-1)
+        means, opac = raw.means, raw.opacities  # raw keeps the unfaded values (densify statistics)
+        shift = None
+        if self.has_motion:
+            fade = rows_of("anchor_fade", active) if self.cfg.temporal_fade else None
+            d, w = self.fade_of(f, active, fade)
+            opac = opac * w[:, None]
+            if self.cfg.anchor_velocity:
+                shift = (rows_of("anchor_velocity", active) * d[:, None])[:, None, :].expand(-1, q, -1)
+                means = means + shift
+                shift = shift.reshape(-1, 3)
+        opac = opac.reshape(-1)
         keep = None
         if self.cfg.opacity_threshold > 0:
             keep = (opac.detach() > self.cfg.opacity_threshold).nonzero().squeeze(1)
-        parts = [raw.means.reshape(-1, 3), raw.quats.reshape(-1, 4), raw.scales.reshape(-1, 3), opac,
+        parts = [means.reshape(-1, 3), raw.quats.reshape(-1, 4), raw.scales.reshape(-1, 3), opac,
                  raw.colors.reshape(-1, 3)]
         if keep is not None:
             parts = [p[keep] for p in parts]
             anchor_ids, slot_ids = anchor_ids[keep], slot_ids[keep]
-        return Decoded(Gaussians(*parts), anchor_ids, slot_ids, active, raw, m, sparse)
+            shift = None if shift is None else shift[keep]
+        return Decoded(Gaussians(*parts), anchor_ids, slot_ids, active, raw, m, sparse, shift)
 
     # --- anchor set edits (growing / pruning) ------------------------------------------------------
     def add_anchors(self, mu: torch.Tensor, feature: torch.Tensor, log_scale: torch.Tensor,
-                    keyframe: torch.Tensor) -> None:
+                    keyframe: torch.Tensor, velocity: torch.Tensor | None = None,
+                    fade: torch.Tensor | None = None) -> None:
+        """Append anchors; ``velocity`` (n, 3) defaults to 0, ``fade`` (n, 1) to the initial fade."""
+        n, dev = mu.shape[0], self.anchor_mu.device
+        if velocity is None:
+            velocity = torch.zeros(n, 3, device=dev)
+        if fade is None:
+            fade = torch.full((n, 1), self.initial_fade(), device=dev)
         self.anchor_mu = torch.cat([self.anchor_mu, mu.float()])
         self.anchor_feature = torch.cat([self.anchor_feature, feature.float()])
         self.anchor_log_scale = torch.cat([self.anchor_log_scale, log_scale.float()])
         self.anchor_keyframe = torch.cat([self.anchor_keyframe, keyframe.long()])
+        self.anchor_velocity = torch.cat([self.anchor_velocity, velocity.float()])
+        self.anchor_fade = torch.cat([self.anchor_fade, fade.float()])
 
     def keep_anchors(self, keep: torch.Tensor) -> None:
-        for name in ("anchor_mu", "anchor_feature", "anchor_log_scale", "anchor_keyframe"):
+        for name in ("anchor_mu", "anchor_keyframe") + ANCHOR_TABLES:
             setattr(self, name, getattr(self, name)[keep].contiguous())
 
     # --- serialization ---------------------------------------------------------------------
     def sparse_tensors(self) -> dict[str, torch.Tensor]:
         return {"anchor_feature": self.anchor_feature, "anchor_log_scale": self.anchor_log_scale,
+                "anchor_velocity": self.anchor_velocity, "anchor_fade": self.anchor_fade,
                 "spatial": self.spatial.table, "hash": self.hash.table,
                 **{n: getattr(self, n) for n in TEMPORAL_MLP}}
 
@@ -357,8 +434,13 @@ class ATGSModel:
         tl = Timeline(num_frames, int(state["num_keyframes"]), cfg.window, int(state["num_segments"]))
         a = AnchorInit(state["anchor_mu"], state["anchor_log_scale"], state["anchor_keyframe"],
                        float(state["voxel_size"]))
+        if any(n not in state for n in MOTION_TABLES):
+            # a checkpoint from before anchor motion: decode it as it was trained
+            cfg = replace(cfg, temporal_fade=False, anchor_velocity=False)
         model = cls(cfg, tl, cameras, fps, a, state["bbox_min"], state["bbox_max"], float(state["extent"]))
         for name, ref in model.sparse_tensors().items():
+            if name in MOTION_TABLES and name not in state:
+                continue
             value = state[name]
             if name not in ANCHOR_TABLES and value.shape != ref.shape:
                 raise ValueError(f"tensor {name!r} has shape {tuple(value.shape)}, config expects {tuple(ref.shape)}")

@@ -59,3 +59,13 @@ class ModelConfig:
     random_anchors: int = 0
     opacity_threshold: float = 0.0  # Gaussians below are dropped (Scaffold-GS); code used 0
     frustum_cull: bool = True  # decode only anchors that project near the image
+    # Anchor motion (atgs.model.motion) and the 3D smoothing filter (atgs.model.smoothing): not in
+    # the paper; docs/model.md. Checkpoints from before the motion tables load with motion off.
+    temporal_fade: bool = False
+    """Per-keyframe anchors fade with their distance in time to their keyframe (learned width, capped: no popping)."""
+    fade_width: float = 0.6
+    """Initial fade width (standard deviation), in keyframe intervals."""
+    anchor_velocity: bool = False
+    """Per-keyframe anchors move away from their keyframe with a learned velocity."""
+    smoothing_3d: float = 0.0
+    """Mip-Splatting's 3D filter: variance in squared pixels of the finest training view (0.2 there; 0: off)."""

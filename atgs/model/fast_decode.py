@@ -32,6 +32,7 @@ from torch import nn
 
 from atgs.gaussians import Gaussians
 from atgs.model.decoder import GaussianDecoder
+from atgs.model.smoothing import smooth
 
 if TYPE_CHECKING:  # pragma: no cover
     from atgs.model.atgs_model import ATGSModel
@@ -116,7 +117,8 @@ class InferenceCache:
     # --- cached quantities -------------------------------------------------------------------
     def _feature_tensors(self, model: "ATGSModel") -> list[torch.Tensor]:
         return [model.anchor_mu, model.anchor_feature, model.anchor_log_scale, model.anchor_keyframe,
-                model.spatial.table, model.hash.table, model.bbox_min, model.bbox_max]
+                model.spatial.table, model.hash.table, model.bbox_min, model.bbox_max,
+                model.anchor_velocity, model.anchor_fade]
 
     def _features_for(self, model: "ATGSModel") -> _Features:
         key = _key(self._feature_tensors(model))
@@ -196,7 +198,14 @@ class InferenceCache:
         with self._lock, torch.no_grad():
             c = self._features_for(model)
             win = self._window_for(model, c, f)
-            active = win.active
+            active, mu, scale_off, scale_base = win.active, win.mu, win.scale_off, win.scale_base
+            sel = None
+            if model.has_motion:  # anchor motion (atgs.model.motion), as in ATGSModel._decode
+                dist, fade = model.fade_of(f, active)
+                if model.cfg.temporal_fade:
+                    sel = (fade >= model.fade_cut()).nonzero().squeeze(1)
+                    active, mu, dist, fade = (x.index_select(0, sel) for x in (active, mu, dist, fade))
+                    scale_off, scale_base = scale_off.index_select(0, sel), scale_base.index_select(0, sel)
             hg = model.hash
             parts = []
             for lv in range(hg.levels):
@@ -212,20 +221,28 @@ class InferenceCache:
             a = active.numel()
             if heads is None:  # custom decoder (e.g. reduced precision): run it as is
                 fw = torch.cat([c.fa.index_select(0, active), ft], dim=1)
-                raw = model.decoder(fw, win.mu, model.anchor_log_scale.index_select(0, active))
+                raw = model.decoder(fw, mu, model.anchor_log_scale.index_select(0, active))
                 opac, scales, quats, colors, means = raw.opacities, raw.scales, raw.quats, raw.colors, raw.means
             else:
                 if win.pre_of is not heads:
-                    win.pre, win.pre_of = torch.addmm(heads.b1, c.fa.index_select(0, active), heads.w_a), heads
-                hid = torch.addmm(win.pre, ft, heads.w_t).relu_()
+                    win.pre, win.pre_of = torch.addmm(heads.b1, c.fa.index_select(0, win.active), heads.w_a), heads
+                pre = win.pre if sel is None else win.pre.index_select(0, sel)
+                hid = torch.addmm(pre, ft, heads.w_t).relu_()
                 outs = [torch.addmm(b2, x, w2t) for x, (w2t, b2) in
                         zip(hid.split(heads.splits, dim=1), heads.second)]
                 opac = torch.sigmoid(outs[0]).view(a, q)
                 cov = outs[1].view(a, q, 7)
-                scales = win.scale_base[:, None, :] * torch.sigmoid(cov[..., :3])
+                scales = scale_base[:, None, :] * torch.sigmoid(cov[..., :3])
                 quats = nn.functional.normalize(cov[..., 3:], dim=-1)
                 colors = torch.sigmoid(outs[2]).view(a, q, 3)
-                means = win.mu[:, None, :] + outs[3].view(a, q, 3) * win.scale_off[:, None, :]
+                means = mu[:, None, :] + outs[3].view(a, q, 3) * scale_off[:, None, :]
+            var = model.smoothing_variance()
+            if var is not None:  # the 3D smoothing filter, as in ATGSModel._decode
+                scales, opac = smooth(scales, opac, var.index_select(0, active))
+            if model.has_motion:
+                opac = opac * fade[:, None]
+                if model.cfg.anchor_velocity:
+                    means = means + (model.anchor_velocity.index_select(0, active) * dist[:, None])[:, None, :]
             out = [means.reshape(-1, 3), quats.reshape(-1, 4), scales.reshape(-1, 3), opac.reshape(-1),
                    colors.reshape(-1, 3)]
             if model.cfg.opacity_threshold > 0:

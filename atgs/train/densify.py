@@ -1,13 +1,15 @@
 """Anchor growing and pruning (Scaffold-GS style, SPEC section 1), time-conditioned.
 
 Statistics: per Gaussian slot (anchor * q + slot) the accumulated NDC-scaled screen-space
-gradient norm of its mean and how often it was rendered, and the last world position it had;
+gradient norm of its mean and how often it was rendered, and the last world position it had
+(at its anchor's keyframe, without the anchor-velocity displacement);
 per anchor the accumulated opacity of its q Gaussians and how often it was decoded in view.
 Growing adds anchors at voxel centres (3 voxel levels) where the mean gradient is high and no
 anchor of the same keyframe exists; a new anchor inherits the keyframe of its parent and the
-element-wise max of its parents' features. Pruning removes anchors whose mean opacity stays
-below a threshold; :func:`prune_final` removes, after the last step, the anchors that never
-contributed since densification stopped (never decoded in a training view, or always faint).
+element-wise max of its parents' features (and the mean of their velocities and fades,
+atgs.model.motion). Pruning removes anchors whose mean opacity stays below a threshold;
+:func:`prune_final` removes, after the last step, the anchors that never contributed since
+densification stopped (never decoded in a training view, or always faint).
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ class DensifyStats:
         g = means2d_grad[vis] * torch.tensor([0.5 * width, 0.5 * height], device=self.device)
         self.grad_accum.index_add_(0, slots, g.norm(dim=1))
         self.grad_count.index_add_(0, slots, torch.ones(slots.numel(), device=self.device))
-        self.last_pos[slots] = dec.gaussians.means.detach()[vis]
+        self.last_pos[slots] = dec.keyframe_means()[vis]  # at the keyframe: growth places anchors there
 
     def append(self, n: int, q: int) -> None:
         z = DensifyStats.zeros(n, q, self.device)
@@ -89,7 +91,7 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
     device = stats.device
     grads = torch.where(eligible, stats.grad_accum / stats.grad_count.clamp_min(1), torch.zeros((), device=device))
     slot_anchor = torch.arange(model.num_anchors, device=device).repeat_interleave(q)
-    new_mu, new_feat, new_scale, new_kf = [], [], [], []
+    new_mu, new_feat, new_scale, new_kf, new_vel, new_fade = [], [], [], [], [], []
     existing_kf = model.anchor_keyframe
     for i in range(cfg.levels):
         if room <= 0:
@@ -122,6 +124,13 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
         feat = torch.full((n_new, model.cfg.feature_dim), -math.inf, device=device)
         feat = feat.scatter_reduce(0, local[sel, None].expand(-1, feat.shape[1]),
                                    model.anchor_feature[parents[free][sel]], reduce="amax")
+        # motion: the mean of the parents' velocities and fades (they sample one moving object)
+        src = parents[free][sel]
+        motion = torch.cat([model.anchor_velocity[src], model.anchor_fade[src]], dim=1)
+        count = torch.zeros(n_new, 1, device=device).index_add_(0, local[sel], torch.ones_like(motion[:, :1]))
+        motion = torch.zeros(n_new, 4, device=device).index_add_(0, local[sel], motion) / count
+        new_vel.append(motion[:, :3])
+        new_fade.append(motion[:, 3:])
         key = allk[ids]
         new_mu.append(key[:, 1:].float() * size)
         new_kf.append(key[:, 0])
@@ -133,8 +142,8 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
     stats.grad_count[reset] = 0
     if not new_mu:
         return 0
-    mu, feat, scale, kf = (torch.cat(x) for x in (new_mu, new_feat, new_scale, new_kf))
-    model.add_anchors(mu, feat, scale, kf)
+    mu, feat, scale, kf, vel, fade = (torch.cat(x) for x in (new_mu, new_feat, new_scale, new_kf, new_vel, new_fade))
+    model.add_anchors(mu, feat, scale, kf, vel, fade)
     stats.append(mu.shape[0], q)
     if opt is not None:
         for name in ANCHOR_TABLES:

@@ -148,6 +148,7 @@ class Trainer:
                                                        device="cpu"),
                 motion_keyframes=list(scene.motion_keyframes))
         self.model = model.to(self.device)
+        self.model_cfg = model_cfg = self.model.cfg  # a loaded model may have switched features off
         self.model.test_camera_names = list(scene.test_cameras)
         self.model.background = tuple(float(c) for c in cfg.background)
         self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
@@ -203,6 +204,10 @@ class Trainer:
             return w * lr.anchor_scaling
         if name == "spatial":
             return w * lr.spatial_grid
+        if name == "anchor_velocity":
+            return w * lr.anchor_velocity * self.model.extent
+        if name == "anchor_fade":
+            return w * lr.anchor_fade
         # temporal grids: each decays with its own visit count
         per_grid = self.model.hash.levels * self.model.hash.table_size
         grid = rows // per_grid if name == "hash" else rows
