@@ -54,6 +54,13 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     "w7-motion-smooth": ("W=7, mean colour, fade and velocity, 3D smoothing filter 0.2 px^2",
                          {"window": 7, "temporal_fade": True, "anchor_velocity": True, "smoothing_3d": 0.2},
                          {"background_from_images": True}),
+    # the offset regulariser (atgs.train.losses.offset_loss) on top of anchor motion
+    "w7-motion-offset": ("W=7, mean colour, fade and velocity, offset regulariser 0.01 beyond 1 voxel",
+                         {"window": 7, "temporal_fade": True, "anchor_velocity": True},
+                         {"background_from_images": True, "lambda_offset": 0.01, "offset_free": 1.0}),
+    "w7-motion-offset-weak": ("W=7, mean colour, fade and velocity, offset regulariser 0.001 beyond 1 voxel",
+                              {"window": 7, "temporal_fade": True, "anchor_velocity": True},
+                              {"background_from_images": True, "lambda_offset": 0.001, "offset_free": 1.0}),
 }
 
 

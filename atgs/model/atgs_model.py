@@ -26,6 +26,7 @@ from atgs.model.fast_decode import InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
 from atgs.model.smoothing import filter_variance, sampling_rates, smooth
 from atgs.model.motion import MIN_FADE, MOTION_TABLES, fade_weight, initial_fade, keyframe_distance, max_fade_width
+from atgs.model.random_anchors import random_anchor_points
 from atgs.timeline import Timeline
 
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
@@ -57,6 +58,12 @@ class Decoded:
         keyframe (anchors grown from them are placed there, since they inherit the velocity)."""
         means = self.gaussians.means.detach()
         return means if self.shift is None else means - self.shift.detach()
+
+    def offsets(self, anchor_mu: torch.Tensor) -> torch.Tensor:
+        """(N, 3) each Gaussian's offset from its anchor at the anchor's keyframe (differentiable;
+        ``anchor_mu``: the model's (A, 3) anchor positions)."""
+        means = self.gaussians.means if self.shift is None else self.gaussians.means - self.shift
+        return means - anchor_mu[self.anchor_ids]
 
 
 def num_segments_for(cfg: ModelConfig, num_frames: int) -> int:
@@ -179,9 +186,10 @@ class ATGSModel:
             kf = torch.cat([kf, mkf.to(kf.device)])
         if cfg.random_anchors > 0:
             box = bounds.float() if bounds is not None else torch.stack([points.min(0).values, points.max(0).values])
-            extra = box[0] + torch.rand(cfg.random_anchors, 3, generator=gen, device=gen.device) * (box[1] - box[0])
+            carve_with = (train_cameras or cameras) if cfg.carve_random_anchors and not fallback else []
+            extra = random_anchor_points(cfg.random_anchors, box, points, carve_with, gen).to(points.device)
             points = torch.cat([points, extra])
-            kf = torch.cat([kf, torch.full((cfg.random_anchors,), STATIC if split else 0, dtype=torch.int64,
+            kf = torch.cat([kf, torch.full((len(extra),), STATIC if split else 0, dtype=torch.int64,
                                            device=kf.device)])
         anchors = init_anchors(points, kf, voxel, cfg.max_anchors_per_keyframe, gen, cfg.static_voxel_factor)
         lo, hi = anchors.mu.min(0).values, anchors.mu.max(0).values

@@ -57,6 +57,9 @@ class ModelConfig:
     # Extra static anchors sampled uniformly in the scene bounds: sparse CPU point clouds can miss
     # whole surfaces (floors, moving objects); pruning removes the ones that stay transparent.
     random_anchors: int = 0
+    # ... but not in the space the keyframe points show to be empty (between a training camera
+    # and the points it sees; atgs.model.random_anchors): there they show as floaters in new views.
+    carve_random_anchors: bool = True
     opacity_threshold: float = 0.0  # Gaussians below are dropped (Scaffold-GS); code used 0
     frustum_cull: bool = True  # decode only anchors that project near the image
     # Anchor motion (atgs.model.motion) and the 3D smoothing filter (atgs.model.smoothing): not in

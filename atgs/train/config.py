@@ -71,7 +71,13 @@ class TrainConfig:
     resolution_scale: float = 1.0  # image downscale for training (0.5 = half resolution)
     lambda_ssim: float = 0.2
     lambda_volume: float = 0.001
-    volume_reduction: str = "sum"  # "sum" (paper) or "mean" (authors' code)
+    # "sum" (paper), "mean" (authors' code), or "mean-voxel": the mean of prod(scale / voxel),
+    # free of the scene's units (atgs.train.losses.volume_loss; docs/training.md "Volume").
+    volume_reduction: str = "sum"
+    # Not in the paper: keeps each Gaussian within `offset_free` voxels of its anchor (a squared
+    # hinge, atgs.train.losses.offset_loss); 0 = off. Measured in docs/training.md ("Offsets").
+    lambda_offset: float = 0.0
+    offset_free: float = 1.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # Train (and evaluate) over a colour taken from the training images instead of `background`:
     # the backdrop's colour when the images' borders are one uniform colour, else the images' mean

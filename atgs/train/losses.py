@@ -1,4 +1,5 @@
-"""Training losses: (1 - l) L1 + l (1 - SSIM) + lambda_v volume regulariser.
+"""Training losses: (1 - l) L1 + l (1 - SSIM) + lambda_v volume regulariser (+ the optional
+offset regulariser, not in the paper).
 
 SSIM is :func:`atgs.eval.metrics.ssim` (11x11 Gaussian window, 'same' padding as 3DGS), so
 training and evaluation share one implementation and one Gaussian-window helper.
@@ -12,12 +13,31 @@ from atgs.eval.metrics import psnr as _psnr
 from atgs.eval.metrics import ssim
 
 
-def volume_loss(scales: torch.Tensor, reduction: str = "sum") -> torch.Tensor:
-    """sum (paper) or mean (authors' code) of prod(s) over the Gaussians."""
+VOLUME_REDUCTIONS = ("sum", "mean", "mean-voxel")
+
+
+def volume_loss(scales: torch.Tensor, reduction: str = "sum", voxel: float = 1.0) -> torch.Tensor:
+    """sum (paper) or mean (authors' code) of prod(s) over the Gaussians, or ("mean-voxel") the
+    mean of prod(s / voxel): the first two are in world units cubed, so their weight depends on
+    the scene's scale (and "sum" on the number of Gaussians); the last is the same for a scene in
+    millimetres or kilometres."""
+    if reduction not in VOLUME_REDUCTIONS:
+        raise ValueError(f"volume reduction must be one of {VOLUME_REDUCTIONS}, got {reduction!r}")
     if scales.numel() == 0:
         return scales.sum()
+    if reduction == "mean-voxel":
+        return (scales / voxel).prod(dim=1).mean()
     v = scales.prod(dim=1)
     return v.sum() if reduction == "sum" else v.mean()
+
+
+def offset_loss(offsets: torch.Tensor, voxel: float, free: float = 1.0) -> torch.Tensor:
+    """Mean of relu(|offset| / voxel - free)^2 over the Gaussians: offsets (N, 3) from each
+    Gaussian's anchor, free within ``free`` voxels of it (a neighbouring anchor covers what lies
+    further away)."""
+    if offsets.numel() == 0:
+        return offsets.sum()
+    return torch.relu(offsets.norm(dim=1) / voxel - free).square().mean()
 
 
 def image_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float) -> torch.Tensor:

@@ -33,7 +33,7 @@ from atgs.timeline import evenly_spaced
 from atgs.train.config import TrainConfig
 from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
-from atgs.train.losses import image_loss, psnr, volume_loss
+from atgs.train.losses import VOLUME_REDUCTIONS, image_loss, offset_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
@@ -126,6 +126,8 @@ class Trainer:
         if cfg.views_per_step < 1 or cfg.cameras_per_frame < 1:
             raise UserError(f"--train.views-per-step {cfg.views_per_step} and --train.cameras-per-frame "
                             f"{cfg.cameras_per_frame}: both must be >= 1")
+        if cfg.volume_reduction not in VOLUME_REDUCTIONS:
+            raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
         if cfg.background_from_images:  # resolved once; the saved config carries the colour
             cfg = replace(cfg, background=background_from_images(scene, list(scene.train_indices)))
         self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
@@ -224,7 +226,11 @@ class Trainer:
         cfg = self.cfg
         loss = image_loss(out.image, gt, cfg.lambda_ssim)
         if cfg.lambda_volume > 0:
-            loss = loss + cfg.lambda_volume * volume_loss(dec.gaussians.scales, cfg.volume_reduction)
+            loss = loss + cfg.lambda_volume * volume_loss(dec.gaussians.scales, cfg.volume_reduction,
+                                                             self.model.voxel_size)
+        if cfg.lambda_offset > 0:
+            loss = loss + cfg.lambda_offset * offset_loss(dec.offsets(self.model.anchor_mu), self.model.voxel_size,
+                                                          cfg.offset_free)
         return loss
 
     def train_step(self) -> StepResult:
