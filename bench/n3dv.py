@@ -51,10 +51,10 @@ def _cli(name: str) -> list[str]:
     return [sys.executable, "-m", f"atgs.cli.{name}"]
 
 
-def prepare(args: N3dvBench, case: str) -> tuple[Path, float]:
+def prepare(args: N3dvBench, case: str) -> tuple[Path, float | None]:
     out = args.work_dir / f"prepared-{case}"
     if args.reuse_prepared and (out / "scene.json").exists():
-        return out, float("nan")
+        return out, None  # not measured
     t = time.perf_counter()
     subprocess.run([*_cli("prepare"), str(args.src), "--out", str(out), "--downscale", "4", "--test-cams", "0",
                     "--keyframes", "1", "--overwrite", *CASES[case]], check=True)
@@ -71,7 +71,7 @@ def main() -> None:
         scene, secs = prepare(args, case)
         meta = json.loads((scene / "scene.json").read_text())
         counts = meta["keyframe_points"]  # per source: {"sift": [...], "stereo": [...], "fill": [...]}
-        rows[case] = {"prepare_s": round(secs, 1), "points": int(sum(sum(v) for v in counts.values())),
+        rows[case] = {"prepare_s": None if secs is None else round(secs, 1), "points": int(sum(sum(v) for v in counts.values())),
                       "points_by_source": {k: int(sum(v)) for k, v in counts.items()},
                       "coverage_cam00": meta["coverage"]["test_cameras"]["cam00"],
                       "coverage_train_mean": meta["coverage"]["mean"], "scene": str(scene)}
@@ -104,10 +104,12 @@ def main() -> None:
 def table(res: dict) -> str:
     lines = ["| keyframe points | points | cam00 coverage | training-camera coverage | held-out PSNR / SSIM (cam00) | "
              "steps | prepare s |", "|---|---|---|---|---|---|---|"]
-    names = {"stereo": "stereo + SIFT (default; + extension)", "sift_only": "SIFT alone (`--no-stereo`; + fill, extension)"}
+    names = {"stereo": "stereo (default)", "sift_only": "SIFT alone (`--no-stereo`)"}
     for case, r in res["cases"].items():
-        lines.append(f"| {names[case]} | {r['points']:,} | {r['coverage_cam00']:.0%} | {r['coverage_train_mean']:.0%} | "
-                     f"{r['psnr']:.2f} dB / {r['ssim']:.3f} | {r['steps']:,} | {r['prepare_s']} |")
+        parts = " + ".join(f"{k} {v:,}" for k, v in r["points_by_source"].items() if v)
+        secs = "-" if r["prepare_s"] is None else r["prepare_s"]  # None: prepared scene reused
+        lines.append(f"| {names[case]} | {r['points']:,} ({parts}) | {r['coverage_cam00']:.0%} | "
+                     f"{r['coverage_train_mean']:.0%} | {r['psnr']:.2f} dB / {r['ssim']:.3f} | {r['steps']:,} | {secs} |")
     lines.append("")
     lines.append(f"Preset `{res['preset']}`, budget {res['minutes']} (minutes), the two trainings side by side with one "
                  f"torch thread each on {res['cpus']} cores (load {res['loadavg_before'][0]:.1f} before, "
