@@ -65,11 +65,11 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     "w7-motion-carve": ("W=7, mean colour, fade and velocity, random anchors carved",
                         {**MOTION, "carve_random_anchors": True}, MEAN_BG),
     # on top of that: the offset regulariser and the scale-free volume loss (atgs.train.losses)
-    "w7-motion-volume": ("as w7-motion-carve, volume loss mean over Gaussians in voxel units, 0.01 "
-                         "(the cpu preset since 2026-11-25)",
+    "w7-motion-volume": ("as w7-motion-carve, volume loss mean over Gaussians in voxel units, 0.01",
                          {**MOTION, "carve_random_anchors": True},
                          {**MEAN_BG, **MEAN_VOXEL_VOLUME}),
-    "w7-motion-offset": ("as w7-motion-volume, offset regulariser 0.01 beyond 1 voxel",
+    "w7-motion-offset": ("as w7-motion-volume, offset regulariser 0.01 beyond 1 voxel (the cpu preset "
+                         "since 2026-11-25)",
                          {**MOTION, "carve_random_anchors": True},
                          {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0}),
     "w7-motion-offset-weak": ("as w7-motion-volume, offset regulariser 0.001 beyond 1 voxel",
