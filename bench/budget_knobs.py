@@ -75,6 +75,18 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     "w7-motion-offset-weak": ("as w7-motion-volume, offset regulariser 0.001 beyond 1 voxel",
                               {**MOTION, "carve_random_anchors": True},
                               {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.001, "offset_free": 1.0}),
+    # a random background colour per training step (evaluation still over the mean colour): the
+    # model can no longer let the background show through its surfaces (mean alpha 0.93 before)
+    "w7-motion-randbg": ("as w7-motion-offset, a random background colour per training step",
+                         {**MOTION, "carve_random_anchors": True},
+                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                          "random_background": True}),
+    # a learned gain and bias per training camera and channel (atgs.train.exposure): neutral here,
+    # where every camera is exposed alike, is what it should be
+    "w7-motion-exposure": ("as w7-motion-offset, per-camera exposure (gain and bias per channel)",
+                           {**MOTION, "carve_random_anchors": True},
+                           {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                            "camera_exposure": True}),
 }
 
 

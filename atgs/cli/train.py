@@ -180,7 +180,17 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
     print(f"{PROG}: done, {result['steps']} steps in {result['seconds']:.0f} s; "
           f"test PSNR {ev.get('psnr', float('nan')):.2f} dB, SSIM {ev.get('ssim', float('nan')):.4f}; "
           f"checkpoint {ckpt}")
+    if result.get("camera_exposure"):
+        print(f"{PROG}: {exposure_summary(result['camera_exposure'])}")
     return result
+
+
+def exposure_summary(exposure: dict) -> str:
+    """One line on the learned per-camera exposure: the spread of the cameras' mean gains."""
+    mean_gain = {name: sum(e["gain"]) / 3 for name, e in exposure.items()}
+    lo, hi = min(mean_gain, key=mean_gain.get), max(mean_gain, key=mean_gain.get)
+    return (f"camera exposure: gains {mean_gain[lo]:.2f} ({lo}) to {mean_gain[hi]:.2f} ({hi}) of the "
+            "training cameras' average, which held-out cameras and the viewer render")
 
 
 def main(argv: list[str] | None = None) -> int:

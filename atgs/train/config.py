@@ -51,6 +51,8 @@ class LRConfig:
     """Anchor velocities (--model.anchor-velocity), times the scene extent (world units per keyframe interval)."""
     anchor_fade: float = 0.01
     """Anchor fade widths (--model.temporal-fade), on their log."""
+    exposure: float = 1e-3
+    """Per-camera exposure gains (on their log) and biases (--train.camera-exposure); constant."""
     warmup_steps: int = 1000
     """Every learning rate ramps up from warmup-start times its value over these first steps."""
     warmup_start: float = 0.1
@@ -87,6 +89,10 @@ class TrainConfig:
     # for it, where black is the worst one (docs/training.md, "Window and background").
     background_from_images: bool = True
     random_background: bool = False  # a random colour per step; evaluation still renders over `background`
+    # Not in the paper: a learned gain and bias per colour channel for each training camera, for
+    # rigs whose cameras are exposed differently (atgs.train.exposure). Held-out cameras and the
+    # viewer render the training cameras' average exposure. Measured in docs/training.md.
+    camera_exposure: bool = False
     grad_clip: float = 10.0
     adam_eps: float = 1e-15
     max_bad_steps: int = 50  # consecutive non-finite losses before giving up

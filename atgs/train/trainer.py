@@ -33,6 +33,7 @@ from atgs.timeline import evenly_spaced
 from atgs.train.config import TrainConfig
 from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
+from atgs.train.exposure import CameraExposure
 from atgs.train.losses import VOLUME_REDUCTIONS, image_loss, offset_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
@@ -165,6 +166,9 @@ class Trainer:
         self.skipped = 0
         self.final_pruned = 0
         self.images = ImageCache(self._load_image, cfg.image_cache_mb, self.device)
+        self.exposure = (CameraExposure(len(self.train_idx), cfg.lr.exposure, self.device)
+                         if cfg.camera_exposure else None)
+        self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
         self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
         self.budget = (TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg), reserve_views=self.final_views())
@@ -258,6 +262,8 @@ class Trainer:
                 out = rasterize_gaussians(dec.gaussians, cam, background=self._background(),
                                           backend=self.cfg.render_backend)
                 out.means2d.retain_grad()
+                if self.exposure is not None:  # the image as this camera exposed it
+                    out = replace(out, image=self.exposure.apply(out.image, self.train_slot[ci]))
                 loss = self.compute_loss(dec, out, gt)
                 total = loss if total is None else total + loss
                 outs.append((cam, out))
@@ -278,6 +284,8 @@ class Trainer:
             self.skipped += 1
             self.bad_in_row += 1
             self.dense_opt.zero_grad(set_to_none=True)
+            if self.exposure is not None:
+                self.exposure.opt.zero_grad(set_to_none=True)
             if self.bad_in_row > cfg.max_bad_steps:
                 raise NonFiniteError(f"{self.bad_in_row} consecutive steps had a non-finite loss or Gaussians "
                                      f"(step {self.step}); lower the learning rates or resume from the last checkpoint")
@@ -288,6 +296,8 @@ class Trainer:
             self.grid_visits[m] += 1
         self._apply_sparse(grads)
         self._apply_dense()
+        if self.exposure is not None:
+            self.exposure.step(cfg.grad_clip)
         self.step += 1
         self._maybe_densify()
         if not losses:
@@ -398,6 +408,7 @@ class Trainer:
                 "grid_visits": self.grid_visits.clone(), "generator": self.gen.get_state(),
                 "skipped": self.skipped, "bad_in_row": self.bad_in_row,
                 "budget": None if self.budget is None else self.budget.state_dict(self._time_used()),
+                "exposure": None if self.exposure is None else self.exposure.state_dict(),
             },
         }
 
@@ -437,6 +448,8 @@ class Trainer:
         st = data["trainer"]
         tr.sparse_opt.load_state_dict(st["sparse_opt"])
         tr.dense_opt.load_state_dict(st["dense_opt"])  # torch.optim moves the state to the parameters
+        if tr.exposure is not None and st.get("exposure") is not None:
+            tr.exposure.load_state_dict(st["exposure"])
         tr.stats = DensifyStats.from_state(st["densify"], tr.device)
         tr.sampler.load_state_dict(st["sampler"])
         tr.grid_visits = st["grid_visits"].to(tr.device, copy=True)
@@ -535,6 +548,11 @@ class Trainer:
             result["budget_seconds"] = self.budget.seconds
             result["seconds_used"] = self._time_used()
             result["seconds_per_step"] = self.budget.pace
+        if self.exposure is not None:  # per training camera, relative to their average
+            gains, biases = self.exposure.gains_biases()
+            names = [self.scene.cameras[i].name for i in self.train_idx]
+            result["camera_exposure"] = {n: {"gain": [round(float(x), 4) for x in g], "bias": [round(float(x), 4) for x in b]}
+                                         for n, g, b in zip(names, gains.cpu(), biases.cpu())}
         if stopped_early:
             result["stopped_early"] = self.step
         return result

@@ -242,6 +242,7 @@ def patchmatch(ref: View, srcs: Sequence[View], near: float, far: float, cfg: St
     while len(factors) < cfg.levels and min(h, w) * factors[-1] / 2 >= MIN_LEVEL_SIDE:
         factors.append(factors[-1] / 2)
     inv = normal = None
+    prev = (0, 0)  # the previous level's (h, w), set at the end of each level
     for li, f in enumerate(reversed(factors)):
         views = (ref, list(srcs)) if f == 1.0 else (_scaled(ref, f), [_scaled(s, f) for s in srcs])
         pc = PlaneCost(*views, cfg)
