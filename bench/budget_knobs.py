@@ -86,7 +86,7 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     "w7-motion-exposure": ("as w7-motion-offset, per-camera exposure (gain and bias per channel)",
                            {**MOTION, "carve_random_anchors": True},
                            {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                            "camera_exposure": True}),
+                            "camera_exposure": "on"}),
 }
 
 

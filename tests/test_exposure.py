@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import torch
 
+from atgs.checkpoint import read_checkpoint
 from atgs.data.scene import MemoryScene
 from atgs.train.config import preset
 from atgs.train.exposure import CameraExposure
@@ -57,7 +58,7 @@ def _brightened(scene: MemoryScene, cam: int, factor: float) -> MemoryScene:
 def test_training_finds_the_camera_exposed_brighter(tmp_path):
     scene = _brightened(make_toy_scene(num_frames=4, num_cameras=5, width=40, height=32, keyframes=2), 1, 1.3)
     m, t = preset("tiny")
-    t.iterations, t.eval_every, t.camera_exposure, t.background_from_images = 200, 0, True, False
+    t.iterations, t.eval_every, t.camera_exposure, t.background_from_images = 200, 0, "on", False
     t.lr.exposure = 0.01
     tr = Trainer(scene, m, t, tmp_path)
     tr.run_steps(progress=False)
@@ -74,7 +75,7 @@ def test_resume_continues_the_exposure_exactly(tmp_path):
 
     def config():
         m, t = growing_tiny_config(10)
-        t.camera_exposure, t.lr.exposure = True, 0.01
+        t.camera_exposure, t.lr.exposure = "on", 0.01
         return m, t
 
     full = Trainer(scene, *config(), tmp_path / "full")
@@ -86,3 +87,48 @@ def test_resume_continues_the_exposure_exactly(tmp_path):
     resumed.train(progress=False, final_renders=False)
     assert not torch.equal(full.exposure.table, torch.zeros_like(full.exposure.table))
     assert torch.equal(full.exposure.table, resumed.exposure.table)
+
+
+def _textured_rig(factor: float | None) -> MemoryScene:
+    """A textured ground and box ray cast (exactly) from 6 cameras on an arc, one frame; the
+    keyframe points are back-projected from camera 0's exact depth; camera 1 brightened by
+    ``factor``. The last camera is held out."""
+    from test_data_mvs import raycast, ring
+
+    cams = ring(6, arc_deg=150.0)
+    frames, pts = {}, None
+    for ci, cam in enumerate(cams):
+        img, depth = raycast(cam)
+        frames[(ci, 0)] = img
+        if ci == 0:
+            v, u = np.nonzero(depth > 0)
+            z = depth[v, u]
+            pc = np.stack([(u + 0.5 - cam.cx) / cam.fx * z, (v + 0.5 - cam.cy) / cam.fy * z, z], 1)
+            pts = ((pc - cam.t) @ cam.R)[::7].astype(np.float32)
+    scene = MemoryScene(cams, 1, 30.0, [0], pts, np.zeros(len(pts), np.int64), [cams[-1].name], frames)
+    return _brightened(scene, 1, factor) if factor else scene
+
+
+def test_measured_exposure_finds_the_brightened_camera():
+    from atgs.train.exposure import measure_scene_exposure
+
+    plain = measure_scene_exposure(_textured_rig(None))
+    assert np.abs(np.log(plain)).max() < 0.01, plain  # rendered alike: no gain to find
+    g = measure_scene_exposure(_textured_rig(1.2))
+    slot = 1  # camera 1 is the second training camera (the last one is held out)
+    others = np.delete(g, slot, 0)
+    # 1.2, less what saturates at 255 and the pull of the bright camera on the per-point medians
+    ratio = g[slot] / np.median(others, 0)
+    assert ((ratio > 1.12) & (ratio < 1.22)).all(), g
+    assert np.abs(others / np.median(others, 0) - 1).max() < 0.03, g
+
+
+def test_auto_turns_the_exposure_on_only_where_cameras_differ(tmp_path):
+    m, t = preset("tiny")
+    t.camera_exposure, t.iterations, t.eval_every = "auto", 2, 0
+    off = Trainer(_textured_rig(None), m, t, tmp_path / "a")
+    on = Trainer(_textured_rig(1.2), m, t, tmp_path / "b")
+    assert off.cfg.camera_exposure == "off" and off.exposure is None
+    assert on.cfg.camera_exposure == "on" and on.exposure is not None
+    on.run_steps(progress=False)
+    assert read_checkpoint(tmp_path / "b" / "ckpt.pt")["train_config"]["camera_exposure"] == "on"  # resolved

@@ -159,6 +159,11 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
           f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras, "
           f"on {device_description(device)}; "
           + (f"{args.train.minutes:g} min time budget" if args.train.minutes > 0 else f"{args.train.iterations} steps"))
+    if trainer.measured_exposure is not None:
+        g = trainer.measured_exposure.mean(1)
+        print(f"{PROG}: camera exposure {trainer.cfg.camera_exposure}: the training cameras' brightness measured "
+              f"from the keyframe points spans {g.min():.2f}-{g.max():.2f} of their average (on above "
+              f"{trainer.cfg.exposure_threshold:g} in log; --train.camera-exposure on|off to choose)")
     return trainer
 
 

@@ -14,6 +14,7 @@ correction). A uniform shift of every camera's parameters changes nothing.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -57,3 +58,69 @@ class CameraExposure:
         with torch.no_grad():
             self.table.copy_(table)
         self.opt.load_state_dict(state["opt"])
+
+
+def measured_exposure(scene, cams: list[int], frame: int, points: np.ndarray, max_points: int = 4000,
+                      min_views: int = 3, blur: int = 2, seed: int = 0, min_samples: int = 30) -> np.ndarray:
+    """(len(cams), 3) each camera's gain per channel relative to the cameras' geometric mean,
+    measured before training: the keyframe points are projected into the images of ``frame``
+    (box-blurred over 2 * ``blur`` + 1 pixels against small misregistration), each point's
+    reference colour is the median over the cameras that see it, and a camera's gain is the
+    median of its colours over those references. Points seen by fewer than ``min_views`` cameras
+    do not count; occluded ones are outvoted by the medians. NaN for a camera with fewer than
+    ``min_samples`` such points."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) > max_points:
+        pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
+    cols = np.full((len(pts), len(cams), 3), np.nan)
+    for k, ci in enumerate(cams):
+        cam = scene.cameras[ci]
+        img = _box_blur(scene.image_uint8(ci, frame)[..., :3].astype(np.float64) / 255.0, blur)
+        h, w = img.shape[:2]
+        uv, z = cam.project(pts)
+        with np.errstate(invalid="ignore"):
+            ok = (z > 0) & np.isfinite(uv).all(1)
+        # images may be stored at another size than the camera's intrinsics
+        u = np.floor(uv[:, 0] * w / cam.width).astype(np.int64, copy=False) if len(pts) else np.zeros(0, np.int64)
+        v = np.floor(uv[:, 1] * h / cam.height).astype(np.int64, copy=False) if len(pts) else np.zeros(0, np.int64)
+        ok &= (u >= blur) & (u < w - blur) & (v >= blur) & (v < h - blur)
+        cols[ok, k] = img[v[ok], u[ok]]
+    seen = np.isfinite(cols[..., 0]).sum(1) >= min_views
+    cols = cols[seen]
+    ref = np.nanmedian(cols, axis=1, keepdims=True) if len(cols) else cols[:, :1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(ref > 0.05, cols / ref, np.nan)  # dark references say little about a gain
+    gains = np.full((len(cams), 3), np.nan)
+    for k in range(len(cams)):
+        r = ratio[:, k]
+        r = r[np.isfinite(r).all(1)]
+        if len(r) >= min_samples:
+            gains[k] = np.median(r, axis=0)
+    good = np.isfinite(gains).all(1)
+    if good.any():
+        gains /= np.exp(np.log(gains[good]).mean(0))
+    return gains
+
+
+def _box_blur(img: np.ndarray, r: int) -> np.ndarray:
+    if r <= 0:
+        return img
+    pad = np.pad(img, ((r, r), (r, r), (0, 0)), mode="edge")
+    c = pad.cumsum(0).cumsum(1)
+    c = np.pad(c, ((1, 0), (1, 0), (0, 0)))
+    k = 2 * r + 1
+    h, w = img.shape[:2]
+    return (c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]) / (k * k)
+
+
+def measure_scene_exposure(scene) -> np.ndarray:
+    """:func:`measured_exposure` of a scene's training cameras at its first keyframe, from the
+    points of that keyframe (all points when it has none); ones where nothing can be measured."""
+    cams = list(scene.train_indices)
+    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
+    kf = np.asarray(scene.point_keyframes)
+    first = pts[kf == 0] if (kf == 0).any() else pts
+    if len(cams) < 2 or len(first) == 0:
+        return np.ones((len(cams), 3))
+    g = measured_exposure(scene, cams, int(scene.keyframes[0]), first)
+    return np.where(np.isfinite(g), g, 1.0)

@@ -33,7 +33,7 @@ from atgs.timeline import evenly_spaced
 from atgs.train.config import TrainConfig
 from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
-from atgs.train.exposure import CameraExposure
+from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.losses import VOLUME_REDUCTIONS, image_loss, offset_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
@@ -131,6 +131,13 @@ class Trainer:
             raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
         if cfg.background_from_images:  # resolved once; the saved config carries the colour
             cfg = replace(cfg, background=background_from_images(scene, list(scene.train_indices)))
+        self.measured_exposure: np.ndarray | None = None  # (train cameras, 3) when "auto" measured it
+        if cfg.camera_exposure not in ("auto", "on", "off"):
+            raise UserError(f"--train.camera-exposure {cfg.camera_exposure!r}: use auto, on or off")
+        if cfg.camera_exposure == "auto":  # resolved once, like the background
+            self.measured_exposure = measure_scene_exposure(scene)
+            spread = float(np.nanmax(np.abs(np.log(self.measured_exposure)), initial=0.0))
+            cfg = replace(cfg, camera_exposure="on" if spread > cfg.exposure_threshold else "off")
         self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
         self.out = Path(out_dir)
         self.run = RunDir(self.out)
@@ -167,7 +174,7 @@ class Trainer:
         self.final_pruned = 0
         self.images = ImageCache(self._load_image, cfg.image_cache_mb, self.device)
         self.exposure = (CameraExposure(len(self.train_idx), cfg.lr.exposure, self.device)
-                         if cfg.camera_exposure else None)
+                         if cfg.camera_exposure == "on" else None)
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
         self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
