@@ -130,5 +130,10 @@ def test_auto_turns_the_exposure_on_only_where_cameras_differ(tmp_path):
     on = Trainer(_textured_rig(1.2), m, t, tmp_path / "b")
     assert off.cfg.camera_exposure == "off" and off.exposure is None
     assert on.cfg.camera_exposure == "on" and on.exposure is not None
+    # the learned gains start at the measured ones (already normalised to their geometric mean)
+    assert np.allclose(on.exposure.gains_biases()[0].numpy(), on.measured_exposure, atol=1e-5)
+    t.exposure_start_measured = False
+    at_one = Trainer(_textured_rig(1.2), m, t, tmp_path / "c")
+    assert torch.equal(at_one.exposure.table, torch.zeros_like(at_one.exposure.table))
     on.run_steps(progress=False)
     assert read_checkpoint(tmp_path / "b" / "ckpt.pt")["train_config"]["camera_exposure"] == "on"  # resolved

@@ -97,6 +97,7 @@ class TrainConfig:
     # (the resolved "on"/"off" is saved with the run). Measured in docs/training.md.
     camera_exposure: Literal["auto", "on", "off"] = "off"
     exposure_threshold: float = 0.03
+    exposure_start_measured: bool = True  # learned gains start at the measured ones (else at 1)
     grad_clip: float = 10.0
     adam_eps: float = 1e-15
     max_bad_steps: int = 50  # consecutive non-finite losses before giving up

@@ -24,6 +24,13 @@ class CameraExposure:
         self.table = torch.zeros(num_cameras, 6, device=device, requires_grad=True)
         self.opt = torch.optim.Adam([self.table], lr=lr, eps=1e-15)
 
+    def start_from(self, gains: np.ndarray) -> None:
+        """Start the log-gains at measured ``gains`` (cameras, 3), e.g. :func:`measured_exposure`'s."""
+        g = torch.as_tensor(np.log(np.asarray(gains, dtype=np.float64)), dtype=torch.float32,
+                            device=self.table.device)
+        with torch.no_grad():
+            self.table[:, :3] = g
+
     def gauge_fixed(self) -> torch.Tensor:
         """(N, 6) the parameters as used: every column minus its mean over the cameras."""
         return self.table - self.table.mean(0, keepdim=True)

@@ -175,6 +175,10 @@ class Trainer:
         self.images = ImageCache(self._load_image, cfg.image_cache_mb, self.device)
         self.exposure = (CameraExposure(len(self.train_idx), cfg.lr.exposure, self.device)
                          if cfg.camera_exposure == "on" else None)
+        if self.exposure is not None and cfg.exposure_start_measured:  # (resume loads its own state)
+            if self.measured_exposure is None:
+                self.measured_exposure = measure_scene_exposure(scene)
+            self.exposure.start_from(self.measured_exposure)
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
         self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
