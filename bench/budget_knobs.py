@@ -90,7 +90,6 @@ CASES: dict[str, tuple[str, dict, dict]] = {
 }
 
 
-
 @dataclass
 class BudgetKnobs:
     cases: tuple[str, ...] = tuple(CASES)

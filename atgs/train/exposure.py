@@ -88,13 +88,14 @@ def measured_exposure(scene, cams: list[int], frame: int, points: np.ndarray, ma
         with np.errstate(invalid="ignore"):
             ok = (z > 0) & np.isfinite(uv).all(1)
         # images may be stored at another size than the camera's intrinsics
-        u = np.floor(uv[:, 0] * w / cam.width).astype(np.int64, copy=False) if len(pts) else np.zeros(0, np.int64)
-        v = np.floor(uv[:, 1] * h / cam.height).astype(np.int64, copy=False) if len(pts) else np.zeros(0, np.int64)
+        with np.errstate(invalid="ignore"):
+            u = np.floor(np.nan_to_num(uv[:, 0]) * w / cam.width).astype(np.int64)
+            v = np.floor(np.nan_to_num(uv[:, 1]) * h / cam.height).astype(np.int64)
         ok &= (u >= blur) & (u < w - blur) & (v >= blur) & (v < h - blur)
         cols[ok, k] = img[v[ok], u[ok]]
     seen = np.isfinite(cols[..., 0]).sum(1) >= min_views
     cols = cols[seen]
-    ref = np.nanmedian(cols, axis=1, keepdims=True) if len(cols) else cols[:, :1]
+    ref = np.nanmedian(cols, axis=1, keepdims=True)  # every row has >= min_views finite samples
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.where(ref > 0.05, cols / ref, np.nan)  # dark references say little about a gain
     gains = np.full((len(cams), 3), np.nan)
