@@ -87,6 +87,29 @@ CASES: dict[str, tuple[str, dict, dict]] = {
                            {**MOTION, "carve_random_anchors": True},
                            {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
                             "camera_exposure": "on"}),
+    # DropGaussian (atgs.train.dropout): a random fraction of the Gaussians hidden per step, rising
+    # to this rate over the run, against over-fitting the ten training views
+    "w7-motion-drop10": ("as w7-motion-offset, Gaussian dropout rising to 0.1",
+                         {**MOTION, "carve_random_anchors": True},
+                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                          "drop_gaussians": 0.1}),
+    "w7-motion-drop30": ("as w7-motion-offset, Gaussian dropout rising to 0.3",
+                         {**MOTION, "carve_random_anchors": True},
+                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                          "drop_gaussians": 0.3}),
+    # steps no longer buy much at 20 minutes (8.6k steps alone: +0.1 dB over 5k side by side):
+    # two training views per decoded frame, or the larger model of preset cpu-accurate
+    "w7-motion-cams2": ("as w7-motion-offset, 2 training cameras per decoded frame",
+                        {**MOTION, "carve_random_anchors": True},
+                        {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                         "cameras_per_frame": 2}),
+    "w7-motion-large": ("as w7-motion-offset, the model sizes of preset cpu-accurate",
+                        {**MOTION, "carve_random_anchors": True, "feature_dim": 64, "gaussians_per_anchor": 10,
+                         "spatial_resolution": 64, "hidden_opacity": 128, "hidden_cov": 128, "hidden_color": 128,
+                         "hidden_offset": 256,
+                         "hash": {"levels": 16, "features_per_level": 4, "log2_table_size": 17,
+                                  "max_time_resolution": 32, "mlp_hidden": 128}},
+                        {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0}),
 }
 
 
@@ -122,7 +145,11 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
     scene = PreparedScene.load(scene_dir)
     m, t = preset("cpu", minutes=args.minutes)
     for k, v in model_over.items():
-        setattr(m, k, v)
+        if isinstance(v, dict):  # a nested config (the hash grid): its fields
+            for kk, vv in v.items():
+                setattr(getattr(m, k), kk, vv)
+        else:
+            setattr(m, k, v)
     for k, v in train_over.items():
         setattr(t, k, v)
     t.eval_every = t.save_every = 0

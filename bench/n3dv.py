@@ -3,35 +3,44 @@ stereo (the default) and with SIFT alone (`--no-stereo`), each trained with the 
 
     python bench/n3dv.py                       # both preparations, both trainings (~25 min)
     python bench/n3dv.py --minutes 10          # a shorter time budget for both trainings
+    python bench/n3dv.py --seeds 0 1           # two seeds per case (~50 min): one frame and one
+                                               # held-out view move by ~1.5 dB with the seed
 
 Prepare: `atgs-prepare SRC --downscale 4 --test-cams 0 --keyframes 1` (cam00 held out, the N3DV
-convention). The two trainings run side by side with one torch thread each, so both see the
+convention). The trainings run two at a time with one torch thread each, so every run sees the
 same machine. Reported per case: keyframe points, coverage of cam00 and of the training
-cameras (scene.json), held-out PSNR/SSIM of cam00 as atgs-train prints it, steps and seconds.
-Results: bench/results/n3dv.json and the bench:n3dv table in docs/data.md.
+cameras (scene.json), held-out PSNR/SSIM of cam00 as atgs-train prints it per seed and their
+mean, steps and seconds, and the held-out PSNR of the periodic evaluations against training
+time (docs/images/n3dv_curve.png). Results: bench/results/n3dv.json and the bench:n3dv table in
+docs/data.md.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _docs import publish  # noqa: E402
 
+from atgs.io.atomic import atomic_file  # noqa: E402
 from atgs.train.config import preset  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_SRC = ROOT.parent / "shared" / "data" / "n3dv_flame_steak_frame0"
 CASES = {"stereo": [], "sift_only": ["--no-stereo"]}
+NAMES = {"stereo": "stereo (default)", "sift_only": "SIFT alone (`--no-stereo`)"}
 
 
 @dataclass
@@ -43,8 +52,18 @@ class N3dvBench:
     preset: str = "cpu"
     reuse_prepared: bool = False
     """Keep prepared scenes from an earlier run of this bench."""
+    seeds: tuple[int, ...] = (0,)
+    """Training seeds per case (`--train.seed`); the table reports each and their mean."""
+    jobs: int = 2
+    """Trainings at a time (one torch thread each)."""
+    reuse_runs: bool = False
+    """Keep the finished trainings of an earlier run of this bench (same work dir) and train only
+    the missing seeds: `--seeds 0 1 2 3 --reuse-runs` after `--seeds 0 1` adds two."""
     out: Path = ROOT / "bench" / "results" / "n3dv.json"
     docs: Path = ROOT / "docs" / "data.md"
+    plot: Path = ROOT / "docs" / "images" / "n3dv_curve.png"
+    extra: list[str] = field(default_factory=list)
+    """More atgs-train flags for every run (scratch comparisons; the table records them)."""
 
 
 def _cli(name: str) -> list[str]:
@@ -75,45 +94,107 @@ def main() -> None:
                       "points_by_source": {k: int(sum(v)) for k, v in counts.items()},
                       "coverage_cam00": meta["coverage"]["test_cameras"]["cam00"],
                       "coverage_train_mean": meta["coverage"]["mean"], "scene": str(scene)}
-    procs = {}
     load_before = list(os.getloadavg())
-    for case, row in rows.items():
-        run = args.work_dir / f"run-{case}"
+
+    def train(case: str, seed: int) -> dict:
+        run = args.work_dir / f"run-{case}-s{seed}"
+        if args.reuse_runs and (run / "result.json").exists():
+            return summarize(run, seed)
         shutil.rmtree(run, ignore_errors=True)
-        cmd = [*_cli("train"), "--data", row["scene"], "--out", str(run), "--preset", args.preset, "--train.threads", "1",
-               "--no-progress"]
+        cmd = [*_cli("train"), "--data", rows[case]["scene"], "--out", str(run), "--preset", args.preset,
+               "--train.threads", "1", "--train.seed", str(seed), "--no-progress", *args.extra]
         if args.minutes is not None:
             cmd += ["--minutes", str(args.minutes)]
-        procs[case] = (subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True), run)
-    for case, (proc, run) in procs.items():
-        stdout, _ = proc.communicate()
-        print(stdout)
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
+        print(proc.stdout)
         if proc.returncode != 0:
-            sys.exit(f"bench/n3dv.py: training {case} failed (exit {proc.returncode})")
-        res = json.loads((run / "result.json").read_text())
-        rows[case].update(psnr=res["eval"]["psnr"], ssim=res["eval"]["ssim"], eval_views=res["eval"]["views"],
-                          steps=res["steps"], train_s=round(res["seconds"], 1))
+            sys.exit(f"bench/n3dv.py: training {case} seed {seed} failed (exit {proc.returncode})")
+        return summarize(run, seed)
+
+    jobs = [(case, seed) for seed in args.seeds for case in rows]  # a seed's cases train side by side
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+        done = list(pool.map(lambda cs: train(*cs), jobs))
+    for (case, _), run in zip(jobs, done):
+        rows[case].setdefault("runs", []).append(run)
+    for row in rows.values():
+        runs = row["runs"]
+        row.update(psnr=float(np.mean([r["psnr"] for r in runs])), ssim=float(np.mean([r["ssim"] for r in runs])),
+                   steps=int(np.mean([r["steps"] for r in runs])), eval_views=runs[0]["eval_views"])
     result = {"source": str(args.src), "downscale": 4, "test_camera": "cam00", "preset": args.preset,
               "minutes": args.minutes if args.minutes is not None else preset(args.preset)[1].minutes,
-              "threads_per_run": 1, "runs_side_by_side": True, "cases": rows,
+              "threads_per_run": 1, "runs_at_a_time": args.jobs, "seeds": list(args.seeds), "extra_flags": args.extra,
+              "cases": rows,
               "loadavg_before": load_before, "loadavg_after": list(os.getloadavg()),
               "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     publish(result, args.out, table(result), args.docs, "n3dv")
+    plot(result, args.plot)
+
+
+def summarize(run: Path, seed: int) -> dict:
+    """One training's row: its final evaluation, steps, seconds and evaluation curve."""
+    res = json.loads((run / "result.json").read_text())
+    curve = eval_curve(run / "train_log.csv")
+    if not curve or curve[-1][1] != res["steps"]:  # the final evaluation, when no periodic one fell on the last step
+        curve.append((round(res["seconds"], 1), res["steps"], res["eval"]["psnr"]))
+    return {"seed": seed, "psnr": res["eval"]["psnr"], "ssim": res["eval"]["ssim"], "eval_views": res["eval"]["views"],
+            "steps": res["steps"], "train_s": round(res["seconds"], 1), "curve": curve}
+
+
+def eval_curve(log: Path) -> list[tuple[float, int, float]]:
+    """(seconds, step, held-out PSNR) of each periodic and the final evaluation in a train log."""
+    with open(log) as fh:
+        return [(float(r["seconds"]), int(r["step"]), float(r["eval_psnr"])) for r in csv.DictReader(fh) if r["eval_psnr"]]
+
+
+def plot(res: dict, path: Path) -> None:
+    """Held-out PSNR of the periodic evaluations against training minutes, one line per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for case, color in zip(res["cases"], ("tab:blue", "tab:orange")):
+        for i, run in enumerate(res["cases"][case]["runs"]):
+            t, _, p = zip(*run["curve"]) if run["curve"] else ((), (), ())
+            ax.plot([x / 60 for x in t], p, marker="o", color=color, alpha=0.85, linestyle=("-", "--", ":", "-.")[i % 4],
+                    label=f"{NAMES[case].replace('`', '')}, seed {run['seed']}")
+    ax.set_xlabel("training minutes (1 torch thread, two runs at a time on 2 cores)")
+    ax.set_ylabel("held-out PSNR, cam00 [dB]")
+    ax.set_title(f"N3DV flame_steak frame 0, preset {res['preset']} ({res['date']})")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    print(f"wrote {path}")
+
+
+def _at_half(run: dict) -> str:
+    """Held-out PSNR of the last evaluation up to half the run's training time."""
+    half = [p for t, _, p in run["curve"] if t <= run["train_s"] / 2]
+    return f"{half[-1]:.2f}" if half else "-"
 
 
 def table(res: dict) -> str:
-    lines = ["| keyframe points | points | cam00 coverage | training-camera coverage | held-out PSNR / SSIM (cam00) | "
-             "steps | prepare s |", "|---|---|---|---|---|---|---|"]
-    names = {"stereo": "stereo (default)", "sift_only": "SIFT alone (`--no-stereo`)"}
+    lines = ["| keyframe points | points | cam00 coverage | training-camera coverage | held-out PSNR / SSIM (cam00), "
+             "mean | PSNR per seed | PSNR at half the budget, per seed | steps | prepare s |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for case, r in res["cases"].items():
         parts = " + ".join(f"{k} {v:,}" for k, v in r["points_by_source"].items() if v)
         secs = "-" if r["prepare_s"] is None else r["prepare_s"]  # None: prepared scene reused
-        lines.append(f"| {names[case]} | {r['points']:,} ({parts}) | {r['coverage_cam00']:.0%} | "
-                     f"{r['coverage_train_mean']:.0%} | {r['psnr']:.2f} dB / {r['ssim']:.3f} | {r['steps']:,} | {secs} |")
+        per_seed = " / ".join(f"{x['psnr']:.2f}" for x in r["runs"])
+        half = " / ".join(_at_half(x) for x in r["runs"])
+        lines.append(f"| {NAMES[case]} | {r['points']:,} ({parts}) | {r['coverage_cam00']:.0%} | "
+                     f"{r['coverage_train_mean']:.0%} | {r['psnr']:.2f} dB / {r['ssim']:.3f} | {per_seed} | {half} | "
+                     f"{r['steps']:,} | {secs} |")
     lines.append("")
-    lines.append(f"Preset `{res['preset']}`, budget {res['minutes']} (minutes), the two trainings side by side with one "
-                 f"torch thread each on {res['cpus']} cores (load {res['loadavg_before'][0]:.1f} before, "
-                 f"{res['loadavg_after'][0]:.1f} after); {res['date']}.")
+    extra = f", extra flags `{' '.join(res['extra_flags'])}`" if res.get("extra_flags") else ""
+    lines.append(f"Preset `{res['preset']}`, budget {res['minutes']} (minutes), seeds {', '.join(map(str, res['seeds']))}"
+                 f"{extra}; {res['runs_at_a_time']} trainings at a time with one torch thread each on {res['cpus']} cores "
+                 f"(load {res['loadavg_before'][0]:.1f} before, {res['loadavg_after'][0]:.1f} after); {res['date']}. "
+                 "Held-out PSNR against training time: docs/images/n3dv_curve.png.")
     return "\n".join(lines)
 
 

@@ -39,6 +39,7 @@ DEVICE_MODULES = [*sorted((REPO / "atgs" / "model").glob("*.py")), *sorted((REPO
 def _densifying_config(iterations: int):
     m, t = growing_tiny_config(iterations)
     t.random_background, t.grad_clip, t.eval_max_frames = True, 0.05, 2  # their paths run too
+    t.drop_gaussians = 0.2
     return m, t
 
 

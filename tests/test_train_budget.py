@@ -108,3 +108,29 @@ def test_presets_budget_and_fixed_steps() -> None:
     assert [preset(n)[1].minutes for n in ("cpu-fast", "cpu", "cpu-accurate", "paper", "tiny")] == [5, 20, 60, 0, 0]
     assert preset("cpu", iterations=300)[1].minutes == 0.0  # --iterations: exactly that many steps
     assert preset("paper", minutes=30)[1].minutes == 30.0
+
+
+def test_evaluations_and_saves_stay_regular_when_the_budget_resizes_their_intervals(tmp_path) -> None:
+    # A time budget rescales eval_every and save_every as its pace estimate moves; a check for
+    # "step is a multiple of the interval" then skips evaluations (seen: none between steps 912
+    # and 2550 of a 20-minute run evaluating every ~850 steps). Here the intervals change every step.
+    import csv
+
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
+    m, t = preset("tiny")
+    t = dataclasses.replace(t, iterations=60, eval_every=10, save_every=10, eval_max_frames=1)
+    tr = Trainer(scene, m, t, tmp_path)
+    saves = []
+    real_save = tr.save
+    tr.save = lambda *a, **k: (saves.append(tr.step), real_save(*a, **k))[1]
+
+    def resize() -> bool:
+        tr.cfg.eval_every = tr.cfg.save_every = 10 + tr.step % 3
+        return False
+
+    tr.run_steps(progress=False, should_stop=resize)
+    rows = list(csv.DictReader(open(tmp_path / "train_log.csv")))
+    evals = [int(r["step"]) for r in rows if r["eval_psnr"]]
+    for steps in (evals, saves[:-1]):  # the last save is the end of the run
+        gaps = [b - a for a, b in zip([0, *steps], steps)]
+        assert len(steps) >= 4 and all(10 <= g <= 12 for g in gaps), steps

@@ -98,6 +98,10 @@ class TrainConfig:
     camera_exposure: Literal["auto", "on", "off"] = "off"
     exposure_threshold: float = 0.03
     exposure_start_measured: bool = True  # learned gains start at the measured ones (else at 1)
+    # Not in the paper: DropGaussian (atgs.train.dropout). Each step hides a random fraction of the
+    # Gaussians, rising linearly from 0 to this over the run, and scales the others' opacities to
+    # keep the coverage; a remedy for over-fitting sparse rigs. 0 = off. Measured in docs/training.md.
+    drop_gaussians: float = 0.0
     grad_clip: float = 10.0
     adam_eps: float = 1e-15
     max_bad_steps: int = 50  # consecutive non-finite losses before giving up

@@ -33,6 +33,7 @@ from atgs.timeline import evenly_spaced
 from atgs.train.config import TrainConfig
 from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
+from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.losses import VOLUME_REDUCTIONS, image_loss, offset_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
@@ -129,6 +130,8 @@ class Trainer:
                             f"{cfg.cameras_per_frame}: both must be >= 1")
         if cfg.volume_reduction not in VOLUME_REDUCTIONS:
             raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
+        if not 0 <= cfg.drop_gaussians < 1:
+            raise UserError(f"--train.drop-gaussians {cfg.drop_gaussians}: a fraction of the Gaussians, use 0 <= rate < 1")
         if cfg.background_from_images:  # resolved once; the saved config carries the colour
             cfg = replace(cfg, background=background_from_images(scene, list(scene.train_indices)))
         self.measured_exposure: np.ndarray | None = None  # (train cameras, 3) when "auto" measured it
@@ -256,6 +259,7 @@ class Trainer:
         losses, psnrs, n_gauss, bad = [], [], 0, False
         segments: list[int] = []
         per_view = cfg.views_per_step * cfg.cameras_per_frame
+        rate = drop_rate(cfg.drop_gaussians, self.step, cfg.iterations)
         for _ in range(cfg.views_per_step):
             cis, f = self.sampler.next_views(cfg.cameras_per_frame)
             cams = [self.cams[ci] for ci in cis]
@@ -270,7 +274,7 @@ class Trainer:
             outs, total = [], None
             for ci, cam in zip(cis, cams):  # one decode, rendered from each camera
                 gt = self.images.get(ci, f)
-                out = rasterize_gaussians(dec.gaussians, cam, background=self._background(),
+                out = rasterize_gaussians(drop_gaussians(dec.gaussians, rate, self.gen), cam, background=self._background(),
                                           backend=self.cfg.render_backend)
                 out.means2d.retain_grad()
                 if self.exposure is not None:  # the image as this camera exposed it
@@ -523,6 +527,10 @@ class Trainer:
         start = self.step
         bar = progress_bar(cfg.iterations, "atgs-train", unit="step", enabled=progress, initial=start)
         ema_loss = ema_psnr = None
+        # steps of the last evaluation and save: a time budget may resize the intervals mid-run,
+        # so "due" is "an interval has passed", not "the step is a multiple of it"
+        last_eval = start - start % cfg.eval_every if cfg.eval_every > 0 else start
+        last_save = start - start % cfg.save_every if cfg.save_every > 0 else start
         try:
             while (self.step < (cfg.iterations if stop_at is None else min(stop_at, cfg.iterations))
                    and not (should_stop is not None and should_stop())):
@@ -534,11 +542,13 @@ class Trainer:
                        "anchors": self.model.num_anchors, "gaussians": r.gaussians,
                        "seconds": f"{self.clock() - t0:.2f}", "skipped": self.skipped,
                        "eval_psnr": "", "eval_ssim": ""}
-                if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iterations:
+                if cfg.eval_every > 0 and self.step - last_eval >= cfg.eval_every and self.step < cfg.iterations:
+                    last_eval = self.step
                     ev = self.evaluate()
                     row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
                 self.run.log(row)
-                if cfg.save_every > 0 and self.step % cfg.save_every == 0 and self.step < cfg.iterations:
+                if cfg.save_every > 0 and self.step - last_save >= cfg.save_every and self.step < cfg.iterations:
+                    last_save = self.step
                     self.save()
                 bar.update(1)
                 self._follow_budget(bar)
