@@ -1,8 +1,10 @@
 """Per-camera exposure (atgs.train.exposure): gauge, recovery of known gains, training, resume."""
 
 import dataclasses
+import math
 
 import numpy as np
+import pytest
 import torch
 
 from atgs.checkpoint import read_checkpoint
@@ -137,3 +139,32 @@ def test_auto_turns_the_exposure_on_only_where_cameras_differ(tmp_path):
     assert torch.equal(at_one.exposure.table, torch.zeros_like(at_one.exposure.table))
     on.run_steps(progress=False)
     assert read_checkpoint(tmp_path / "b" / "ckpt.pt")["train_config"]["camera_exposure"] == "on"  # resolved
+
+
+def test_evaluating_a_training_camera_applies_its_exposure(tmp_path):
+    # No held-out camera: the trainer scores its first training camera, which it must render as
+    # that camera was exposed, not at the cameras' average exposure.
+    from atgs.eval.evaluate import EvalConfig, evaluate
+    from atgs.eval.metrics import psnr as psnr_of
+
+    scene = dataclasses.replace(make_toy_scene(num_frames=4, num_cameras=4, width=32, height=24, keyframes=2),
+                                test_cameras=[])
+    m, t = growing_tiny_config(3)
+    t.camera_exposure = "on"
+    tr = Trainer(scene, m, t, tmp_path)
+    with torch.no_grad():  # camera 0 exposed 1.5x brighter and a little bluer than the others
+        tr.exposure.table.zero_()
+        tr.exposure.table[0, :3] = math.log(1.5)
+        tr.exposure.table[0, 5] = 0.05
+    ev = tr.evaluate(frames=[0, 2])
+    plain = evaluate(tr.model, scene, EvalConfig(frames=(0, 2), cameras=("cam00",), lpips=False, progress=False,
+                                                 images_per_camera=0), None, background=tr.cfg.background,
+                     keep_renders=True)
+    expected = []
+    for f in (0, 2):
+        render = torch.from_numpy(plain.renders[("cam00", f)])
+        exposed = tr.exposure.apply(render, 0).detach().clamp(0, 1)
+        expected.append(float(psnr_of(exposed, torch.from_numpy(scene.image(0, f)).float())))
+    assert not ev["on_test_cameras"]
+    assert ev["psnr"] == pytest.approx(sum(expected) / 2, abs=1e-4)
+    assert abs(ev["psnr"] - plain.mean("psnr")) > 0.1  # the exposure changed what was scored

@@ -21,7 +21,7 @@ import csv
 import json
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -192,13 +192,16 @@ def comparison_image(render: np.ndarray, gt: np.ndarray, gain: float) -> np.ndar
 
 def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, out: Path | None = None,
              *, background: Sequence[float] | torch.Tensor | None = None,
-             settings: dict[str, Any] | None = None, keep_renders: bool = False) -> EvalResult:
+             settings: dict[str, Any] | None = None, keep_renders: bool = False,
+             camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
     """Evaluate ``model`` on ``scene`` (see the module docstring).
 
     ``background``: the RGB the model was trained over (the trainer's ``background``; default
     ``model.background`` if it has one, else black). ``settings`` are extra entries for
     summary.json (e.g. checkpoint and data paths). ``keep_renders`` keeps the (H,W,3) renders in
-    the result. Raises :class:`EvalError` on bad input.
+    the result. ``camera_transform(camera index, render)``: what a camera did to the image before
+    it is compared (the trainer's per-camera exposure when it evaluates a training camera); the
+    result is clipped to [0, 1]. Raises :class:`EvalError` on bad input.
     """
     cfg = cfg or EvalConfig()
     if background is None:
@@ -218,20 +221,21 @@ def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, 
         lpips_net, lpips_reason = None, f"images of {', '.join(small)} are smaller than {LPIPS.MIN_SIZE} px"
     if out is None:
         return _run(model, scene, cfg, cam_indices, frames, lpips_net, lpips_reason, None, bg, settings,
-                    keep_renders)
+                    keep_renders, camera_transform)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise EvalError(f"--out {out}: exists and is not a directory; choose another --out")
     with atomic_dir(out, overwrite=True) as tmp:
         result = _run(model, scene, cfg, cam_indices, frames, lpips_net, lpips_reason, tmp, bg, settings,
-                      keep_renders)
+                      keep_renders, camera_transform)
     result.out_dir = out
     return result
 
 
 def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[int], frames: list[int],
          lpips_net: Any, lpips_reason: str, tmp: Path | None, background: torch.Tensor | None,
-         settings: dict[str, Any] | None, keep_renders: bool) -> EvalResult:
+         settings: dict[str, Any] | None, keep_renders: bool,
+         camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
     t0 = time.perf_counter()
     cams = _eval_cameras(scene, cam_indices, cfg.resolution_scale)
     picture_frames = image_frames(frames, cfg.images_per_camera) if tmp is not None else set()
@@ -251,6 +255,8 @@ def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[
                     gt_np = _ground_truth(scene, ci, f, cam)  # checked against the scene, resized to cam
                     bg = None if background is None else background.to(g.means.device, g.means.dtype)
                     render = render_view(g, cam, bg, cfg.backend)  # on the model's device
+                    if camera_transform is not None:
+                        render = camera_transform(ci, render).clamp(0, 1)
                     gt = torch.from_numpy(gt_np).to(render.device, render.dtype)
                     row: dict[str, Any] = {"camera": cam.name, "frame": f, **all_metrics(render, gt)}
                     row["lpips"] = UNAVAILABLE if lpips_net is None else float(lpips_net(render.cpu(), gt.cpu()))

@@ -376,8 +376,8 @@ class Trainer:
 
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
                  resolution_scale: float | None = None, images_per_camera: int | None = None) -> dict:
-        """PSNR and SSIM on the test cameras (or the first training camera when there are none)
-        through :func:`atgs.eval.evaluate.evaluate`, over ``frames`` (default :meth:`eval_frames`)
+        """PSNR and SSIM on the test cameras (or the first training camera, with its learned
+        exposure, when there are none) through :func:`atgs.eval.evaluate.evaluate`, over ``frames`` (default :meth:`eval_frames`)
         at ``resolution_scale`` (default the training resolution). ``out``: also write that
         evaluation directory (per_view.csv, summary.json and ``images_per_camera`` comparison
         images per camera, default one per evaluated frame)."""
@@ -393,7 +393,12 @@ class Trainer:
                          images_per_camera=images_per_camera, lpips=False,
                          resolution_scale=self.cfg.resolution_scale if resolution_scale is None else resolution_scale,
                          backend=self.cfg.render_backend, progress=False)
-        res = evaluate(self.model, self.scene, cfg, out, background=self.cfg.background)
+        # a training camera is compared as it was exposed (held-out cameras get the average exposure)
+        transform = None
+        if self.exposure is not None and not self.test_idx:
+            exposure = self.exposure
+            transform = lambda ci, img: exposure.apply(img, self.train_slot[ci])  # noqa: E731
+        res = evaluate(self.model, self.scene, cfg, out, background=self.cfg.background, camera_transform=transform)
         return {"psnr": res.mean("psnr"), "ssim": res.mean("ssim"), "views": res.summary["num_views"],
                 "on_test_cameras": bool(self.test_idx)}
 
