@@ -25,7 +25,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -62,8 +62,6 @@ class N3dvBench:
     out: Path = ROOT / "bench" / "results" / "n3dv.json"
     docs: Path = ROOT / "docs" / "data.md"
     plot: Path = ROOT / "docs" / "images" / "n3dv_curve.png"
-    extra: list[str] = field(default_factory=list)
-    """More atgs-train flags for every run (scratch comparisons; the table records them)."""
 
 
 def _cli(name: str) -> list[str]:
@@ -102,7 +100,7 @@ def main() -> None:
             return summarize(run, seed)
         shutil.rmtree(run, ignore_errors=True)
         cmd = [*_cli("train"), "--data", rows[case]["scene"], "--out", str(run), "--preset", args.preset,
-               "--train.threads", "1", "--train.seed", str(seed), "--no-progress", *args.extra]
+               "--train.threads", "1", "--train.seed", str(seed), "--no-progress"]
         if args.minutes is not None:
             cmd += ["--minutes", str(args.minutes)]
         proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
@@ -122,7 +120,7 @@ def main() -> None:
                    steps=int(np.mean([r["steps"] for r in runs])), eval_views=runs[0]["eval_views"])
     result = {"source": str(args.src), "downscale": 4, "test_camera": "cam00", "preset": args.preset,
               "minutes": args.minutes if args.minutes is not None else preset(args.preset)[1].minutes,
-              "threads_per_run": 1, "runs_at_a_time": args.jobs, "seeds": list(args.seeds), "extra_flags": args.extra,
+              "threads_per_run": 1, "runs_at_a_time": args.jobs, "seeds": list(args.seeds),
               "cases": rows,
               "loadavg_before": load_before, "loadavg_after": list(os.getloadavg()),
               "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
@@ -190,9 +188,8 @@ def table(res: dict) -> str:
                      f"{r['coverage_train_mean']:.0%} | {r['psnr']:.2f} dB / {r['ssim']:.3f} | {per_seed} | {half} | "
                      f"{r['steps']:,} | {secs} |")
     lines.append("")
-    extra = f", extra flags `{' '.join(res['extra_flags'])}`" if res.get("extra_flags") else ""
     lines.append(f"Preset `{res['preset']}`, budget {res['minutes']} (minutes), seeds {', '.join(map(str, res['seeds']))}"
-                 f"{extra}; {res['runs_at_a_time']} trainings at a time with one torch thread each on {res['cpus']} cores "
+                 f"; {res['runs_at_a_time']} trainings at a time with one torch thread each on {res['cpus']} cores "
                  f"(load {res['loadavg_before'][0]:.1f} before, {res['loadavg_after'][0]:.1f} after); {res['date']}. "
                  "Held-out PSNR against training time: docs/images/n3dv_curve.png.")
     return "\n".join(lines)

@@ -26,8 +26,8 @@ def drop_rate(max_rate: float, step: int, total_steps: int) -> float:
 
 def drop_gaussians(g: Gaussians, rate: float, generator: torch.Generator) -> Gaussians:
     """``g`` with a random ``rate`` of its Gaussians at zero opacity and the others' opacities
-    divided by ``1 - rate`` (at most 1). Shapes stay as they are (the densification statistics index the
-    decoded Gaussians); the draw is on ``generator``'s device, so a seed drops the same Gaussians
+    divided by ``1 - rate`` (at most 1). Shapes stay as they are (the densification statistics
+    index the decoded Gaussians); the draw is on ``generator``'s device, so a seed drops the same Gaussians
     on every device."""
     if rate <= 0 or len(g) == 0:
         return g

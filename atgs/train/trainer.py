@@ -274,8 +274,8 @@ class Trainer:
             outs, total = [], None
             for ci, cam in zip(cis, cams):  # one decode, rendered from each camera
                 gt = self.images.get(ci, f)
-                out = rasterize_gaussians(drop_gaussians(dec.gaussians, rate, self.gen), cam, background=self._background(),
-                                          backend=self.cfg.render_backend)
+                shown = drop_gaussians(dec.gaussians, rate, self.gen)  # all of them unless dropout is on
+                out = rasterize_gaussians(shown, cam, background=self._background(), backend=self.cfg.render_backend)
                 out.means2d.retain_grad()
                 if self.exposure is not None:  # the image as this camera exposed it
                     out = replace(out, image=self.exposure.apply(out.image, self.train_slot[ci]))
@@ -377,8 +377,8 @@ class Trainer:
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
                  resolution_scale: float | None = None, images_per_camera: int | None = None) -> dict:
         """PSNR and SSIM on the test cameras (or the first training camera, with its learned
-        exposure, when there are none) through :func:`atgs.eval.evaluate.evaluate`, over ``frames`` (default :meth:`eval_frames`)
-        at ``resolution_scale`` (default the training resolution). ``out``: also write that
+        exposure, when there are none) through :func:`atgs.eval.evaluate.evaluate`, over
+        ``frames`` (default :meth:`eval_frames`) at ``resolution_scale`` (default the training resolution). ``out``: also write that
         evaluation directory (per_view.csv, summary.json and ``images_per_camera`` comparison
         images per camera, default one per evaluated frame)."""
         from atgs.eval.evaluate import EvalConfig, evaluate
@@ -394,11 +394,13 @@ class Trainer:
                          resolution_scale=self.cfg.resolution_scale if resolution_scale is None else resolution_scale,
                          backend=self.cfg.render_backend, progress=False)
         # a training camera is compared as it was exposed (held-out cameras get the average exposure)
-        transform = None
-        if self.exposure is not None and not self.test_idx:
-            exposure = self.exposure
-            transform = lambda ci, img: exposure.apply(img, self.train_slot[ci])  # noqa: E731
-        res = evaluate(self.model, self.scene, cfg, out, background=self.cfg.background, camera_transform=transform)
+        exposure = self.exposure if not self.test_idx else None
+
+        def as_exposed(ci: int, img: torch.Tensor) -> torch.Tensor:
+            return exposure.apply(img, self.train_slot[ci])
+
+        res = evaluate(self.model, self.scene, cfg, out, background=self.cfg.background,
+                       camera_transform=as_exposed if exposure is not None else None)
         return {"psnr": res.mean("psnr"), "ssim": res.mean("ssim"), "views": res.summary["num_views"],
                 "on_test_cameras": bool(self.test_idx)}
 
