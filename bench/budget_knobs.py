@@ -103,6 +103,16 @@ CASES: dict[str, tuple[str, dict, dict]] = {
                         {**MOTION, "carve_random_anchors": True},
                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
                          "cameras_per_frame": 2}),
+    # depth distortion (atgs.train.losses.depth_distortion): held-out pixels lose PSNR with their
+    # depth error, and each ray's weights spread ~6 % of its depth after 20 minutes without it
+    "w7-motion-distort3e-3": ("as w7-motion-offset, depth distortion 0.003",
+                              {**MOTION, "carve_random_anchors": True},
+                              {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                               "lambda_distortion": 0.003}),
+    "w7-motion-distort1e-2": ("as w7-motion-offset, depth distortion 0.01",
+                              {**MOTION, "carve_random_anchors": True},
+                              {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                               "lambda_distortion": 0.01}),
     "w7-motion-large": ("as w7-motion-offset, the model sizes of preset cpu-accurate",
                         {**MOTION, "carve_random_anchors": True, "feature_dim": 64, "gaussians_per_anchor": 10,
                          "spatial_resolution": 64, "hidden_opacity": 128, "hidden_cov": 128, "hidden_color": 128,

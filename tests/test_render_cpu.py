@@ -14,7 +14,7 @@ FIELDS = ("means", "quats", "scales", "opacities", "colors")
 
 
 def render_with_grads(backend: str, scene, dtype: torch.dtype, bg: torch.Tensor, seed: int = 7):  # noqa: ANN001, ANN201
-    """Render, back-propagate a fixed random functional of image/alpha/depth, return all grads."""
+    """Render, back-propagate a fixed random functional of image/alpha/depth/depth_sq, return all grads."""
     params = [t.detach().to(dtype).clone().requires_grad_(True) for t in scene.gaussians()]
     bgp = bg.to(dtype).clone().requires_grad_(True)
     out = rasterize(*params, scene.viewmat.to(dtype), scene.K.to(dtype), scene.width, scene.height,
@@ -22,8 +22,10 @@ def render_with_grads(backend: str, scene, dtype: torch.dtype, bg: torch.Tensor,
     out.means2d.retain_grad()
     g = torch.Generator().manual_seed(seed)
     H, W = scene.height, scene.width
-    w_img, w_alpha, w_depth = (torch.randn(s, generator=g, dtype=torch.float64).to(dtype) for s in ((H, W, 3), (H, W), (H, W)))
-    loss = (out.image * w_img).sum() + (out.alpha * w_alpha).sum() + (out.depth * w_depth).sum() * 0.1
+    w_img, w_alpha, w_depth, w_sq = (torch.randn(s, generator=g, dtype=torch.float64).to(dtype)
+                                     for s in ((H, W, 3), (H, W), (H, W), (H, W)))
+    loss = ((out.image * w_img).sum() + (out.alpha * w_alpha).sum() + (out.depth * w_depth).sum() * 0.1
+            + (out.depth_sq * w_sq).sum() * 0.01)
     loss.backward()
     grads = {name: p.grad for name, p in zip(FIELDS, params)}
     grads["means2d"] = out.means2d.grad
@@ -67,6 +69,7 @@ def test_cpu_matches_reference(cfg: dict) -> None:
     assert_mostly_close(out.image, ref.image, 1e-4, "image")
     assert_mostly_close(out.alpha, ref.alpha, 1e-4, "alpha")
     assert_mostly_close(out.depth, ref.depth, 1e-3, "depth")
+    assert_mostly_close(out.depth_sq, ref.depth_sq, 1e-2, "depth_sq")
     assert float((out.radii - ref.radii).abs().max()) <= 1
     torch.testing.assert_close(out.means2d.double(), ref.means2d, atol=1e-3, rtol=1e-5)
     assert float(ref.alpha.detach().mean()) > 0.3  # the scene really covers the image

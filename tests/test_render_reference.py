@@ -105,13 +105,13 @@ def test_reference_composites_sequentially() -> None:
     s.opacities[:10] = 1.0  # exercise the 0.99 clamp and the T stop rule
     proj = project(s.means, s.quats, s.scales, s.viewmat, s.K, 9, 7)
     bg = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
-    img, alpha, depth = rasterize_reference(
+    img, alpha, depth, depth_sq = rasterize_reference(
         proj.means2d, proj.conics, s.opacities, s.colors, proj.depths, proj.radii, 9, 7, bg
     )
     order = [i for i in torch.argsort(proj.depths, stable=True).tolist() if proj.radii[i] > 0]
     for y in range(7):
         for x in range(9):
-            T, C, D = 1.0, torch.zeros(3, dtype=torch.float64), 0.0
+            T, C, D, Q = 1.0, torch.zeros(3, dtype=torch.float64), 0.0, 0.0
             for i in order:
                 dx, dy = proj.means2d[i, 0] - (x + 0.5), proj.means2d[i, 1] - (y + 0.5)
                 a, b, c = proj.conics[i]
@@ -125,10 +125,12 @@ def test_reference_composites_sequentially() -> None:
                     break
                 C += s.colors[i] * al * T
                 D += float(proj.depths[i]) * al * T
+                Q += float(proj.depths[i]) ** 2 * al * T
                 T *= 1 - al
             torch.testing.assert_close(img[y, x], C + T * bg, atol=1e-12, rtol=0)
             assert abs(float(alpha[y, x]) - (1 - T)) < 1e-12
             assert abs(float(depth[y, x]) - D) < 1e-12
+            assert abs(float(depth_sq[y, x]) - Q) < 1e-12
 
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"])

@@ -14,6 +14,16 @@ def test_preset_defaults_and_overrides():
     assert b.model.spatial_resolution == 128 and b.model.hash.log2_table_size == 16
 
 
+def test_raw_train_iterations_is_a_step_count_not_resized_by_the_budget():
+    """--train.iterations alone used to be re-sized by the preset's 20-minute budget (a user asking
+    for 60 steps trained for 20 minutes, and the save interval scaled past the end of the run)."""
+    a = parse(["--preset", "cpu", "--train.iterations", "60"])
+    assert a.iterations == 60 and a.train.iterations == 60
+    assert a.train.save_every <= 500 and a.train.lr.warmup_steps == 2, "the preset schedule is rescaled"
+    b = parse(["--preset", "cpu", "--train.iterations", "60", "--minutes", "3"])
+    assert b.iterations is None and b.minutes == 3, "a budget given with it still wins"
+
+
 def test_auto_applies_scene_choices_and_keeps_explicit_flags(tmp_path, capsys):
     """--auto on a static scene picks K = M = 1; a --model.* flag given explicitly wins."""
     import numpy as np

@@ -77,12 +77,20 @@ def _scan(argv: list[str], flag: str) -> str | None:
 def parse(argv: list[str]) -> TrainArgs:
     name = _scan(argv, "--preset") or "cpu"
     it = _scan(argv, "--iterations")
+    # The raw field --train.iterations means the same as --iterations (a step count, no budget),
+    # unless a budget is asked for too: without this the preset's budget re-sized it silently.
+    raw_it = _scan(argv, "--train.iterations")
+    if it is None and raw_it is not None and _scan(argv, "--minutes") is None and _scan(argv, "--train.minutes") is None:
+        it = raw_it
     try:
         m, t = preset(name, int(it) if it is not None and it.lstrip("-").isdigit() else None)
     except ValueError:
         m, t = preset("cpu")  # tyro reports the bad value below
-    return tyro.cli(TrainArgs, default=TrainArgs(preset=name if name in PresetName.__args__ else "cpu",
+    args = tyro.cli(TrainArgs, default=TrainArgs(preset=name if name in PresetName.__args__ else "cpu",
                                                  model=m, train=t), args=argv)
+    if args.iterations is None and it is not None and it is raw_it:
+        args.iterations = args.train.iterations
+    return args
 
 
 def load_scene(args: TrainArgs):

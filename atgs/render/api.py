@@ -122,7 +122,7 @@ def _rasterize_torch(
     height: int,
 ) -> RasterOutput:
     proj = project(means, quats, scales, viewmat, K, width, height)
-    image, alpha, depth = rasterize_reference(
+    image, alpha, depth, depth_sq = rasterize_reference(
         proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width, height, background
     )
-    return RasterOutput(image, alpha, depth, proj.means2d, proj.radii, backend="torch")
+    return RasterOutput(image, alpha, depth, depth_sq, proj.means2d, proj.radii, backend="torch")

@@ -60,12 +60,12 @@ def project_cpu(
 
 
 class _Rasterize2D(torch.autograd.Function):
-    """(means2d, conics, opacities, colors, depths, background) -> (image, alpha, depth)."""
+    """(means2d, conics, opacities, colors, depths, background) -> (image, alpha, depth, depth_sq)."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):  # type: ignore[override]
         threads = torch.get_num_threads()
-        image, alpha, depth, t_final, last, offsets, ids, slots, order, first, _stats = load_extension().forward(
+        image, alpha, depth, depth_sq, t_final, last, offsets, ids, slots, order, first, _stats = load_extension().forward(
             means2d, conics, opacities, colors, depths, radii, background,
             width, height, TILE, threads, ALPHA_MAX, ALPHA_MIN, T_MIN, SIGMA_CUTOFF,
         )  # fmt: skip
@@ -73,14 +73,14 @@ class _Rasterize2D(torch.autograd.Function):
             means2d, conics, opacities, colors, depths, radii, background, t_final, last, offsets, ids, slots, order, first
         )
         ctx.size = (width, height, threads)
-        return image, alpha, depth
+        return image, alpha, depth, depth_sq
 
     @staticmethod
-    def backward(ctx, grad_image, grad_alpha, grad_depth):  # type: ignore[override]
+    def backward(ctx, grad_image, grad_alpha, grad_depth, grad_depth_sq):  # type: ignore[override]
         saved = ctx.saved_tensors
         width, height, threads = ctx.size
         grads = load_extension().backward(
-            *saved, grad_image, grad_alpha, grad_depth,
+            *saved, grad_image, grad_alpha, grad_depth, grad_depth_sq,
             width, height, TILE, threads, ALPHA_MAX, ALPHA_MIN, T_MIN, SIGMA_CUTOFF,
         )  # fmt: skip
         return (*grads, None, None, None)
@@ -96,8 +96,9 @@ def rasterize_2d_cpu(
     radii: torch.Tensor,
     width: int,
     height: int,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Composite projected Gaussians front to back (sorted by ``depths``): image, alpha, depth."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Composite projected Gaussians front to back (sorted by ``depths``): image, alpha, depth,
+    depth_sq."""
     return _Rasterize2D.apply(
         means2d.contiguous(), conics.contiguous(), opacities.contiguous(), colors.contiguous(),
         depths.contiguous(), background.contiguous(), radii.to(torch.int32).contiguous(), width, height,
@@ -125,10 +126,10 @@ def rasterize_cpu(
     f32 = [t.float() for t in (means, quats, scales, opacities, colors, viewmat, K, background)]
     means, quats, scales, opacities, colors, viewmat, K, background = f32
     proj = project_cpu(means, quats, scales, viewmat, K, width, height)
-    image, alpha, depth = rasterize_2d_cpu(
+    image, alpha, depth, depth_sq = rasterize_2d_cpu(
         proj.means2d, proj.conics, opacities, colors, proj.depths, background, proj.radii, width, height
     )
-    return RasterOutput(image, alpha, depth, proj.means2d, proj.radii, backend="cpu")
+    return RasterOutput(image, alpha, depth, depth_sq, proj.means2d, proj.radii, backend="cpu")
 
 
 @torch.no_grad()

@@ -51,9 +51,10 @@ def rasterize_cuda(
 
     n = means.shape[0]
     z = (means @ viewmat[:3, :3].T + viewmat[:3, 3])[:, 2:3]
-    # Render RGB + view z as a 4th channel so the depth is alpha-weighted like the CPU backends.
-    feats = torch.cat([colors, z], dim=-1).float()
-    bg = torch.cat([background, background.new_zeros(1)]).float()
+    # Render RGB + view z and z^2 as extra channels so the depths are alpha-weighted like the CPU
+    # backends.
+    feats = torch.cat([colors, z, z * z], dim=-1).float()
+    bg = torch.cat([background, background.new_zeros(2)]).float()
     render, alpha, meta = rasterization(
         means.float(), quats.float(), scales.float(), opacities.float(), feats,
         viewmat.float()[None], K.float()[None], width, height,
@@ -71,6 +72,7 @@ def rasterize_cuda(
         image=render[0, :, :, :3],
         alpha=alpha[0, :, :, 0],
         depth=render[0, :, :, 3],
+        depth_sq=render[0, :, :, 4],
         means2d=means2d,
         radii=radii.to(torch.int32),
         backend="cuda",

@@ -25,11 +25,11 @@ def blend_pixels(
     colors: torch.Tensor,
     depths: torch.Tensor,
     background: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite Gaussians (already sorted front to back) at P pixel centers (px, py).
 
-    Returns color (P,3), alpha (P,), depth (P,) where depth = sum_i alpha_i T_i z_i
-    (alpha-weighted, not normalized by the accumulated alpha).
+    Returns color (P,3), alpha (P,), depth (P,) and depth_sq (P,) where depth = sum_i alpha_i T_i z_i
+    (alpha-weighted, not normalized by the accumulated alpha) and depth_sq the same sum of z_i^2.
     """
     dx = means2d[None, :, 0] - px[:, None]  # (P, N)
     dy = means2d[None, :, 1] - py[:, None]
@@ -53,7 +53,8 @@ def blend_pixels(
     T_final = T_after[:, -1] if T_after.shape[1] > 0 else torch.ones_like(px)
     color = weights @ colors + T_final[:, None] * background[None, :]
     depth = weights @ depths
-    return color, 1 - T_final, depth
+    depth_sq = weights @ (depths * depths)
+    return color, 1 - T_final, depth, depth_sq
 
 
 def rasterize_reference(
@@ -68,8 +69,9 @@ def rasterize_reference(
     background: torch.Tensor,
     block: int = 32,
     prefilter: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Image (H,W,3), alpha (H,W), depth (H,W) of the projected Gaussians (``radii > 0`` only)."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Image (H,W,3), alpha (H,W), depth (H,W), depth_sq (H,W) of the projected Gaussians
+    (``radii > 0`` only)."""
     dtype, device = means2d.dtype, means2d.device
     visible = torch.nonzero(radii > 0).flatten()
     order = visible[torch.argsort(depths.detach()[visible], stable=True)]
@@ -95,11 +97,11 @@ def rasterize_reference(
             else:
                 args = (px, py, m2, co, op, col, dep, background)
             if need_grad:
-                c, a, d = checkpoint(blend_pixels, *args, use_reentrant=False)
+                c, a, d, q = checkpoint(blend_pixels, *args, use_reentrant=False)
             else:
-                c, a, d = blend_pixels(*args)
+                c, a, d, q = blend_pixels(*args)
             h, w = y1 - y0, x1 - x0
-            row.append((c.reshape(h, w, 3), a.reshape(h, w), d.reshape(h, w)))
-        rows.append(tuple(torch.cat([blk[i] for blk in row], dim=1) for i in range(3)))
-    image, alpha, depth = (torch.cat([row[i] for row in rows], dim=0) for i in range(3))
-    return image, alpha, depth
+            row.append((c.reshape(h, w, 3), a.reshape(h, w), d.reshape(h, w), q.reshape(h, w)))
+        rows.append(tuple(torch.cat([blk[i] for blk in row], dim=1) for i in range(4)))
+    image, alpha, depth, depth_sq = (torch.cat([row[i] for row in rows], dim=0) for i in range(4))
+    return image, alpha, depth, depth_sq

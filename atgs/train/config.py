@@ -83,7 +83,13 @@ class TrainConfig:
     # as the volume loss).
     lambda_offset: float = 0.0
     offset_free: float = 1.0
+    # Not in the paper: depth distortion (atgs.train.losses.depth_distortion), log(1 + v / voxel^2)
+    # of the variance v of each ray's depth; pulls semi-transparent slabs into thin surfaces.
+    # 0 = off. Measured in docs/training.md ("Window and background").
+    lambda_distortion: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Background colour the Gaussians are composited over (RGB in [0, 1]), unless
+    --train.background-from-images replaces it."""
     # Train (and evaluate) over a colour taken from the training images instead of `background`:
     # the backdrop's colour when the images' borders are one uniform colour, else the images' mean
     # colour. What no training camera sees has no Gaussians; the mean is the least-squares guess

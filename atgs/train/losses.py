@@ -1,5 +1,5 @@
 """Training losses: (1 - l) L1 + l (1 - SSIM) + lambda_v volume regulariser (+ the optional
-offset regulariser, not in the paper).
+offset regulariser and depth distortion, not in the paper).
 
 SSIM is :func:`atgs.eval.metrics.ssim` (11x11 Gaussian window, 'same' padding as 3DGS), so
 training and evaluation share one implementation and one Gaussian-window helper.
@@ -38,6 +38,31 @@ def offset_loss(offsets: torch.Tensor, voxel: float, free: float = 1.0) -> torch
     if offsets.numel() == 0:
         return offsets.sum()
     return torch.relu(offsets.norm(dim=1) / voxel - free).square().mean()
+
+
+def depth_distortion(alpha: torch.Tensor, depth: torch.Tensor, depth_sq: torch.Tensor,
+                     unit: float = 1.0, min_alpha: float = 0.01) -> torch.Tensor:
+    """Mean over pixels of alpha * log(1 + var / unit^2), var the variance of the depth along the ray.
+
+    From the rasterizer's alpha = W = sum w_i, depth = sum w_i z_i and depth_sq = sum w_i z_i^2 the
+    variance is depth_sq / W - (depth / W)^2 = sum_ij w_i w_j (z_i - z_j)^2 / (2 W^2) (Mip-NeRF
+    360's distortion with squared distances, normalised by W^2). It is small when a ray's weight
+    sits at one depth (a thin surface) and large for a slab of semi-transparent Gaussians, which
+    fits the training views but shows another picture from a new one.
+    - The normalisation keeps the loss from rewarding transparency (W^2 var falls with W).
+    - The logarithm makes it robust: a pixel on an object's edge blends two surfaces metres
+      apart, whose variance (thousands of squared voxels) would otherwise outweigh every slab a
+      few voxels thick and erase the edges (the plain variance, weight 1e-3: 12.9 dB held out
+      after 700 steps of the built-in scene against 23.4 dB without).
+    - alpha, taken as a constant, leaves out pixels that are mostly background, as does
+      ``min_alpha``."""
+    if alpha.numel() == 0:
+        return alpha.sum()
+    covered = alpha > min_alpha
+    w = torch.where(covered, alpha, torch.ones_like(alpha))
+    mean = depth / w
+    var = torch.where(covered, depth_sq / w - mean * mean, torch.zeros_like(alpha)).clamp_min(0)
+    return (alpha.detach() * torch.log1p(var / (unit * unit))).mean()
 
 
 def image_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float) -> torch.Tensor:

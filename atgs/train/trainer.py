@@ -35,7 +35,7 @@ from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
-from atgs.train.losses import VOLUME_REDUCTIONS, image_loss, offset_loss, psnr, volume_loss
+from atgs.train.losses import VOLUME_REDUCTIONS, depth_distortion, image_loss, offset_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
@@ -130,6 +130,8 @@ class Trainer:
                             f"{cfg.cameras_per_frame}: both must be >= 1")
         if cfg.volume_reduction not in VOLUME_REDUCTIONS:
             raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
+        if cfg.lambda_distortion < 0:
+            raise UserError(f"--train.lambda-distortion {cfg.lambda_distortion}: a loss weight, use >= 0 (0 = off)")
         if not 0 <= cfg.drop_gaussians < 1:
             raise UserError(f"--train.drop-gaussians {cfg.drop_gaussians}: a fraction of the Gaussians, use 0 <= rate < 1")
         if cfg.background_from_images:  # resolved once; the saved config carries the colour
@@ -249,6 +251,9 @@ class Trainer:
         if cfg.lambda_offset > 0:
             loss = loss + cfg.lambda_offset * offset_loss(dec.offsets(self.model.anchor_mu), self.model.voxel_size,
                                                           cfg.offset_free)
+        if cfg.lambda_distortion > 0:
+            loss = loss + cfg.lambda_distortion * depth_distortion(out.alpha, out.depth, out.depth_sq,
+                                                                   self.model.voxel_size)
         return loss
 
     def train_step(self) -> StepResult:

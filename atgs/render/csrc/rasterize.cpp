@@ -5,7 +5,8 @@
 //   a pixel is skipped if sigma < 0 or sigma > sigma_cutoff (the 3-sigma ellipse),
 //   alpha = min(alpha_max, o exp(-sigma)), skipped if alpha < alpha_min,
 //   front to back, stop (excluding that Gaussian) when T (1 - alpha) < t_min,
-//   out = sum_i f_i alpha_i T_i + T_final bg  for C feature channels (RGB + view depth).
+//   out = sum_i f_i alpha_i T_i + T_final bg  for C feature channels (RGB, view depth z and z^2;
+//   z^2 gives the spread of depth along each ray, which the depth-distortion loss needs).
 // Every pixel sees the same Gaussians in the same order whatever the tile size, because the
 // cut-off is a per-pixel test; tiles and per-Gaussian boxes only skip work.
 //
@@ -36,11 +37,11 @@
 
 namespace {
 
-constexpr int kChannels = 4;  // RGB + view depth
+constexpr int kChannels = 5;  // RGB, view depth, squared view depth
 constexpr int kTile = 16;  // tile edge in pixels; rows are processed as whole SIMD vectors
 constexpr int kTilePix = kTile * kTile;
 constexpr int64_t kParallelProjectMin = 65536;  // smaller inputs: a fork-join costs more than it saves
-constexpr int kGradStride = 6 + kChannels;  // mean(2) conic(3) opacity(1) features(4)
+constexpr int kGradStride = 6 + kChannels;  // mean(2) conic(3) opacity(1) features(5)
 
 // 8-lane vectors (GCC/Clang vector extensions): AVX2 when compiled with -mavx2, two SSE
 // registers otherwise. A tile row of 16 pixels is two of them; lanes are masked, not looped.
@@ -192,7 +193,7 @@ Binning bin_gaussians(const float* means2d, const float* conics, const float* op
 
 Params make_params(int64_t width, int64_t height, int64_t tile, int64_t channels, int64_t threads,
                    double alpha_max, double alpha_min, double t_min, double sigma_cutoff) {
-  TORCH_CHECK(channels == kChannels, "expected 4 feature channels (RGB + depth)");
+  TORCH_CHECK(channels == kChannels, "expected 5 feature channels (RGB, depth, depth^2)");
   TORCH_CHECK(tile == kTile, "the kernel is compiled for 16x16 tiles");
   return Params{float(alpha_max), float(alpha_min), float(t_min), float(sigma_cutoff),
                 int(width), int(height), int(tile), int(channels), int(std::max<int64_t>(1, threads))};
@@ -206,11 +207,11 @@ void check_input(const at::Tensor& t, const char* name, at::ScalarType type) {
 
 }  // namespace
 
-// Returns image (H,W,3), alpha (H,W), depth (H,W), T_final (H,W), last (H,W) int32 (per-pixel
+// Returns image (H,W,3), alpha (H,W), depth (H,W), depth_sq (H,W), T_final (H,W), last (H,W) int32 (per-pixel
 // count of list entries used), tile offsets (n_tiles+1) int64, tile ids (pairs) int32,
 // slots / order / first int32 / int32 / int64 (see Binning), stats
-// int64 (blended pixel-Gaussian pairs, tile-Gaussian pairs). Depth is the 4th blended channel
-// (background 0) and also the sort key. All outputs are written here, serially per tile, so no
+// int64 (blended pixel-Gaussian pairs, tile-Gaussian pairs). Depth and its square are the 4th and
+// 5th blended channels (background 0); depth is also the sort key. All outputs are written here, serially per tile, so no
 // extra torch ops (each a fork-join on a busy machine) are needed around the kernel.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                    at::Tensor colors, at::Tensor depths, at::Tensor radii,
@@ -230,17 +231,19 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   const float* col = colors.data_ptr<float>();
   const float* dep = depths.data_ptr<float>();
   const float bg[kChannels] = {background.data_ptr<float>()[0], background.data_ptr<float>()[1],
-                               background.data_ptr<float>()[2], 0.f};
+                               background.data_ptr<float>()[2], 0.f, 0.f};
   Binning bins = bin_gaussians(m2, con, op, dep, radii.data_ptr<int32_t>(), n, p);
 
   auto image = at::empty({height, width, 3}, means2d.options());
   auto alpha_out = at::empty({height, width}, means2d.options());
   auto depth_out = at::empty({height, width}, means2d.options());
+  auto depth_sq_out = at::empty({height, width}, means2d.options());
   auto t_final = at::empty({height, width}, means2d.options());
   auto last = at::empty({height, width}, radii.options());
   float* img_p = image.data_ptr<float>();
   float* al_p = alpha_out.data_ptr<float>();
   float* dp_p = depth_out.data_ptr<float>();
+  float* dq_p = depth_sq_out.data_ptr<float>();
   float* tf_p = t_final.data_ptr<float>();
   int32_t* last_p = last.data_ptr<int32_t>();
   const int tx = p.tiles_x(), n_tiles = p.tiles_x() * p.tiles_y();
@@ -269,7 +272,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
       const int32_t g = bins.ids[k];
       const Box& b = bins.boxes[g];
       const float ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2], o = op[g];
-      const float f[kChannels] = {col[3 * g], col[3 * g + 1], col[3 * g + 2], dep[g]};
+      const float f[kChannels] = {col[3 * g], col[3 * g + 1], col[3 * g + 2], dep[g], dep[g] * dep[g]};
       const int x0 = std::max(b.x0, px0) - px0, x1 = std::min(b.x1, px0 + pw - 1) - px0;
       const int y0 = std::max(b.y0, py0) - py0, y1 = std::min(b.y1, py0 + ph - 1) - py0;
       const int32_t idx = int32_t(k - begin);
@@ -305,6 +308,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
         const int64_t pix = int64_t(py0 + y) * p.width + (px0 + x);
         for (int ch = 0; ch < 3; ++ch) img_p[pix * 3 + ch] = acc[ch][r][l] + T[r][l] * bg[ch];
         dp_p[pix] = acc[3][r][l];
+        dq_p[pix] = acc[4][r][l];
         al_p[pix] = 1.f - T[r][l];
         tf_p[pix] = T[r][l];
         last_p[pix] = stop[r][l];
@@ -325,17 +329,17 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   auto stats = at::empty({2}, at::kLong);
   stats.data_ptr<int64_t>()[0] = total_blended;
   stats.data_ptr<int64_t>()[1] = int64_t(bins.ids.size());
-  return {image, alpha_out, depth_out, t_final, last, offsets, ids, slots, order, first, stats};
+  return {image, alpha_out, depth_out, depth_sq_out, t_final, last, offsets, ids, slots, order, first, stats};
 }
 
-// Gradients w.r.t. means2d (N,2), conics (N,3), opacities (N,), colors (N,3), depths (N,),
-// background (3,).
+// Gradients w.r.t. means2d (N,2), conics (N,3), opacities (N,), colors (N,3), depths (N,) (through
+// both the depth and the depth^2 channel), background (3,).
 std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                     at::Tensor colors, at::Tensor depths, at::Tensor radii,
                                     at::Tensor background, at::Tensor t_final, at::Tensor last,
                                     at::Tensor offsets, at::Tensor ids, at::Tensor slots, at::Tensor order,
                                     at::Tensor first, at::Tensor grad_image,
-                                    at::Tensor grad_alpha, at::Tensor grad_depth,
+                                    at::Tensor grad_alpha, at::Tensor grad_depth, at::Tensor grad_depth_sq,
                                     int64_t width, int64_t height, int64_t tile, int64_t threads,
                                     double alpha_max, double alpha_min, double t_min, double sigma_cutoff) {
   for (auto& [t, name] : {std::pair{means2d, "means2d"}, {conics, "conics"}, {opacities, "opacities"},
@@ -344,7 +348,8 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
     check_input(t, name, at::kFloat);
   // Upstream gradients may be strided (e.g. expanded by sum()): read them through their strides
   // instead of paying for a contiguous copy.
-  for (auto& [t, name] : {std::pair{grad_image, "grad_image"}, {grad_alpha, "grad_alpha"}, {grad_depth, "grad_depth"}}) {
+  for (auto& [t, name] : {std::pair{grad_image, "grad_image"}, {grad_alpha, "grad_alpha"}, {grad_depth, "grad_depth"},
+                          {grad_depth_sq, "grad_depth_sq"}}) {
     TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kFloat, name, " must be a CPU float32 tensor");
     TORCH_CHECK(t.size(0) == height && t.size(1) == width, name, " has the wrong shape");
   }
@@ -367,7 +372,7 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
   const float* col = colors.data_ptr<float>();
   const float* dep = depths.data_ptr<float>();
   const float bg[kChannels] = {background.data_ptr<float>()[0], background.data_ptr<float>()[1],
-                               background.data_ptr<float>()[2], 0.f};
+                               background.data_ptr<float>()[2], 0.f, 0.f};
   const float* tf_p = t_final.data_ptr<float>();
   const int32_t* last_p = last.data_ptr<int32_t>();
   const int64_t* off = offsets.data_ptr<int64_t>();
@@ -375,9 +380,11 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
   const float* gi = grad_image.data_ptr<float>();
   const float* ga = grad_alpha.data_ptr<float>();
   const float* gd = grad_depth.data_ptr<float>();
+  const float* gq = grad_depth_sq.data_ptr<float>();
   const int64_t si_y = grad_image.stride(0), si_x = grad_image.stride(1), si_c = grad_image.stride(2);
   const int64_t sa_y = grad_alpha.stride(0), sa_x = grad_alpha.stride(1);
   const int64_t sd_y = grad_depth.stride(0), sd_x = grad_depth.stride(1);
+  const int64_t sq_y = grad_depth_sq.stride(0), sq_x = grad_depth_sq.stride(1);
   const int64_t n_pairs = ids.size(0);
   const int tx = p.tiles_x(), n_tiles = p.tiles_x() * p.tiles_y();
   TORCH_CHECK(offsets.size(0) == n_tiles + 1, "offsets do not match the image size");
@@ -419,7 +426,9 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
         const int64_t py = py0 + y, px = px0 + x;
         float s = -ga[py * sa_y + px * sa_x];
         for (int ch = 0; ch < kChannels; ++ch) {
-          const float gch = ch < 3 ? gi[py * si_y + px * si_x + ch * si_c] : gd[py * sd_y + px * sd_x];
+          const float gch = ch < 3    ? gi[py * si_y + px * si_x + ch * si_c]
+                            : ch == 3 ? gd[py * sd_y + px * sd_x]
+                                      : gq[py * sq_y + px * sq_x];
           G[ch][r][l] = gch;
           s += bg[ch] * gch;
           tile_bg[int64_t(t) * kChannels + ch] += double(tf) * gch;
@@ -431,14 +440,14 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
       const int32_t g = id_p[k];
       const Box& b = boxes[g];
       const float ca = con[3 * g], cb = con[3 * g + 1], cc = con[3 * g + 2], o = op[g];
-      const float f[kChannels] = {col[3 * g], col[3 * g + 1], col[3 * g + 2], dep[g]};
+      const float f[kChannels] = {col[3 * g], col[3 * g + 1], col[3 * g + 2], dep[g], dep[g] * dep[g]};
       const int x0 = std::max(b.x0, px0) - px0, x1 = std::min(b.x1, px0 + pw - 1) - px0;
       const int y0 = std::max(b.y0, py0) - py0, y1 = std::min(b.y1, py0 + ph - 1) - py0;
       const int32_t idx = int32_t(k - begin);
       const float ux = m2[2 * g] - float(px0), vy = m2[2 * g + 1] - float(py0);
       const v8f zero = splat(0.f);
       v8f gu = zero, gv = zero, gA = zero, gB = zero, gC = zero, gO = zero;
-      v8f gf[kChannels] = {zero, zero, zero, zero};
+      v8f gf[kChannels] = {zero, zero, zero, zero, zero};
       for (int y = y0; y <= y1; ++y) {
         const float dy = vy - (float(y) + 0.5f);
         for (int h = x0 / 8; h <= x1 / 8; ++h) {
@@ -506,7 +515,7 @@ std::vector<at::Tensor> backward(at::Tensor means2d, at::Tensor conics, at::Tens
     pc[3 * g] = a[2]; pc[3 * g + 1] = a[3]; pc[3 * g + 2] = a[4];
     po[g] = a[5];
     pf[3 * g] = a[6]; pf[3 * g + 1] = a[7]; pf[3 * g + 2] = a[8];
-    pd[g] = a[9];
+    pd[g] = a[9] + 2.f * dep[g] * a[10];  // d(z^2)/dz = 2z
   }
   for (int ch = 0; ch < 3; ++ch) {
     double s = 0.0;
