@@ -109,6 +109,10 @@ CASES: dict[str, tuple[str, dict, dict]] = {
                               {**MOTION, "carve_random_anchors": True},
                               {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
                                "lambda_distortion": 0.003}),
+    "w7-motion-distort1e-3": ("as w7-motion-offset, depth distortion 0.001",
+                              {**MOTION, "carve_random_anchors": True},
+                              {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
+                               "lambda_distortion": 0.001}),
     "w7-motion-distort1e-2": ("as w7-motion-offset, depth distortion 0.01",
                               {**MOTION, "carve_random_anchors": True},
                               {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
@@ -131,6 +135,9 @@ class BudgetKnobs:
     work_dir: Path = Path("/tmp/atgs-bench-knobs")
     out: Path = ROOT / "bench" / "results" / "budget_knobs.json"
     docs: Path = ROOT / "docs" / "training.md"
+    tag: str = ""
+    """Keep these runs as rows of their own, labelled with the tag, instead of replacing the cases'
+    earlier rows: a baseline rerun on the day's machine next to new cases (`--tag rerun-2026-11-25`)."""
     worker: str = ""  # internal: run this one case in this process
     rescore: bool = False  # recompute the per-pixel split of existing runs (their checkpoints), no training
 
@@ -165,7 +172,7 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
     t.eval_every = t.save_every = 0
     t.threads = 1
     torch.manual_seed(0)
-    run = args.work_dir / f"run-{row_key(name, args.minutes)}"
+    run = args.work_dir / f"run-{row_key(name, args.minutes, args.tag)}"
     shutil.rmtree(run, ignore_errors=True)
     tr = Trainer(scene, m, t, run)
     t0 = time.perf_counter()
@@ -176,12 +183,13 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
             "keyframes": tr.model.num_keyframes, "psnr": round(res["eval"]["psnr"], 2),
             "ssim": round(res["eval"]["ssim"], 4), "views": res["eval"]["views"],
             "split": held_out_splits(run / "ckpt.pt", scene_dir), "loadavg": list(os.getloadavg()),
-            "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
+            "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d"), "tag": args.tag}
 
 
-def row_key(case: str, minutes: float) -> str:
-    """Results are kept per case and budget: the 8-minute runs under the case name, others with it."""
-    return case if minutes == 8 else f"{case}@{minutes:g}min"
+def row_key(case: str, minutes: float, tag: str = "") -> str:
+    """Results are kept per case, budget and tag: the 8-minute runs under the case name, others with it."""
+    key = case if minutes == 8 else f"{case}@{minutes:g}min"
+    return f"{key}#{tag}" if tag else key
 
 
 def table(rows: dict) -> str:
@@ -190,14 +198,15 @@ def table(rows: dict) -> str:
     for key, r in sorted(rows.items(), key=lambda kv: (kv[1]["minutes"], list(CASES).index(kv[1]["case"]))):
         s = r["split"]
         what = CASES[r["case"]][0] if r["case"] in CASES else r["what"]  # the case's current wording
+        what += f" ({r['tag']})" if r.get("tag") else ""
         lines.append(f"| {what} | {r['minutes']:g} | {r['date']} | {r['steps']:,} | {r['anchors']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
                      f"{s['psnr_moving']:.2f} | {s['psnr_static']:.2f} | {s['psnr_seen']:.2f} | {s['psnr_unseen']:.2f} | "
                      f"{s['psnr_change_switch']:.2f} / {s['psnr_change_steady']:.2f} |")
     r = next(iter(rows.values()))
     s = r["split"]
     lines += ["", f"Built-in large-motion scene, preset cpu, two runs at once with one "
-              f"torch thread each (2-core machine). Rows run on different days saw machines of different speed "
-              f"(the steps column): compare rows of one day. PSNR/SSIM: held-out cam00, all {r['views']} frames; "
+              f"torch thread each (2-core machine). Rows run on different days, or tagged with another machine, saw "
+              f"machines of different speed (the steps column): compare rows of one day and machine. PSNR/SSIM: held-out cam00, all {r['views']} frames; "
               f"the split (every {s['every_nth_frame']}th frame): {s['moving_fraction']:.1%} of the pixels move, "
               f"{s['unseen_fraction']:.1%} show a surface no training camera sees; last column: the PSNR of the "
               f"change between consecutive frames (render against ground truth), over the pairs where the keyframe "
@@ -219,8 +228,8 @@ def main() -> None:
 
     def one(name: str) -> dict:
         cmd = [sys.executable, __file__, "--worker", name, "--minutes", str(args.minutes),
-               "--work-dir", str(args.work_dir)]
-        log = args.work_dir / f"{row_key(name, args.minutes)}.log"
+               "--work-dir", str(args.work_dir), "--tag", args.tag]
+        log = args.work_dir / f"{row_key(name, args.minutes, args.tag)}.log"
         with open(log, "w") as fh:
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=fh, text=True)
         if proc.returncode != 0:
@@ -233,7 +242,7 @@ def main() -> None:
         def rescore(name: str) -> dict:
             return held_out_splits(args.work_dir / f"run-{name}" / "ckpt.pt", built_in_scene())
 
-        names = [row_key(c, args.minutes) for c in args.cases if row_key(c, args.minutes) in rows]
+        names = [row_key(c, args.minutes, args.tag) for c in args.cases if row_key(c, args.minutes, args.tag) in rows]
         with ThreadPoolExecutor(max(1, args.jobs)) as pool:
             for name, split in zip(names, pool.map(rescore, names)):
                 rows[name]["split"] = split
@@ -243,7 +252,7 @@ def main() -> None:
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         for name, r in zip(args.cases, pool.map(one, args.cases)):
             print(f"[budget-knobs] {name} ({args.minutes:g} min): {r['psnr']:.2f} dB, {r['steps']} steps", flush=True)
-            rows[row_key(name, args.minutes)] = r
+            rows[row_key(name, args.minutes, args.tag)] = r
     publish({"cases": rows}, args.out, table(rows), args.docs, "budget-knobs")
 
 

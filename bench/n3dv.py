@@ -5,6 +5,7 @@ stereo (the default) and with SIFT alone (`--no-stereo`), each trained with the 
     python bench/n3dv.py --minutes 10          # a shorter time budget for both trainings
     python bench/n3dv.py --seeds 0 1           # two seeds per case (~50 min): one frame and one
                                                # held-out view move by ~1.5 dB with the seed
+    python bench/n3dv.py --seeds 4 5 --add-seeds   # two more seeds, kept with those in the results
 
 Prepare: `atgs-prepare SRC --downscale 4 --test-cams 0 --keyframes 1` (cam00 held out, the N3DV
 convention). The trainings run two at a time with one torch thread each, so every run sees the
@@ -59,6 +60,10 @@ class N3dvBench:
     reuse_runs: bool = False
     """Keep the finished trainings of an earlier run of this bench (same work dir) and train only
     the missing seeds: `--seeds 0 1 2 3 --reuse-runs` after `--seeds 0 1` adds two."""
+    add_seeds: bool = False
+    """Add this call's seeds to the runs already in `--out` (same source, preset, budget and
+    keyframe points) instead of replacing them: `--seeds 4 5 6 7 --add-seeds` after a run of
+    seeds 0-3 reports all eight, without the earlier runs' folders."""
     out: Path = ROOT / "bench" / "results" / "n3dv.json"
     docs: Path = ROOT / "docs" / "data.md"
     plot: Path = ROOT / "docs" / "images" / "n3dv_curve.png"
@@ -97,7 +102,7 @@ def main() -> None:
     def train(case: str, seed: int) -> dict:
         run = args.work_dir / f"run-{case}-s{seed}"
         if args.reuse_runs and (run / "result.json").exists():
-            return summarize(run, seed)
+            return {**summarize(run, seed), "points": rows[case]["points"]}
         shutil.rmtree(run, ignore_errors=True)
         cmd = [*_cli("train"), "--data", rows[case]["scene"], "--out", str(run), "--preset", args.preset,
                "--train.threads", "1", "--train.seed", str(seed), "--no-progress"]
@@ -107,25 +112,52 @@ def main() -> None:
         print(proc.stdout)
         if proc.returncode != 0:
             sys.exit(f"bench/n3dv.py: training {case} seed {seed} failed (exit {proc.returncode})")
-        return summarize(run, seed)
+        return {**summarize(run, seed), "points": rows[case]["points"]}  # the preparation it trained on
 
+    earlier = earlier_runs(args, rows) if args.add_seeds else {}
     jobs = [(case, seed) for seed in args.seeds for case in rows]  # a seed's cases train side by side
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         done = list(pool.map(lambda cs: train(*cs), jobs))
+    for case in rows:
+        rows[case]["runs"] = list(earlier.get(case, []))
     for (case, _), run in zip(jobs, done):
-        rows[case].setdefault("runs", []).append(run)
+        rows[case]["runs"].append(run)
+    for row in rows.values():
+        row["runs"].sort(key=lambda r: r["seed"])
+    seeds = sorted({r["seed"] for row in rows.values() for r in row["runs"]})
     for row in rows.values():
         runs = row["runs"]
         row.update(psnr=float(np.mean([r["psnr"] for r in runs])), ssim=float(np.mean([r["ssim"] for r in runs])),
                    steps=int(np.mean([r["steps"] for r in runs])), eval_views=runs[0]["eval_views"])
     result = {"source": str(args.src), "downscale": 4, "test_camera": "cam00", "preset": args.preset,
               "minutes": args.minutes if args.minutes is not None else preset(args.preset)[1].minutes,
-              "threads_per_run": 1, "runs_at_a_time": args.jobs, "seeds": list(args.seeds),
+              "threads_per_run": 1, "runs_at_a_time": args.jobs, "seeds": seeds,
               "cases": rows,
               "loadavg_before": load_before, "loadavg_after": list(os.getloadavg()),
               "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     publish(result, args.out, table(result), args.docs, "n3dv")
     plot(result, args.plot)
+
+
+def earlier_runs(args: N3dvBench, rows: dict[str, dict]) -> dict[str, list[dict]]:
+    """Runs in `args.out` of the seeds this call does not train, refused unless they were measured
+    on the same preparation and budget (a merged mean must average like with like)."""
+    if not args.out.exists():
+        sys.exit(f"bench/n3dv.py: --add-seeds needs earlier results in {args.out}; run without it first")
+    old = json.loads(args.out.read_text())
+    minutes = args.minutes if args.minutes is not None else preset(args.preset)[1].minutes
+    # A preparation is not bit for bit repeatable (pycolmap's threaded SIFT matching and RANSAC):
+    # two of the same frame differ by ~1 % of their points, which is kept apart from a changed one.
+    same = (old["source"] == str(args.src) and old["preset"] == args.preset and old["minutes"] == minutes
+            and all(c in old["cases"] and abs(old["cases"][c]["points"] - rows[c]["points"]) <= 0.02 * rows[c]["points"]
+                    for c in rows))
+    if not same:
+        sys.exit(f"bench/n3dv.py: {args.out} was measured with another source, preset, budget or preparation; "
+                 "rerun all seeds without --add-seeds")
+    for c in rows:  # a reused preparation was not timed: keep the earlier timing
+        if rows[c]["prepare_s"] is None:
+            rows[c]["prepare_s"] = old["cases"][c]["prepare_s"]
+    return {c: [r for r in old["cases"][c]["runs"] if r["seed"] not in args.seeds] for c in rows}
 
 
 def summarize(run: Path, seed: int) -> dict:
@@ -153,10 +185,11 @@ def plot(res: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for case, color in zip(res["cases"], ("tab:blue", "tab:orange")):
-        for i, run in enumerate(res["cases"][case]["runs"]):
+        runs = res["cases"][case]["runs"]
+        for i, run in enumerate(runs):  # one line per seed, one legend entry per case
             t, _, p = zip(*run["curve"]) if run["curve"] else ((), (), ())
-            ax.plot([x / 60 for x in t], p, marker="o", color=color, alpha=0.85, linestyle=("-", "--", ":", "-.")[i % 4],
-                    label=f"{NAMES[case].replace('`', '')}, seed {run['seed']}")
+            ax.plot([x / 60 for x in t], p, marker="o", markersize=3, color=color, alpha=0.7, linewidth=1,
+                    label=f"{NAMES[case].replace('`', '')}, {len(runs)} seeds" if i == 0 else None)
     ax.set_xlabel("training minutes (1 torch thread, two runs at a time on 2 cores)")
     ax.set_ylabel("held-out PSNR, cam00 [dB]")
     ax.set_title(f"N3DV flame_steak frame 0, preset {res['preset']} ({res['date']})")
