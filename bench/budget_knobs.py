@@ -43,6 +43,10 @@ MEAN_VOXEL_VOLUME = {"volume_reduction": "mean-voxel", "lambda_volume": 0.01}
 MEAN_BG = {"background_from_images": True, **SUM_VOLUME}
 
 # case -> (description, model overrides, train overrides)
+# The cpu preset's decode and losses since 2026-11-25 (case w7-motion-offset), the base of the later cases.
+CARVED_MOTION = {**MOTION, "carve_random_anchors": True}
+CPU_TRAIN = {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0}
+
 CASES: dict[str, tuple[str, dict, dict]] = {
     "w7": ("window W=7 (paper), black background", {"window": 7, **NO_MOTION, **NO_CARVE},
            {"background_from_images": False, **SUM_VOLUME}),
@@ -63,67 +67,49 @@ CASES: dict[str, tuple[str, dict, dict]] = {
                          {**MOTION, "smoothing_3d": 0.2, **NO_CARVE}, MEAN_BG),
     # random anchors carved out of the space the keyframe points show empty (atgs.model.random_anchors)
     "w7-motion-carve": ("W=7, mean colour, fade and velocity, random anchors carved",
-                        {**MOTION, "carve_random_anchors": True}, MEAN_BG),
+                        CARVED_MOTION, MEAN_BG),
     # on top of that: the offset regulariser and the scale-free volume loss (atgs.train.losses)
     "w7-motion-volume": ("as w7-motion-carve, volume loss mean over Gaussians in voxel units, 0.01",
-                         {**MOTION, "carve_random_anchors": True},
-                         {**MEAN_BG, **MEAN_VOXEL_VOLUME}),
+                         CARVED_MOTION, {**MEAN_BG, **MEAN_VOXEL_VOLUME}),
     "w7-motion-offset": ("as w7-motion-volume, offset regulariser 0.01 beyond 1 voxel (the cpu preset "
                          "since 2026-11-25)",
-                         {**MOTION, "carve_random_anchors": True},
-                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0}),
+                         CARVED_MOTION, CPU_TRAIN),
     "w7-motion-offset-weak": ("as w7-motion-volume, offset regulariser 0.001 beyond 1 voxel",
-                              {**MOTION, "carve_random_anchors": True},
+                              CARVED_MOTION,
                               {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.001, "offset_free": 1.0}),
     # a random background colour per training step (evaluation still over the mean colour): the
     # model can no longer let the background show through its surfaces (mean alpha 0.93 before)
     "w7-motion-randbg": ("as w7-motion-offset, a random background colour per training step",
-                         {**MOTION, "carve_random_anchors": True},
-                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                          "random_background": True}),
+                         CARVED_MOTION, {**CPU_TRAIN, "random_background": True}),
     # a learned gain and bias per training camera and channel (atgs.train.exposure): neutral here,
     # where every camera is exposed alike, is what it should be
     "w7-motion-exposure": ("as w7-motion-offset, per-camera exposure (gain and bias per channel)",
-                           {**MOTION, "carve_random_anchors": True},
-                           {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                            "camera_exposure": "on"}),
+                           CARVED_MOTION, {**CPU_TRAIN, "camera_exposure": "on"}),
     # DropGaussian (atgs.train.dropout): a random fraction of the Gaussians hidden per step, rising
     # to this rate over the run, against over-fitting the ten training views
     "w7-motion-drop10": ("as w7-motion-offset, Gaussian dropout rising to 0.1",
-                         {**MOTION, "carve_random_anchors": True},
-                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                          "drop_gaussians": 0.1}),
+                         CARVED_MOTION, {**CPU_TRAIN, "drop_gaussians": 0.1}),
     "w7-motion-drop30": ("as w7-motion-offset, Gaussian dropout rising to 0.3",
-                         {**MOTION, "carve_random_anchors": True},
-                         {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                          "drop_gaussians": 0.3}),
+                         CARVED_MOTION, {**CPU_TRAIN, "drop_gaussians": 0.3}),
     # steps no longer buy much at 20 minutes (8.6k steps alone: +0.1 dB over 5k side by side):
     # two training views per decoded frame, or the larger model of preset cpu-accurate
     "w7-motion-cams2": ("as w7-motion-offset, 2 training cameras per decoded frame",
-                        {**MOTION, "carve_random_anchors": True},
-                        {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                         "cameras_per_frame": 2}),
+                        CARVED_MOTION, {**CPU_TRAIN, "cameras_per_frame": 2}),
     # depth distortion (atgs.train.losses.depth_distortion): held-out pixels lose PSNR with their
     # depth error, and each ray's weights spread ~6 % of its depth after 20 minutes without it
     "w7-motion-distort3e-3": ("as w7-motion-offset, depth distortion 0.003",
-                              {**MOTION, "carve_random_anchors": True},
-                              {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                               "lambda_distortion": 0.003}),
+                              CARVED_MOTION, {**CPU_TRAIN, "lambda_distortion": 0.003}),
     "w7-motion-distort1e-3": ("as w7-motion-offset, depth distortion 0.001",
-                              {**MOTION, "carve_random_anchors": True},
-                              {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                               "lambda_distortion": 0.001}),
+                              CARVED_MOTION, {**CPU_TRAIN, "lambda_distortion": 0.001}),
     "w7-motion-distort1e-2": ("as w7-motion-offset, depth distortion 0.01",
-                              {**MOTION, "carve_random_anchors": True},
-                              {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0,
-                               "lambda_distortion": 0.01}),
+                              CARVED_MOTION, {**CPU_TRAIN, "lambda_distortion": 0.01}),
     "w7-motion-large": ("as w7-motion-offset, the model sizes of preset cpu-accurate",
-                        {**MOTION, "carve_random_anchors": True, "feature_dim": 64, "gaussians_per_anchor": 10,
+                        {**CARVED_MOTION, "feature_dim": 64, "gaussians_per_anchor": 10,
                          "spatial_resolution": 64, "hidden_opacity": 128, "hidden_cov": 128, "hidden_color": 128,
                          "hidden_offset": 256,
                          "hash": {"levels": 16, "features_per_level": 4, "log2_table_size": 17,
                                   "max_time_resolution": 32, "mlp_hidden": 128}},
-                        {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0}),
+                        CPU_TRAIN),
 }
 
 
@@ -205,8 +191,9 @@ def table(rows: dict) -> str:
     r = next(iter(rows.values()))
     s = r["split"]
     lines += ["", f"Built-in large-motion scene, preset cpu, two runs at once with one "
-              f"torch thread each (2-core machine). Rows run on different days, or tagged with another machine, saw "
-              f"machines of different speed (the steps column): compare rows of one day and machine. PSNR/SSIM: held-out cam00, all {r['views']} frames; "
+              f"torch thread each (2-core machine). Rows run on different days, or tagged with another "
+              f"machine, saw machines of different speed (the steps column): compare rows of one day and "
+              f"machine. PSNR/SSIM: held-out cam00, all {r['views']} frames; "
               f"the split (every {s['every_nth_frame']}th frame): {s['moving_fraction']:.1%} of the pixels move, "
               f"{s['unseen_fraction']:.1%} show a surface no training camera sees; last column: the PSNR of the "
               f"change between consecutive frames (render against ground truth), over the pairs where the keyframe "
