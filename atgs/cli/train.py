@@ -80,7 +80,9 @@ def parse(argv: list[str]) -> TrainArgs:
     # The raw field --train.iterations means the same as --iterations (a step count, no budget),
     # unless a budget is asked for too: without this the preset's budget re-sized it silently.
     raw_it = _scan(argv, "--train.iterations")
-    if it is None and raw_it is not None and _scan(argv, "--minutes") is None and _scan(argv, "--train.minutes") is None:
+    from_raw = (it is None and raw_it is not None and _scan(argv, "--minutes") is None
+                and _scan(argv, "--train.minutes") is None)
+    if from_raw:
         it = raw_it
     try:
         m, t = preset(name, int(it) if it is not None and it.lstrip("-").isdigit() else None)
@@ -88,7 +90,7 @@ def parse(argv: list[str]) -> TrainArgs:
         m, t = preset("cpu")  # tyro reports the bad value below
     args = tyro.cli(TrainArgs, default=TrainArgs(preset=name if name in PresetName.__args__ else "cpu",
                                                  model=m, train=t), args=argv)
-    if args.iterations is None and it is not None and it is raw_it:
+    if from_raw and args.iterations is None:
         args.iterations = args.train.iterations
     return args
 
