@@ -72,7 +72,7 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     "w7-motion-volume": ("as w7-motion-carve, volume loss mean over Gaussians in voxel units, 0.01",
                          CARVED_MOTION, {**MEAN_BG, **MEAN_VOXEL_VOLUME}),
     "w7-motion-offset": ("as w7-motion-volume, offset regulariser 0.01 beyond 1 voxel (the cpu preset "
-                         "since 2026-11-25)",
+                         "since 2026-11-25; 4 motion keyframes per interval up to machine-C)",
                          CARVED_MOTION, CPU_TRAIN),
     "w7-motion-offset-weak": ("as w7-motion-volume, offset regulariser 0.001 beyond 1 voxel",
                               CARVED_MOTION,
@@ -110,7 +110,41 @@ CASES: dict[str, tuple[str, dict, dict]] = {
                          "hash": {"levels": 16, "features_per_level": 4, "log2_table_size": 17,
                                   "max_time_resolution": 32, "mlp_hidden": 128}},
                         CPU_TRAIN),
+    # moving content is under-fitted even in the training views after 20 minutes: its anchors
+    # see only the views of their keyframe's time span
+    "w7-motion-movinglr3": ("as w7-motion-offset, learning rates of the per-keyframe anchors x3",
+                            CARVED_MOTION, {**CPU_TRAIN, "lr": {"moving_anchors": 3.0}}),
+    "w7-motion-movinglr10": ("as w7-motion-offset, learning rates of the per-keyframe anchors x10",
+                             CARVED_MOTION, {**CPU_TRAIN, "lr": {"moving_anchors": 10.0}}),
+    "w7-motion-anchorlr3": ("as w7-motion-offset, learning rates of every anchor's feature and scale x3",
+                            CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.0225, "anchor_scaling": 0.021}}),
+    "w7-motion-anchorlr6": ("as w7-motion-offset, learning rates of every anchor's feature and scale x6",
+                            CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.045, "anchor_scaling": 0.042}}),
+    "w7-motion-anchorlr3-spatial3": ("as w7-motion-anchorlr3, and the spatial grid's x3",
+                                     CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.0225,
+                                                                         "anchor_scaling": 0.021,
+                                                                         "spatial_grid": 0.0225}}),
+    "w7-motion-anchorlr3-mlp2": ("as w7-motion-anchorlr3, and the decoder MLPs' x2",
+                                 CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.0225, "anchor_scaling": 0.021,
+                                                                     "offset_init": 0.016, "opacity_init": 0.004,
+                                                                     "cov": 0.008, "color_init": 0.016}}),
+    # motion keyframes per geometry-keyframe interval (atgs-prepare --motion.per-interval, 4 by
+    # default: 21 keyframes here): more keyframes put anchors where the objects are at more times,
+    # fewer give each keyframe's anchors more views
+    "w7-motion-per2": ("as w7-motion-offset, prepared with --motion.per-interval 2 (11 motion keyframes)",
+                       CARVED_MOTION, CPU_TRAIN),
+    "w7-motion-per4": ("as w7-motion-offset, prepared with --motion.per-interval 4 (21 motion keyframes, "
+                       "the default until 2026-11-25)", CARVED_MOTION, CPU_TRAIN),
+    "w7-motion-per8": ("as w7-motion-offset, prepared with --motion.per-interval 8 (41 motion keyframes, "
+                       "the default since 2026-11-25)", CARVED_MOTION, CPU_TRAIN),
+    "w7-motion-temporallr5": ("as w7-motion-offset, learning rates of the temporal grids and MLPs x5",
+                              CARVED_MOTION, {**CPU_TRAIN, "lr": {"temporal_init": 1e-3, "temporal_final": 1e-5,
+                                                                  "temporal_mlp_init": 1e-2,
+                                                                  "temporal_mlp_final": 1e-4}}),
 }
+
+# cases trained on the built-in scene with its motion points made again at another per-interval
+MOTION_PER_INTERVAL = {"w7-motion-per2": 2, "w7-motion-per4": 4, "w7-motion-per8": 8}
 
 
 @dataclass
@@ -135,6 +169,47 @@ def built_in_scene() -> Path:
     return ensure_default_scene(cache_dir(), progress=True)
 
 
+def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
+    """A copy of the prepared built-in scene (frames hard-linked, the same keyframe points) whose
+    motion points are made again at ``per_interval`` motion keyframes per geometry interval, as
+    `atgs-prepare --motion.per-interval` makes them; cached in ``work_dir``."""
+    import numpy as np
+
+    from atgs.data.motion_points import MotionPointsConfig, motion_keyframes, motion_points
+    from atgs.data.oracle import _link_or_copy
+    from atgs.data.scene import PreparedScene, compute_bounds, write_scene_metadata
+    from atgs.io.atomic import atomic_dir
+
+    out = work_dir / f"scene-motion-per{per_interval}"
+    if (out / "scene.json").is_file():
+        return out
+    scene = PreparedScene.load(scene_dir)
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    train = list(scene.train_indices)
+    kfs = motion_keyframes(scene.num_frames, len(scene.keyframes), per_interval)
+    mp = motion_points(lambda ci, f: scene.image_uint8(train[ci], f), [scene.cameras[i] for i in train],
+                       scene.num_frames, kfs, compute_bounds(np.asarray(scene.points), scene.cameras),
+                       MotionPointsConfig(per_interval=per_interval), progress=False)
+    with atomic_dir(out, True) as tmp:
+        shutil.copytree(scene_dir / "images", tmp / "images", copy_function=_link_or_copy)
+        shutil.copy2(scene_dir / "synth.json", tmp / "synth.json")
+        write_scene_metadata(tmp, scene.cameras, scene.num_frames, scene.points, scene.point_colors,
+                             scene.point_keyframes, fps=scene.fps, keyframes=scene.keyframes,
+                             test_cameras=scene.test_cameras, name=f"{scene.name}-motion-per{per_interval}",
+                             source=scene.source, extra={"coverage": meta.get("coverage"),
+                                                         "keyframe_points": meta.get("keyframe_points"),
+                                                         "motion_points": mp.stats}, motion=mp)
+    return out
+
+
+def case_scene(name: str, work_dir: Path) -> Path:
+    """The prepared scene a case trains on: the built-in one, or its motion-points variant."""
+    scene_dir = built_in_scene()
+    if name in MOTION_PER_INTERVAL:
+        scene_dir = motion_variant(scene_dir, MOTION_PER_INTERVAL[name], work_dir)
+    return scene_dir
+
+
 def run_case(args: BudgetKnobs, name: str) -> dict:
     import torch
 
@@ -144,7 +219,7 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
     from atgs.train.trainer import Trainer
 
     _, model_over, train_over = CASES[name]
-    scene_dir = built_in_scene()
+    scene_dir = case_scene(name, args.work_dir)
     scene = PreparedScene.load(scene_dir)
     m, t = preset("cpu", minutes=args.minutes)
     for k, v in model_over.items():
@@ -154,7 +229,11 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
         else:
             setattr(m, k, v)
     for k, v in train_over.items():
-        setattr(t, k, v)
+        if isinstance(v, dict):  # a nested config (learning rates): its fields
+            for kk, vv in v.items():
+                setattr(getattr(t, k), kk, vv)
+        else:
+            setattr(t, k, v)
     t.eval_every = t.save_every = 0
     t.threads = 1
     torch.manual_seed(0)
@@ -227,7 +306,7 @@ def main() -> None:
         from _splits import held_out_splits
 
         def rescore(name: str) -> dict:
-            return held_out_splits(args.work_dir / f"run-{name}" / "ckpt.pt", built_in_scene())
+            return held_out_splits(args.work_dir / f"run-{name}" / "ckpt.pt", case_scene(rows[name]["case"], args.work_dir))
 
         names = [row_key(c, args.minutes, args.tag) for c in args.cases if row_key(c, args.minutes, args.tag) in rows]
         with ThreadPoolExecutor(max(1, args.jobs)) as pool:

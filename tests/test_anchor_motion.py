@@ -233,3 +233,49 @@ def test_checkpoint_from_before_motion_loads_as_trained(tmp_path):
     for fr in range(scene.num_frames):
         for x, y in zip(model.gaussians_at_frame(fr).as_tuple(), tr.model.gaussians_at_frame(fr).as_tuple()):
             assert torch.equal(x, y)
+
+
+
+def test_moving_anchor_learning_rate_factor(tmp_path):
+    """--train.lr.moving-anchors scales the learning rates of per-keyframe anchors only, and a
+    step with it moves them by that factor more than a step without it (Adam's first step
+    moves every entry by its learning rate)."""
+    from atgs.model.anchors import STATIC
+    from atgs.model.atgs_model import ANCHOR_TABLES
+
+    scene = make_toy_scene(num_frames=7, num_cameras=4, width=40, height=30, keyframes=3)
+    m, t = preset("tiny")
+    m.temporal_fade = m.anchor_velocity = True
+    runs = {}
+    for factor in (1.0, 4.0):
+        t.lr.moving_anchors = factor
+        tr = Trainer(scene, m, t, tmp_path / f"run{factor}")
+        moving = tr.model.anchor_keyframe != STATIC
+        assert bool(moving.any()) and bool((~moving).any())
+        rows = torch.arange(tr.model.num_anchors)
+        for name in ANCHOR_TABLES:
+            lr = torch.as_tensor(tr.sparse_lr(name, rows, 5000)).expand(len(rows))
+            tr.cfg.lr.moving_anchors = 1.0
+            base = torch.as_tensor(tr.sparse_lr(name, rows, 5000)).expand(len(rows))
+            tr.cfg.lr.moving_anchors = factor
+            torch.testing.assert_close(lr[~moving], base[~moving])
+            torch.testing.assert_close(lr[moving], factor * base[moving])
+        before = tr.model.anchor_feature.clone()
+        tr.train_step()
+        runs[factor] = (tr.model.anchor_feature - before).abs().amax(dim=1), moving
+    (d1, moving), (d4, _) = runs[1.0], runs[4.0]
+    stepped = (d1 > 0) & (d4 > 0)
+    assert bool((stepped & moving).any()) and bool((stepped & ~moving).any())
+    torch.testing.assert_close(d4[stepped & moving], 4 * d1[stepped & moving], rtol=1e-3, atol=1e-9)
+    torch.testing.assert_close(d4[stepped & ~moving], d1[stepped & ~moving], rtol=1e-3, atol=1e-9)
+
+
+@pytest.mark.parametrize("factor", [0.0, -1.0, float("nan")])
+def test_moving_anchor_factor_must_be_positive(tmp_path, factor):
+    from atgs.errors import UserError
+
+    scene = make_toy_scene(num_frames=4, num_cameras=4, width=32, height=24, keyframes=2)
+    m, t = preset("tiny")
+    t.lr.moving_anchors = factor
+    with pytest.raises(UserError, match="moving-anchors"):
+        Trainer(scene, m, t, tmp_path)

@@ -47,9 +47,10 @@ class MotionPointsConfig:
 
     enabled: Annotated[bool, tyro.conf.arg(name="motion-points", prefix_name=False)] = True
     """Points on moving content at extra keyframes, from motion masks (--no-motion-points: off)."""
-    per_interval: int = 4
-    """Motion keyframes per interval between two geometry keyframes (4: K geometry keyframes give
-    4 (K - 1) + 1 motion keyframes, the geometry ones among them)."""
+    per_interval: int = 8
+    """Motion keyframes per interval between two geometry keyframes (8: K geometry keyframes give
+    8 (K - 1) + 1 motion keyframes, the geometry ones among them). On the built-in scene at
+    20 minutes, 2 / 4 / 8 scored 24.55 / 25.05 / 25.25 dB held out (docs/training.md)."""
     long_side: int = 200
     """Working resolution of the masks (long side, pixels)."""
     background_frames: int = 48

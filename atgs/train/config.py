@@ -52,6 +52,10 @@ class LRConfig:
     """Anchor velocities (--model.anchor-velocity), times the scene extent (world units per keyframe interval)."""
     anchor_fade: float = 0.01
     """Anchor fade widths (--model.temporal-fade), on their log."""
+    moving_anchors: float = 1.0
+    """Factor on the learning rates of the anchors of one keyframe (feature, scale, velocity, fade):
+    they are trained only by the views of their time span, the static anchors by every view.
+    Measured in docs/training.md ("Learning rates at CPU step counts"); 1 = the same as static."""
     exposure: float = 1e-3
     """Per-camera exposure gains (on their log) and biases (--train.camera-exposure); constant."""
     warmup_steps: int = 1000

@@ -25,7 +25,8 @@ from atgs.config_dict import from_dict, to_dict
 from atgs.data.scene import resize_frame
 from atgs.device import DeviceError
 from atgs.errors import UserError
-from atgs.model.atgs_model import ATGSModel, Decoded
+from atgs.model.anchors import STATIC
+from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
 from atgs.model.config import ModelConfig
 from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians
@@ -132,6 +133,8 @@ class Trainer:
             raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
         if cfg.lambda_distortion < 0:
             raise UserError(f"--train.lambda-distortion {cfg.lambda_distortion}: a loss weight, use >= 0 (0 = off)")
+        if not cfg.lr.moving_anchors > 0:
+            raise UserError(f"--train.lr.moving-anchors {cfg.lr.moving_anchors}: a factor on learning rates, use > 0")
         if not 0 <= cfg.drop_gaussians < 1:
             raise UserError(f"--train.drop-gaussians {cfg.drop_gaussians}: a fraction of the Gaussians, use 0 <= rate < 1")
         if cfg.background_from_images:  # resolved once; the saved config carries the colour
@@ -220,6 +223,9 @@ class Trainer:
     def sparse_lr(self, name: str, rows: torch.Tensor, step: int) -> float | torch.Tensor:
         lr = self.cfg.lr
         w = warmup(step, lr.warmup_steps, lr.warmup_start)
+        if lr.moving_anchors != 1.0 and name in ANCHOR_TABLES:  # per row: static anchors keep w
+            moving = self.model.anchor_keyframe[rows] != STATIC
+            w = torch.where(moving, w * lr.moving_anchors, w).float()
         if name == "anchor_feature":
             return w * lr.anchor_feature
         if name == "anchor_log_scale":
