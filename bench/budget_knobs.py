@@ -133,10 +133,10 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     # fewer give each keyframe's anchors more views
     "w7-motion-per2": ("as w7-motion-offset, prepared with --motion.per-interval 2 (11 motion keyframes)",
                        CARVED_MOTION, CPU_TRAIN),
-    "w7-motion-per4": ("as w7-motion-offset, prepared with --motion.per-interval 4 (21 motion keyframes, "
-                       "the default until 2026-11-25)", CARVED_MOTION, CPU_TRAIN),
-    "w7-motion-per8": ("as w7-motion-offset, prepared with --motion.per-interval 8 (41 motion keyframes, "
-                       "the default since 2026-11-25)", CARVED_MOTION, CPU_TRAIN),
+    "w7-motion-per4": (("as w7-motion-offset, prepared with --motion.per-interval 4 (21 motion keyframes, "
+                        "the default until 2026-11-25)"), CARVED_MOTION, CPU_TRAIN),
+    "w7-motion-per8": (("as w7-motion-offset, prepared with --motion.per-interval 8 (41 motion keyframes, "
+                        "the default since 2026-11-25)"), CARVED_MOTION, CPU_TRAIN),
     "w7-motion-temporallr5": ("as w7-motion-offset, learning rates of the temporal grids and MLPs x5",
                               CARVED_MOTION, {**CPU_TRAIN, "lr": {"temporal_init": 1e-3, "temporal_final": 1e-5,
                                                                   "temporal_mlp_init": 1e-2,
@@ -180,7 +180,8 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
     from atgs.data.scene import PreparedScene, compute_bounds, write_scene_metadata
     from atgs.io.atomic import atomic_dir
 
-    out = work_dir / f"scene-motion-per{per_interval}"
+    # named after the scene it derives from, so a new PREPARE_VERSION never reuses an older copy
+    out = work_dir / f"scene-{scene_dir.parent.name}-{scene_dir.name}-motion-per{per_interval}"
     if (out / "scene.json").is_file():
         return out
     scene = PreparedScene.load(scene_dir)
