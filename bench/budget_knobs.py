@@ -46,6 +46,8 @@ MEAN_BG = {"background_from_images": True, **SUM_VOLUME}
 # The cpu preset's decode and losses since 2026-11-25 (case w7-motion-offset), the base of the later cases.
 CARVED_MOTION = {**MOTION, "carve_random_anchors": True}
 CPU_TRAIN = {**MEAN_BG, **MEAN_VOXEL_VOLUME, "lambda_offset": 0.01, "offset_free": 1.0}
+# every anchor's feature and scale learning rate x3 (the paper's 0.0075 and 0.007)
+ANCHOR_LR3 = {"anchor_feature": 0.0225, "anchor_scaling": 0.021}
 
 CASES: dict[str, tuple[str, dict, dict]] = {
     "w7": ("window W=7 (paper), black background", {"window": 7, **NO_MOTION, **NO_CARVE},
@@ -117,19 +119,17 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     "w7-motion-movinglr10": ("as w7-motion-offset, learning rates of the per-keyframe anchors x10",
                              CARVED_MOTION, {**CPU_TRAIN, "lr": {"moving_anchors": 10.0}}),
     "w7-motion-anchorlr3": ("as w7-motion-offset, learning rates of every anchor's feature and scale x3",
-                            CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.0225, "anchor_scaling": 0.021}}),
+                            CARVED_MOTION, {**CPU_TRAIN, "lr": ANCHOR_LR3}),
     "w7-motion-anchorlr6": ("as w7-motion-offset, learning rates of every anchor's feature and scale x6",
                             CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.045, "anchor_scaling": 0.042}}),
     "w7-motion-anchorlr3-spatial3": ("as w7-motion-anchorlr3, and the spatial grid's x3",
-                                     CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.0225,
-                                                                         "anchor_scaling": 0.021,
-                                                                         "spatial_grid": 0.0225}}),
+                                     CARVED_MOTION, {**CPU_TRAIN, "lr": {**ANCHOR_LR3, "spatial_grid": 0.0225}}),
     "w7-motion-anchorlr3-mlp2": ("as w7-motion-anchorlr3, and the decoder MLPs' x2",
-                                 CARVED_MOTION, {**CPU_TRAIN, "lr": {"anchor_feature": 0.0225, "anchor_scaling": 0.021,
-                                                                     "offset_init": 0.016, "opacity_init": 0.004,
-                                                                     "cov": 0.008, "color_init": 0.016}}),
-    # motion keyframes per geometry-keyframe interval (atgs-prepare --motion.per-interval, 4 by
-    # default: 21 keyframes here): more keyframes put anchors where the objects are at more times,
+                                 CARVED_MOTION, {**CPU_TRAIN, "lr": {**ANCHOR_LR3, "offset_init": 0.016,
+                                                                     "opacity_init": 0.004, "cov": 0.008,
+                                                                     "color_init": 0.016}}),
+    # motion keyframes per geometry-keyframe interval (atgs-prepare --motion.per-interval, 8 by
+    # default since 2026-11-25, 4 before: 41 / 21 keyframes here): more keyframes put anchors where the objects are at more times,
     # fewer give each keyframe's anchors more views
     "w7-motion-per2": ("as w7-motion-offset, prepared with --motion.per-interval 2 (11 motion keyframes)",
                        CARVED_MOTION, CPU_TRAIN),
@@ -176,9 +176,8 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
     import numpy as np
 
     from atgs.data.motion_points import MotionPointsConfig, motion_keyframes, motion_points
-    from atgs.data.oracle import _link_or_copy
     from atgs.data.scene import PreparedScene, compute_bounds, write_scene_metadata
-    from atgs.io.atomic import atomic_dir
+    from atgs.io.atomic import atomic_dir, link_or_copy
 
     # named after the scene it derives from, so a new PREPARE_VERSION never reuses an older copy
     out = work_dir / f"scene-{scene_dir.parent.name}-{scene_dir.name}-motion-per{per_interval}"
@@ -192,7 +191,7 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
                        scene.num_frames, kfs, compute_bounds(np.asarray(scene.points), scene.cameras),
                        MotionPointsConfig(per_interval=per_interval), progress=False)
     with atomic_dir(out, True) as tmp:
-        shutil.copytree(scene_dir / "images", tmp / "images", copy_function=_link_or_copy)
+        shutil.copytree(scene_dir / "images", tmp / "images", copy_function=link_or_copy)
         shutil.copy2(scene_dir / "synth.json", tmp / "synth.json")
         write_scene_metadata(tmp, scene.cameras, scene.num_frames, scene.points, scene.point_colors,
                              scene.point_keyframes, fps=scene.fps, keyframes=scene.keyframes,
@@ -201,6 +200,16 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
                                                          "keyframe_points": meta.get("keyframe_points"),
                                                          "motion_points": mp.stats}, motion=mp)
     return out
+
+
+def override(cfg, values: dict) -> None:
+    """Set a case's fields on a config; a dict value sets the fields of a nested config (the hash
+    grid, the learning rates)."""
+    for k, v in values.items():
+        if isinstance(v, dict):
+            override(getattr(cfg, k), v)
+        else:
+            setattr(cfg, k, v)
 
 
 def case_scene(name: str, work_dir: Path) -> Path:
@@ -223,18 +232,8 @@ def run_case(args: BudgetKnobs, name: str) -> dict:
     scene_dir = case_scene(name, args.work_dir)
     scene = PreparedScene.load(scene_dir)
     m, t = preset("cpu", minutes=args.minutes)
-    for k, v in model_over.items():
-        if isinstance(v, dict):  # a nested config (the hash grid): its fields
-            for kk, vv in v.items():
-                setattr(getattr(m, k), kk, vv)
-        else:
-            setattr(m, k, v)
-    for k, v in train_over.items():
-        if isinstance(v, dict):  # a nested config (learning rates): its fields
-            for kk, vv in v.items():
-                setattr(getattr(t, k), kk, vv)
-        else:
-            setattr(t, k, v)
+    override(m, model_over)
+    override(t, train_over)
     t.eval_every = t.save_every = 0
     t.threads = 1
     torch.manual_seed(0)

@@ -235,7 +235,6 @@ def test_checkpoint_from_before_motion_loads_as_trained(tmp_path):
             assert torch.equal(x, y)
 
 
-
 def test_moving_anchor_learning_rate_factor(tmp_path):
     """--train.lr.moving-anchors scales the learning rates of per-keyframe anchors only, and a
     step with it moves them by that factor more than a step without it (Adam's first step

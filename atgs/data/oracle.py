@@ -14,7 +14,6 @@ frames, cameras, keyframes and bounds).
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import sys
 from dataclasses import dataclass
@@ -25,7 +24,7 @@ import numpy as np
 import tyro
 from PIL import Image
 
-from atgs.io.atomic import atomic_dir
+from atgs.io.atomic import atomic_dir, link_or_copy
 from atgs.data.coverage import scene_coverage, working_camera
 from atgs.data.errors import DataError
 from atgs.data.mvs import StereoConfig
@@ -90,7 +89,7 @@ def make_oracle_scene(prepared: Path, out: Path, stereo: StereoConfig = StereoCo
     pts, cols, kf = oracle_points(scene, stereo)
     meta = json.loads((Path(prepared) / "scene.json").read_text())
     with atomic_dir(Path(out), overwrite) as tmp:
-        shutil.copytree(Path(prepared) / "images", tmp / "images", copy_function=_link_or_copy)
+        shutil.copytree(Path(prepared) / "images", tmp / "images", copy_function=link_or_copy)
         shutil.copy2(Path(prepared) / "synth.json", tmp / "synth.json")
         if (Path(prepared) / "motion_points.ply").is_file():  # the moving-content points stay as they are
             shutil.copy2(Path(prepared) / "motion_points.ply", tmp / "motion_points.ply")
@@ -108,12 +107,6 @@ def make_oracle_scene(prepared: Path, out: Path, stereo: StereoConfig = StereoCo
 _WRITTEN = {"format", "version", "name", "fps", "num_frames", "cameras", "test_cameras", "keyframes", "bounds",
             "source", "coverage", "keyframe_points"}
 
-
-def _link_or_copy(src: str, dst: str) -> None:
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
 
 
 @dataclass(frozen=True)

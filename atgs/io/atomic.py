@@ -141,3 +141,12 @@ def interprocess_lock(path: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def link_or_copy(src: str, dst: str) -> None:
+    """Hard-link ``src`` to ``dst`` (a derived scene shares its frames), copying where links fail
+    (another filesystem); a ``copy_function`` for shutil.copytree."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
