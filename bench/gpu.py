@@ -40,6 +40,7 @@ import torch
 import tyro
 
 from atgs.headless_gl import gl_description
+from atgs.io.atomic import write_json_atomic
 from atgs.progress import progress_bar
 from atgs.viewer.source import decode_frame
 from atgs.viewer.splat_renderer import SplatRenderer
@@ -220,14 +221,16 @@ def part_table(rows: list[dict], head: list[str], key: str, cells: Callable[[dic
     return lines
 
 
-def _stamp(stamp: dict) -> str:
+def _stamp(stamp: dict, device: str) -> str:
     m = stamp["machine"]
-    return (f"Measured {stamp['date']}: {m['cpus']} CPUs, OpenGL {m['gl']}, torch {m['torch']}; "
+    where = f"{m['cuda']}, " if device == "cuda" and m.get("cuda", NOT_MEASURED) != NOT_MEASURED else ""
+    return (f"Measured {stamp['date']}: {where}{m['cpus']} CPUs, OpenGL {m['gl']}, torch {m['torch']}; "
             f"load average before: {', '.join(f'{x:.1f}' for x in m['loadavg_before'])}.")
 
 
 def markdown_table(result: dict) -> str:
-    """One table per part, each under the line saying when and where it was measured."""
+    """One table per part and device, each under the line saying when and where it was measured
+    (a GPU session and a CPU session rarely happen on the same day)."""
     rows, lines = result["rows"], []
     tables = {
         "train": (["training, N3DV-like scene: device", "name", "preset", "image size", "anchors",
@@ -246,30 +249,45 @@ def markdown_table(result: dict) -> str:
                               f"{r['first_frame_ms']:.0f}", f"**{r['decode_ms']:.1f}**"]),
     }
     for part, (head, key, cells) in tables.items():
-        part_rows = [r for r in rows if r["part"] == part]
-        if part_rows:
-            lines += ([""] if lines else []) + [_stamp(result["parts"][part])]
-            lines += part_table(part_rows, head, key, cells)
+        for device in ("cuda", "cpu"):
+            group = [r for r in rows if r["part"] == part and r["device"] == device]
+            if group:
+                lines += ([""] if lines else []) + [_stamp(result["parts"][f"{part}/{device}"], device)]
+                lines += part_table(group, head, key, cells)
     return "\n".join(lines)
 
 
-def previous_parts(path: Path) -> tuple[dict, list[dict]]:
-    """(part -> its date and machine, rows) of an earlier results file; empty if there is none."""
+def previous_stamps(path: Path) -> tuple[dict, list[dict]]:
+    """("part/device" -> its date and machine, rows) of an earlier results file; empty if there
+    is none. Files of the older layout (one stamp per part) give each of its devices that stamp."""
     if not path.exists():
         return {}, []
     old = json.loads(path.read_text())
     rows = old.get("rows", [])
-    parts = old.get("parts") or {r["part"]: {"date": old["date"], "machine": old["machine"]} for r in rows}
-    return parts, rows
+    stamps = old.get("parts") or {r["part"]: {"date": old["date"], "machine": old["machine"]} for r in rows}
+    out = {}
+    for key, stamp in stamps.items():
+        if "/" in key:
+            out[key] = stamp
+        else:
+            out.update({f"{key}/{r['device']}": stamp for r in rows if r["part"] == key})
+    return out, rows
+
+
+def _result(stamps: dict, rows: list[dict]) -> dict:
+    order = [f"{p}/{d}" for p in PARTS for d in ("cuda", "cpu")]
+    return {"parts": dict(sorted(stamps.items(), key=lambda kv: order.index(kv[0]))),
+            "rows": sorted(rows, key=lambda r: (list(PARTS).index(r["part"]), r["device"] != "cuda")),
+            "date": max((s["date"] for s in stamps.values()), default="")}
 
 
 def main(cfg: GpuBenchConfig) -> None:
-    """Measures ``cfg.parts``; the results file keeps the rows of the parts not measured now."""
+    """Measures ``cfg.parts`` on ``cfg.devices``; the results file keeps the rows (and the
+    measurement stamps) of every other part and device. It is written after each part on each
+    device, so a later part that fails (or crashes the process) loses only its own rows."""
     load_before = os.getloadavg()
     ctx, renderer = warm_renderer(cfg.gl)
-    parts, old_rows = previous_parts(cfg.out)
-    rows = [r for r in old_rows if r["part"] not in cfg.parts]
-    parts = {p: v for p, v in parts.items() if p not in cfg.parts}
+    stamps, rows = previous_stamps(cfg.out)
     # what an unmeasured part's rows would have covered (one "not measured" row each)
     row_keys = {"train": ("preset", cfg.train_presets), "viewer": ("gaussians", cfg.counts),
                 "decode": ("preset", cfg.presets)}
@@ -278,23 +296,23 @@ def main(cfg: GpuBenchConfig) -> None:
         for part, device in jobs:
             reason = unavailable(device, part)
             if reason is None:
-                rows += PARTS[part](cfg, device, renderer)
+                new_rows = PARTS[part](cfg, device, renderer)
             else:
                 key, values = row_keys[part]
-                rows += [{"part": part, "device": device, "device_name": "none", key: v, "status": reason}
-                         for v in values]
+                new_rows = [{"part": part, "device": device, "device_name": "none", key: v, "status": reason}
+                            for v in values]
+            rows = [r for r in rows if (r["part"], r["device"]) != (part, device)] + new_rows
+            machine = {"gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
+                       "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+                       "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else NOT_MEASURED,
+                       "loadavg_before": load_before, "loadavg_after": os.getloadavg()}
+            stamps[f"{part}/{device}"] = {"date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+                                          "machine": machine}
+            write_json_atomic(cfg.out, _result(stamps, rows))
             bar.update(1)
-    machine = {"gl": gl_description(ctx), "cpus": os.cpu_count(), "python": platform.python_version(),
-               "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-               "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else NOT_MEASURED,
-               "loadavg_before": load_before, "loadavg_after": os.getloadavg()}
-    date = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
-    parts.update({p: {"date": date, "machine": machine} for p in cfg.parts})
-    order = list(PARTS)
-    result = {"parts": dict(sorted(parts.items(), key=lambda kv: order.index(kv[0]))),
-              "rows": sorted(rows, key=lambda r: order.index(r["part"])), "date": date}
     renderer.release()
     ctx.release()
+    result = _result(stamps, rows)
     publish(result, cfg.out, markdown_table(result), cfg.docs, "gpu")
 
 

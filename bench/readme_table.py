@@ -337,15 +337,33 @@ def gpu(r: dict) -> Cells:
                 f"({train[0]['cameras']} cameras), viewer {span([x['fps_new_frame'] for x in view], '{:.2f}')} FPS "
                 f"at {view[0]['size']}, "
                 f"decode {span([x['decode_ms'] for x in cpu if x['part'] == 'decode'], '{:.0f}')} ms (docs/gpu.md)")
-    cuda_text = (f"CUDA: {len(measured)} of {len(cuda)} rows measured" if measured
-                 else f"CUDA: {cuda[0]['status']}")
-    verdict = (reached(paper[0]["steps_per_s"] >= GPU_PAPER_STEPS_PER_S,
-                       f"{paper[0]['steps_per_s']:.1f} steps/s on {paper[0]['device_name']}")
-               if paper else "**not measured**")
+    if measured:
+        parts = []
+        for part, what in (("train", "training {} steps/s at {}"), ("viewer", "viewer {} FPS at {}"),
+                           ("decode", "decode {} ms")):
+            rows = [x for x in measured if x["part"] == part]
+            if not rows:
+                parts.append(f"{part}: not measured")
+                continue
+            value = {"train": lambda x: x["steps_per_s"], "viewer": lambda x: x["fps_new_frame"],
+                     "decode": lambda x: x["decode_ms"]}[part]
+            parts.append(what.format(span([value(x) for x in rows], "{:.1f}"), rows[0].get("size", "")))
+        cuda_text = f"CUDA ({measured[0]['device_name']}): " + ", ".join(parts)
+    else:
+        cuda_text = f"CUDA: {cuda[0]['status']}"
+    verdict = "**not measured**"
+    if paper:
+        name = paper[0]["device_name"]
+        why = f"{paper[0]['steps_per_s']:.1f} steps/s on {name}"
+        if "H100" not in name:  # the target names a card; say so when another one measured it
+            why += "; an H100 itself not measured"
+        verdict = reached(paper[0]["steps_per_s"] >= GPU_PAPER_STEPS_PER_S, why)
     counts = [x["gaussians"] for x in r["rows"] if x["part"] == "viewer"]
+    runs = "; ".join(f"{device.upper()} {run_of(max(s['date'] for s in stamps), one_minute(*(s['machine'] for s in stamps)))}"
+                     for device in ("cuda", "cpu")
+                     if (stamps := [v for k, v in r["parts"].items() if k.endswith("/" + device)]))
     return Cells(f"N3DV-like scene, every preset; {count(min(counts))}-{count(max(counts))} Gaussians in the viewer",
-                 run_of(r["date"], one_minute(*(p["machine"] for p in r["parts"].values()))),
-                 f"{cuda_text}; {cpu_text}", verdict)
+                 runs, f"{cuda_text}; {cpu_text}", verdict)
 
 
 def playback(r: dict) -> Cells:

@@ -9,44 +9,7 @@ from atgs.render import rasterize
 from atgs.render.cpu import project_cpu
 from atgs.render.projection import project
 from atgs.render.scenes import random_scene
-
-FIELDS = ("means", "quats", "scales", "opacities", "colors")
-
-
-def render_with_grads(backend: str, scene, dtype: torch.dtype, bg: torch.Tensor, seed: int = 7):  # noqa: ANN001, ANN201
-    """Render, back-propagate a fixed random functional of image/alpha/depth/depth_sq, return all grads."""
-    params = [t.detach().to(dtype).clone().requires_grad_(True) for t in scene.gaussians()]
-    bgp = bg.to(dtype).clone().requires_grad_(True)
-    out = rasterize(*params, scene.viewmat.to(dtype), scene.K.to(dtype), scene.width, scene.height,
-                    background=bgp, backend=backend)  # fmt: skip
-    out.means2d.retain_grad()
-    g = torch.Generator().manual_seed(seed)
-    H, W = scene.height, scene.width
-    w_img, w_alpha, w_depth, w_sq = (torch.randn(s, generator=g, dtype=torch.float64).to(dtype)
-                                     for s in ((H, W, 3), (H, W), (H, W), (H, W)))
-    loss = ((out.image * w_img).sum() + (out.alpha * w_alpha).sum() + (out.depth * w_depth).sum() * 0.1
-            + (out.depth_sq * w_sq).sum() * 0.01)
-    loss.backward()
-    grads = {name: p.grad for name, p in zip(FIELDS, params)}
-    grads["means2d"] = out.means2d.grad
-    grads["background"] = bgp.grad
-    return out, grads
-
-
-def assert_mostly_close(a: torch.Tensor, b: torch.Tensor, atol: float, name: str) -> None:
-    """Element-wise close except for a tiny fraction of pixels where a float32 rounding flips a
-    discrete decision (the 1/255 skip or the 3-sigma cut) between the two implementations."""
-    diff = (a.detach().double() - b.detach().double()).abs()
-    bad = float((diff > atol).double().mean())
-    assert bad <= 0.002, f"{name}: {bad:.3%} of elements differ by more than {atol}"
-    assert float(diff.max()) < 0.02, f"{name}: max difference {float(diff.max())}"
-
-
-def assert_grad_close(a: torch.Tensor, b: torch.Tensor, name: str, rtol: float = 2e-3) -> None:
-    """Relative error of the whole gradient tensor (float32 kernel vs float64 reference)."""
-    err = float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-12))
-    assert err < rtol, f"gradient of {name}: relative error {err:.2e}"
-
+from raster_checks import FIELDS, assert_grad_close, assert_mostly_close, render_with_grads
 
 SCENES = [
     dict(n=400, width=64, height=48, seed=0),

@@ -251,6 +251,37 @@ def test_large_gaussian_count_spans_texture_rows(renderer: SplatRenderer) -> Non
     assert a.max() == pytest.approx(0.9, abs=1e-4)  # the last Gaussian, and only it, is visible
 
 
+def test_growing_frames_draw_from_the_new_buffers(renderer: SplatRenderer, monkeypatch) -> None:
+    """A frame with more Gaussians than the buffers hold reallocates them; the draw must use the
+    new ones. NVIDIA's driver hands a new buffer the GL name of the one just released (Mesa does
+    not), so the GL names are made equal here: a VAO kept by name would draw the old buffers
+    (it crashed the process on an H200)."""
+    import moderngl
+
+    monkeypatch.setattr(moderngl.Buffer, "glo", property(lambda self: 1))
+    cam = Camera("c", 48, 40, np.array([[50.0, 0, 24], [0, 50.0, 20], [0, 0, 1]]), np.eye(4))
+
+    def frame(n: int, seed: int) -> Gaussians:
+        g = torch.Generator().manual_seed(seed)
+        means = torch.rand(n, 3, generator=g) * torch.tensor([1.6, 1.4, 2.0]) - torch.tensor([0.8, 0.7, -2.0])
+        return Gaussians(means, torch.randn(n, 4, generator=g), torch.rand(n, 3, generator=g) * 0.03 + 0.005,
+                         torch.rand(n, generator=g) * 0.9, torch.rand(n, 3, generator=g))
+
+    renderer.set_gaussians(pack_gaussians(frame(30, seed=0)))
+    renderer.render_image(cam)
+    big = frame(5000, seed=1)  # every column and the index buffer outgrow their first size
+    renderer.set_gaussians(pack_gaussians(big))
+    drawn = renderer.render_image(cam)
+    fresh = SplatRenderer(renderer.ctx)
+    try:
+        fresh.set_gaussians(pack_gaussians(big))
+        expected = fresh.render_image(cam)
+    finally:
+        fresh.release()
+    assert float(np.abs(expected).max()) > 0.1, "the frame covers the image"
+    np.testing.assert_array_equal(drawn, expected)
+
+
 def test_radix_sort_agrees_with_exact_sort() -> None:
     from atgs.viewer.sorting import back_to_front, view_depths
 

@@ -129,6 +129,7 @@ class SplatRenderer:
         self._index_buf: moderngl.Buffer | None = None
         self._vao: moderngl.VertexArray | None = None
         self._vao_key: tuple = ()
+        self._allocations = 0  # buffers made so far: the VAO is rebuilt when this changes
         self._sh_degree = -1
         self._count = 0
         self._version = 0
@@ -159,6 +160,7 @@ class SplatRenderer:
             return buf
         if buf is not None:
             buf.release()
+        self._allocations += 1
         return self.ctx.buffer(reserve=max(1 << max(0, (nbytes - 1).bit_length()), 4096), dynamic=True)
 
     def set_gaussians(self, packed: PackedGaussians) -> float:
@@ -183,7 +185,10 @@ class SplatRenderer:
         if g is None or self._index_buf is None:
             return None
         used = self._columns[: len(g.columns)]
-        key = (self._sh_degree, *(b.glo for b in used if b is not None), self._index_buf.glo)
+        # Keyed by allocation count, not GL names: NVIDIA's driver gives a new buffer the name of
+        # the one just released, and a VAO kept for that name would still read the old (smaller)
+        # buffer, which it keeps alive, and crash the process in the draw.
+        key = (self._sh_degree, len(used), self._allocations)
         if self._vao is None or key != self._vao_key:
             if self._vao is not None:
                 self._vao.release()

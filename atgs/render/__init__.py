@@ -1,7 +1,7 @@
 """Differentiable Gaussian rasterizer: ``rasterize(...) -> RasterOutput``.
 
 Backends: "cpu" (compiled C++/OpenMP, tile-based, hand-written backward), "torch" (slow dense
-reference used by the tests), "cuda" (thin gsplat wrapper, untested in CI). See docs/rasterizer.md.
+reference used by the tests), "cuda" (thin gsplat wrapper; its tests need a GPU). See docs/rasterizer.md.
 """
 
 from atgs.render.api import BACKENDS, rasterize, rasterize_gaussians

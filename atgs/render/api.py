@@ -39,7 +39,7 @@ def rasterize(
     [0,1]; colors (N,3); viewmat (4,4) world-to-camera, OpenCV axes; K (3,3) pinhole
     intrinsics, pixel centers at +0.5; background (3,) or None (black).
     backend: "cpu" (compiled C++/OpenMP, float32), "torch" (slow dense reference, any float
-    dtype), "cuda" (gsplat, untested in CI), "auto" (cuda if the tensors are on a GPU and
+    dtype), "cuda" (gsplat; tested on a GPU only), "auto" (cuda if the tensors are on a GPU and
     gsplat imports, else cpu if the extension builds, else torch with a warning).
     Gradients flow to means, quats, scales, opacities, colors (and background); the "torch"
     backend also differentiates viewmat and K.

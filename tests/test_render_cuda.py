@@ -1,0 +1,89 @@
+"""The "cuda" backend (the gsplat wrapper, atgs/render/cuda.py) against the float64 torch
+reference. Skips without a CUDA device and gsplat (CI has neither); run on a GPU machine.
+
+gsplat cuts a splat off at up to 3.33 sigma (sqrt(2 ln(255 opacity)) sigma for faint ones) where
+the reference cuts at exactly 3 sigma. A pixel between the two cut-offs has alpha = opacity * exp(-d^2 / 2) <= 0.011 *
+opacity, below the shared 1/255 skip whenever opacity <= 0.35, so scenes of such splats must
+agree to float32 precision; scenes of opaque splats only closely."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from atgs.render import rasterize
+from atgs.render.cuda import gsplat_available
+from atgs.render.scenes import random_scene
+from raster_checks import FIELDS, assert_mostly_close, grad_error, render_with_grads
+
+needs_gsplat = pytest.mark.skipif(not gsplat_available(), reason="needs a CUDA device and gsplat (pip install gsplat)")
+
+SCENES = [
+    dict(n=400, width=64, height=48, seed=0),
+    dict(n=250, width=37, height=71, seed=1, min_px=1.0, max_px=30.0),  # non-square, partial tiles
+    dict(n=3000, width=96, height=80, seed=2, max_px=12.0),  # dense: the transmittance stop rule
+]
+
+
+def _faint(cfg: dict):
+    """random_scene with opacities mapped from [0.05, 1] into [0.05, 0.3]."""
+    scene = random_scene(**cfg)
+    scene.opacities = 0.05 + (scene.opacities - 0.05) * (0.25 / 0.95)
+    return scene
+
+
+@needs_gsplat
+@pytest.mark.parametrize("cfg", SCENES, ids=lambda c: f"{c['n']}@{c['width']}x{c['height']}")
+def test_gsplat_matches_reference_where_the_cut_offs_agree(cfg: dict) -> None:
+    scene = _faint(cfg)
+    bg = torch.tensor([0.1, 0.5, 0.9])
+    ref, gref = render_with_grads("torch", scene, torch.float64, bg)
+    out, gcu = render_with_grads("cuda", scene, torch.float32, bg, device="cuda")
+    assert out.backend == "cuda" and out.image.device.type == "cuda"
+    assert out.image.shape == (cfg["height"], cfg["width"], 3) and out.radii.dtype == torch.int32
+    assert float(ref.alpha.detach().mean()) > 0.3, "the scene covers the image"
+    assert_mostly_close(out.image, ref.image, 1e-4, "image")
+    assert_mostly_close(out.alpha, ref.alpha, 1e-4, "alpha")
+    # depths reach 10 (depth_sq 100): a flipped 1/255 skip moves a pixel by more than 0.02 there
+    assert_mostly_close(out.depth, ref.depth, 1e-3, "depth", max_diff=0.05)
+    assert_mostly_close(out.depth_sq, ref.depth_sq, 1e-2, "depth_sq", max_diff=0.5)
+    # gsplat's radius is ceil(extend * sigma) per axis with extend = min(3.33, sqrt(2 ln(255 opacity)))
+    # (< 2.94 here), the reference's ceil(3 sigma_max): gsplat culls a few more faint splats at the
+    # image border (they add nothing above 1/255, as the images above show) and never fewer
+    radii, visible = out.radii.cpu(), ref.radii > 0
+    assert int(((radii > 0) & ~visible).sum()) <= 2
+    assert bool((radii[visible] <= ref.radii[visible] + 1).all())
+    both = visible & (radii > 0)
+    assert int(both.sum()) >= 0.9 * int(visible.sum())
+    torch.testing.assert_close(out.means2d.detach().cpu().double()[both], ref.means2d.detach()[both],
+                               atol=1e-3, rtol=1e-5)
+    for name in (*FIELDS, "means2d", "background"):
+        assert gcu[name] is not None, f"no gradient reaches {name}"
+        assert gcu[name].device.type == "cuda" and torch.isfinite(gcu[name]).all(), name
+        err = grad_error(gcu[name], gref[name])
+        assert err < 1e-2, f"gradient of {name}: relative error {err:.2e}"
+
+
+@needs_gsplat
+def test_gsplat_is_close_to_reference_with_opaque_splats() -> None:
+    """Opacities up to 1: only the pixels between the two cut-offs differ, by < 0.011 each."""
+    scene = random_scene(n=600, width=64, height=64, seed=3)
+    bg = torch.tensor([0.2, 0.2, 0.2])
+    ref, gref = render_with_grads("torch", scene, torch.float64, bg)
+    out, gcu = render_with_grads("cuda", scene, torch.float32, bg, device="cuda")
+    for name in ("image", "alpha"):
+        diff = getattr(out, name).detach().cpu().double() - getattr(ref, name).detach()
+        psnr = -10 * math.log10(float(diff.pow(2).mean()) + 1e-20)
+        assert psnr > 35, f"{name}: gsplat vs reference {psnr:.1f} dB"
+    for name in ("means", "colors", "opacities", "means2d"):
+        assert grad_error(gcu[name], gref[name]) < 0.15, name
+
+
+@needs_gsplat
+def test_auto_backend_on_cuda_tensors_is_gsplat() -> None:
+    scene = random_scene(n=50, width=16, height=16, seed=4)
+    params = [t.cuda() for t in scene.gaussians()]
+    out = rasterize(*params, scene.viewmat.numpy(), scene.K.numpy(), 16, 16)  # numpy cameras go to the device
+    assert out.backend == "cuda" and out.image.device.type == "cuda" and out.depth.device.type == "cuda"
