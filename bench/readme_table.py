@@ -264,8 +264,12 @@ def budget_knobs(r: dict) -> Cells:
     budgets = sorted({x["minutes"] for x in c.values()})
     longest = [x for x in c.values() if x["minutes"] == budgets[-1]]
     best = max(longest, key=lambda x: x["psnr"])
-    at_longest = (f"; at {budgets[-1]:g} minutes the best of {len(longest)} cases {best['psnr']:.2f} dB ({best['case']})"
-                  if len(budgets) > 1 else "")
+    # steps say which machine's pace a row had (they differed 2x between sessions)
+    again = [x for x in longest if x["case"] == best["case"] and x is not best]
+    elsewhere = (f"; the same case on other machines {span([x['psnr'] for x in again], '{:.2f}')} dB with "
+                 f"{span([x['steps'] for x in again], '{:,.0f}')} steps" if again else "")
+    at_longest = (f"; at {budgets[-1]:g} minutes the best of {len(longest)} cases {best['psnr']:.2f} dB "
+                  f"({best['case']}, {best['steps']:,} steps{elsewhere})" if len(budgets) > 1 else "")
     return Cells(f"built-in scene, equal budgets of {' and '.join(f'{m:g}' for m in budgets)} minutes, preset `cpu`, "
                  f"{len(c)} runs", run_of(max(x["date"] for x in c.values()), [x["loadavg"][0] for x in c.values()]),
                  f"anchor motion (fade + velocity) {motion['psnr'] - base['psnr']:+.2f} dB at W=7{same_day}, moving "
