@@ -96,6 +96,34 @@ def test_trainer_fills_the_budget_and_resume_counts_the_time_used(tmp_path) -> N
     assert 50.0 <= total <= 60.0 and tr2.step > start + 45
 
 
+def test_the_rasterizer_compiles_in_set_up_not_in_the_budget(tmp_path, monkeypatch) -> None:
+    """gsplat compiles its CUDA kernels on its first rasterization (56 s on 16 cores, minutes on
+    a laptop): a first step doing it would spend the budget. The trainer renders one Gaussian
+    forward and backward while it sets up, on its device and backend, before the clock starts."""
+    import atgs.render.api as api
+    import atgs.train.trainer as trainer_module
+
+    calls, seen = [], []
+    real_rasterize = api.rasterize
+
+    def recording_rasterize(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        out = real_rasterize(*args, **kwargs)
+        seen.append((out.backend, args[0].device.type, args[0].requires_grad))
+        return out
+
+    monkeypatch.setattr(api, "rasterize", recording_rasterize)
+    monkeypatch.setattr(trainer_module, "warm_up", lambda device, backend: calls.append((device, backend))
+                        or api.warm_up(device, backend))
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
+    m, t = preset("tiny")
+    t.render_backend, t.minutes = "torch", 0.5
+    tr = Trainer(scene, m, t, tmp_path / "run")
+    assert calls == [(torch.device("cpu"), "torch")]
+    # (set-up renders with the CPU backend elsewhere too: carving random anchors, exposure)
+    assert seen.count(("torch", "cpu", True)) == 1, "one Gaussian rendered with gradients on the trainer's backend"
+    assert tr._session_start is None and tr._time_used() == 0.0, "before the budget's clock starts"
+
+
 def test_iterations_and_minutes_together_are_refused(tmp_path, capsys) -> None:
     code = train_main(["--out", str(tmp_path / "r"), "--preset", "tiny", "--iterations", "5", "--minutes", "1",
                        "--no-progress"])

@@ -84,6 +84,24 @@ def rasterize_gaussians(
     )  # fmt: skip
 
 
+def warm_up(device: torch.device | str = "cpu", backend: str = "auto") -> str:
+    """Render and back-propagate one Gaussian on ``device``; returns the backend that ran.
+
+    The first call of a backend can take minutes: the CPU extension compiles on first use, and
+    gsplat compiles its CUDA kernels on its first rasterization. A trainer calls this while it
+    sets up, so that a time budget (``atgs-train --minutes``) is not spent compiling."""
+    device = torch.device(device)
+    means = torch.tensor([[0.0, 0.0, 2.0]], device=device, requires_grad=True)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=device)
+    scales = torch.full((1, 3), 0.1, device=device)
+    opacities = torch.full((1,), 0.5, device=device)
+    colors = torch.full((1, 3), 0.5, device=device)
+    K = np.array([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
+    out = rasterize(means, quats, scales, opacities, colors, np.eye(4), K, 8, 8, backend=backend)
+    out.image.sum().backward()
+    return out.backend
+
+
 def _choose_backend(backend: str, means: torch.Tensor) -> str:
     if backend != "auto":
         if backend == "cpu" and means.device.type != "cpu":

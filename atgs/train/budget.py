@@ -10,7 +10,8 @@ in the run, the run ends when the time is up, with its final pruning.)
 
 What is measured: wall time of the training steps, periodic evaluations and checkpoints of this
 run, across resumes (the checkpoint carries the time used). The final evaluation is reserved
-inside the budget from the measured step time. Scene loading and model set-up come on top.
+inside the budget from the measured step time. Scene loading and model set-up come on top (the
+trainer compiles its rasterizer while it sets up: ``atgs.render.warm_up``).
 Runs with a budget are not bit-reproducible (their length depends on the machine); a fixed
 ``--iterations`` run is.
 """

@@ -29,7 +29,7 @@ from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
 from atgs.model.config import ModelConfig
 from atgs.progress import progress_bar
-from atgs.render import rasterize_gaussians
+from atgs.render import rasterize_gaussians, warm_up
 from atgs.timeline import evenly_spaced
 from atgs.train.config import TrainConfig
 from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
@@ -189,6 +189,9 @@ class Trainer:
             self.exposure.start_from(self.measured_exposure)
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
         self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
+        # compile the rasterizer now (gsplat's CUDA kernels take minutes on first use), not in the
+        # first step, where the time budget would pay for it
+        warm_up(self.device, cfg.render_backend)
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
         self.budget = (TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg), reserve_views=self.final_views())
                        if cfg.minutes > 0 else None)
