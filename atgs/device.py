@@ -32,7 +32,9 @@ def cuda_problem(need_gsplat: bool) -> str | None:
 
         error = gsplat_import_error()
         if error is not None:
-            return f"gsplat, the GPU rasterizer, does not import ({error}); pip install gsplat, or use --device cpu"
+            return (f"gsplat, the GPU rasterizer, is not usable ({error}); pip install gsplat (its first use "
+                    "compiles CUDA kernels with nvcc: install the CUDA toolkit of torch's CUDA version), "
+                    "or use --device cpu")
     return None
 
 

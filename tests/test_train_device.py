@@ -64,10 +64,40 @@ def test_device_rule(monkeypatch) -> None:
     monkeypatch.setattr(cuda, "gsplat_import_error", lambda: "ModuleNotFoundError: No module named 'gsplat'")
     assert resolve_device("auto", need_gsplat=True).type == "cpu"
     assert resolve_device("cuda", need_gsplat=False).type == "cuda"
-    with pytest.raises(DeviceError, match="No module named 'gsplat'.*pip install gsplat, or use --device cpu"):
+    with pytest.raises(DeviceError, match="No module named 'gsplat'.*pip install gsplat .*nvcc.*, or use --device cpu"):
         resolve_device("cuda", need_gsplat=True)
     monkeypatch.setattr(cuda, "gsplat_import_error", lambda: None)
     assert resolve_device("auto", need_gsplat=True).type == "cuda"
+
+
+@pytest.mark.parametrize(("backend_module", "expected"), [
+    ("_C = None", "gsplat found no CUDA compiler (nvcc) to build its kernels"),  # gsplat's own fallback
+    ("raise RuntimeError(\"Error building extension 'gsplat_cuda'\\nnvcc fatal\")",
+     "RuntimeError: Error building extension 'gsplat_cuda'"),
+    ("_C = object()", None),
+])
+def test_gsplat_counts_as_usable_only_with_its_kernels(backend_module, expected, tmp_path, monkeypatch) -> None:
+    """gsplat from PyPI builds its CUDA kernels when they are first loaded; without nvcc it still
+    imports (and every call fails later with a NoneType error). A stand-in package checks each case."""
+    import sys
+
+    import atgs.render.cuda as cuda
+
+    pkg = tmp_path / "gsplat"
+    (pkg / "cuda").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "cuda" / "__init__.py").write_text("")
+    (pkg / "cuda" / "_backend.py").write_text(backend_module + "\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("gsplat", "gsplat.cuda", "gsplat.cuda._backend"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    cuda.gsplat_import_error.cache_clear()
+    try:
+        assert cuda.gsplat_import_error() == expected
+    finally:
+        cuda.gsplat_import_error.cache_clear()
+        for name in ("gsplat", "gsplat.cuda", "gsplat.cuda._backend"):
+            sys.modules.pop(name, None)
 
 
 @pytest.mark.parametrize("missing", ["cuda", "gsplat"])

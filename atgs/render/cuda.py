@@ -18,11 +18,19 @@ from atgs.render.types import RasterOutput
 
 @functools.lru_cache(maxsize=1)
 def gsplat_import_error() -> str | None:
-    """Why ``import gsplat`` fails, in a few words (None: it imports)."""
+    """Why gsplat cannot rasterize here, in a few words (None: it can).
+
+    gsplat from PyPI compiles its CUDA kernels when they are first loaded (here, once per
+    process; the build itself is cached by torch, a minute on 16 cores the first time). Without
+    a CUDA toolkit it imports but leaves its kernels out, and every call fails later with
+    ``'NoneType' object has no attribute ...``; a failed build raises. Both are reported here."""
     try:
         import gsplat  # noqa: F401
-    except Exception as e:  # ImportError, or a broken build raising anything at import
+        from gsplat.cuda._backend import _C
+    except Exception as e:  # ImportError, or a failed kernel build raising anything
         return f"{type(e).__name__}: {e}".splitlines()[0]
+    if _C is None:
+        return "gsplat found no CUDA compiler (nvcc) to build its kernels"
     return None
 
 
