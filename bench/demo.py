@@ -3,6 +3,7 @@
     python bench/demo.py                      # fresh cache: synthesize + prepare + train (default preset)
     python bench/demo.py --reuse-cache        # keep the built-in scene from an earlier run
     python bench/demo.py -- --preset cpu-fast # extra arguments go to atgs-train
+    python bench/demo.py -- --device cuda     # on a GPU (written to bench/results/demo_cuda.json)
 
 It runs `atgs-train --out WORK/demo` with the same defaults as the demo (the built-in
 large-motion scene, preset `cpu`, its 20-minute budget), reads the run's result.json (the
@@ -38,6 +39,8 @@ class DemoBench:
     reuse_cache: bool = False
     """Use $ATGS_CACHE_DIR (else ~/.cache/atgs) instead of a fresh cache in the work folder."""
     out: Path = ROOT / "bench" / "results" / "demo.json"
+    """Results file. A run on another device than the CPU goes to demo_<device>.json beside the
+    default instead (the README's default-run rows are the CPU's)."""
     train_args: tuple[str, ...] = field(default_factory=tuple)
     """Extra atgs-train arguments (after --)."""
     what: str = ""
@@ -72,13 +75,16 @@ def main() -> None:
     if proc.returncode != 0:
         sys.exit(f"bench/demo.py: atgs-train failed with exit code {proc.returncode}")
     res = json.loads((run / "result.json").read_text())
+    device = json.loads((run / "config.json").read_text()).get("device", "cpu")
+    if device != "cpu" and args.out == DemoBench.out:
+        args.out = args.out.with_name(f"demo_{device}.json")
     last = [ln for ln in proc.stdout.splitlines() if "done," in ln]
     out = {
         "command": " ".join(["atgs-train --out runs/demo", *args.train_args, *extra]),
         "printed": last[-1] if last else "",
         "psnr": res["eval"]["psnr"], "ssim": res["eval"]["ssim"], "eval_views": res["eval"]["views"],
         "steps": res["steps"], "train_seconds": res["seconds"], "wall_seconds": wall,
-        "fresh_cache": not args.reuse_cache,
+        "fresh_cache": not args.reuse_cache, "device": device,
         "budget_seconds": res.get("budget_seconds"), "seconds_per_step": res.get("seconds_per_step"),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "loadavg_before": list(load_before), "loadavg_after": list(os.getloadavg())},
