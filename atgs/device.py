@@ -65,6 +65,15 @@ def usable_device(device: torch.device | str) -> torch.device:
     return dev
 
 
+def auto_fallback_note(name: str, device: torch.device, need_gsplat: bool) -> str | None:
+    """Why ``--device auto`` chose the CPU although torch sees a GPU (None: it did not), so that
+    a user with a GPU learns why it sits idle (gsplat missing, or no nvcc to build it)."""
+    if name != "auto" or device.type != "cpu" or not torch.cuda.is_available():
+        return None
+    problem = cuda_problem(need_gsplat)
+    return None if problem is None else f"a CUDA device is present, but this runs on the CPU: {problem.split(';')[0]}"
+
+
 def device_description(device: torch.device) -> str:
     """A short name of ``device`` for messages ("cuda (NVIDIA H100 80GB HBM3)", "cpu")."""
     if device.type == "cuda":

@@ -10,7 +10,7 @@ from atgs.render import rasterize
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 
 
-def render_with_grads(backend: str, scene, dtype: torch.dtype, bg: torch.Tensor, seed: int = 7,  # noqa: ANN001, ANN201
+def render_with_grads(backend: str, scene, dtype: torch.dtype, bg: torch.Tensor, seed: int = 7,
                       device: str = "cpu"):
     """Render on ``device``, back-propagate a fixed random functional of image/alpha/depth/depth_sq
     (the same weights on every device: drawn on the CPU), return the output and all gradients."""

@@ -106,7 +106,7 @@ def test_the_rasterizer_compiles_in_set_up_not_in_the_budget(tmp_path, monkeypat
     calls, seen = [], []
     real_rasterize = api.rasterize
 
-    def recording_rasterize(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def recording_rasterize(*args, **kwargs):
         out = real_rasterize(*args, **kwargs)
         seen.append((out.backend, args[0].device.type, args[0].requires_grad))
         return out

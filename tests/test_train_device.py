@@ -117,6 +117,26 @@ def test_train_device_cuda_without_it_is_one_line_and_exit_2(missing, toy_scene_
     assert not out.exists(), "nothing is written"
 
 
+def test_auto_on_a_gpu_machine_without_gsplat_says_why_it_trains_on_the_cpu(toy_scene_dir, tmp_path, capsys,
+                                                                          monkeypatch) -> None:
+    import atgs.render.cuda as cuda
+    from atgs.cli.train import main as train_main
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(cuda, "gsplat_import_error", lambda: "gsplat found no CUDA compiler (nvcc) to build its kernels")
+    assert train_main(["--data", str(toy_scene_dir), "--out", str(tmp_path / "run"), "--preset", "tiny",
+                       "--iterations", "2", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert ("atgs-train: a CUDA device is present, but this runs on the CPU: gsplat, the GPU rasterizer, is not "
+            "usable (gsplat found no CUDA compiler (nvcc) to build its kernels); see docs/gpu.md") in out
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["device"] == "cpu"
+    # with gsplat usable, auto takes the GPU and there is nothing to explain
+    from atgs.device import auto_fallback_note
+    monkeypatch.setattr(cuda, "gsplat_import_error", lambda: None)
+    assert auto_fallback_note("auto", torch.device("cuda"), need_gsplat=True) is None
+    assert auto_fallback_note("cpu", torch.device("cpu"), need_gsplat=True) is None
+
+
 def test_train_backend_that_cannot_rasterize_on_the_device_is_refused(scene, tmp_path) -> None:
     m, t = preset("tiny")
     t.render_backend = "cuda"

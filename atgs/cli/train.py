@@ -18,7 +18,7 @@ from typing import Literal
 import tyro
 
 from atgs.config_dict import to_dict
-from atgs.device import DeviceName, device_description, resolve_device
+from atgs.device import DeviceName, auto_fallback_note, device_description, resolve_device
 from atgs.errors import OutputError, UserError
 from atgs.io.cache import cache_dir
 from atgs.io.cli import Interrupted, run_cli, stop_on_sigint
@@ -138,6 +138,9 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     from atgs.train.trainer import Trainer
 
     device = resolve_device(args.device, need_gsplat=True)
+    note = auto_fallback_note(args.device, device, need_gsplat=True)
+    if note is not None:
+        print(f"{PROG}: {note}; see docs/gpu.md", flush=True)
     ckpt = args.out / "ckpt.pt"
     if args.iterations is not None and args.minutes is not None:
         raise UserError("--iterations and --minutes were both given; pass one (--iterations N runs exactly "
