@@ -33,6 +33,9 @@ class ColmapOptions:
     num_threads: int = -1
 
 
+RANDOM_SEED = 0  # every COLMAP stage that samples (verification, triangulation, mapping): same input, same points
+
+
 @contextlib.contextmanager
 def _quiet_glog(where: Path | None = None):
     """COLMAP logs through glog to stderr; keep the console for our progress bars. pycolmap
@@ -72,7 +75,13 @@ def _extract_and_match(db: Path, image_root: Path, names: Sequence[str], opts: C
                               reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = opts.num_threads
-    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    # Each pair's geometric verification is a RANSAC; unseeded, it draws from the generator of
+    # whichever worker thread takes the pair, so the verified matches (and the points) changed
+    # from run to run. A fixed seed makes every pair's RANSAC the same on any thread count.
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.ransac.random_seed = RANDOM_SEED
+    pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verify,
+                              device=pycolmap.Device.cpu)
 
 
 def triangulate_known_poses(image_root: Path, image_names: Sequence[str], cameras: Sequence[Camera],
@@ -110,6 +119,8 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
         popts.triangulation.min_angle = opts.min_tri_angle
         popts.triangulation.ignore_two_view_tracks = not opts.two_view_tracks
         popts.num_threads = opts.num_threads
+        popts.random_seed = RANDOM_SEED
+        pycolmap.set_random_seed(RANDOM_SEED)
         out_dir = work_dir / "model"
         out_dir.mkdir(exist_ok=True)
         rec = pycolmap.triangulate_points(rec, db_path, image_root, out_dir, clear_points=True, options=popts,
@@ -146,7 +157,7 @@ def sfm_static_cameras(image_root: Path, image_names: Sequence[str], camera_name
         _extract_and_match(db_path, image_root, image_names, opts, camera_model, shared_intrinsics)
         popts = pycolmap.IncrementalPipelineOptions()
         popts.num_threads = opts.num_threads
-        popts.random_seed = 0
+        popts.random_seed = RANDOM_SEED
         popts.multiple_models = False
         out_dir = work_dir / "sparse"
         out_dir.mkdir(exist_ok=True)
