@@ -22,8 +22,9 @@ from atgs.data.synth_scene import SynthConfig, SynthScene, sample_surface
 
 SIDECAR = "synth.json"
 SYNTH_VERSION = 2  # bump when the scene content changes, to invalidate caches
-PREPARE_VERSION = 5  # bump when atgs-prepare's output changes (2: dense stereo keyframe points, 3: surface extension,
-#                      4: motion points, 5: motion points at 8 instead of 4 keyframes per geometry interval)
+PREPARE_VERSION = 6  # bump when atgs-prepare's output changes (2: dense stereo keyframe points, 3: surface extension,
+#                      4: motion points, 5: motion points at 8 instead of 4 keyframes per geometry interval,
+#                      6: seeded COLMAP verification: every cache holds the same points, not its own draw)
 
 
 @dataclass(frozen=True)
