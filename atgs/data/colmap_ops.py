@@ -120,7 +120,6 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
         popts.triangulation.ignore_two_view_tracks = not opts.two_view_tracks
         popts.num_threads = opts.num_threads
         popts.random_seed = RANDOM_SEED
-        pycolmap.set_random_seed(RANDOM_SEED)
         out_dir = work_dir / "model"
         out_dir.mkdir(exist_ok=True)
         rec = pycolmap.triangulate_points(rec, db_path, image_root, out_dir, clear_points=True, options=popts,
