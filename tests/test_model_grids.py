@@ -134,11 +134,11 @@ def _points(n: int, seed: int) -> torch.Tensor:
 
 @pytest.mark.parametrize("log2_table", [8, 14])  # hashed fine levels / every level dense
 def test_compiled_hash_grid_matches_torch_values_rows_and_gradients(log2_table):
-    from atgs.model.grids import _kernels
+    from atgs.model.grids import grid_kernels
 
     h = HashGrid4D(2, levels=5, features=2, log2_table=log2_table, base_res=3, growth=1.7, max_time_res=6,
                    generator=torch.Generator().manual_seed(8))
-    assert _kernels(h.table, "auto") is not None, "the compiled grid kernels must build on this machine"
+    assert grid_kernels(h.table, "auto") is not None, "the compiled grid kernels must build on this machine"
     x = _points(3000, 9)
     w = torch.randn(3000, 10, generator=torch.Generator().manual_seed(10))
 

@@ -124,6 +124,27 @@ def test_the_rasterizer_compiles_in_set_up_not_in_the_budget(tmp_path, monkeypat
     assert tr._session_start is None and tr._time_used() == 0.0, "before the budget's clock starts"
 
 
+def test_the_cpu_kernels_build_in_set_up_not_in_the_budget(tmp_path, monkeypatch) -> None:
+    """The grids' and the sparse optimizer's CPU kernels also compile on first use (seconds to a
+    minute on 2 cores): the trainer asks for them while it sets up, before the clock starts."""
+    import atgs.model.grids as grids
+    import atgs.train.optim as optim
+    import atgs.train.trainer as trainer_module
+
+    asked = []
+    real_grid_kernels, real_compiled = grids.grid_kernels, optim._compiled_kernel
+    monkeypatch.setattr(trainer_module, "grid_kernels", lambda table, backend: asked.append(("grids", backend))
+                        or real_grid_kernels(table, backend))
+    monkeypatch.setattr(optim, "_compiled_kernel", lambda: asked.append(("optim", None)) or real_compiled())
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
+    m, t = preset("tiny")
+    t.minutes = 0.5
+    tr = Trainer(scene, m, t, tmp_path / "run")
+    assert asked == [("optim", None), ("grids", "auto")]
+    assert tr.sparse_opt._kernel is not None, "the compiled sparse Adam step serves the CPU tables"
+    assert tr._session_start is None and tr._time_used() == 0.0, "before the budget's clock starts"
+
+
 def test_iterations_and_minutes_together_are_refused(tmp_path, capsys) -> None:
     code = train_main(["--out", str(tmp_path / "r"), "--preset", "tiny", "--iterations", "5", "--minutes", "1",
                        "--no-progress"])

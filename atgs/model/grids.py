@@ -48,8 +48,9 @@ def gather_rows(table: torch.Tensor, idx: torch.Tensor, track: bool) -> tuple[to
     return out, RowGather(rows, leaf)
 
 
-def _kernels(table: torch.Tensor, backend: str):
-    """The compiled grid kernels if they should serve a lookup into ``table``, else None."""
+def grid_kernels(table: torch.Tensor, backend: str):
+    """The compiled grid kernels if they should serve a lookup into ``table``, else None (the
+    first call builds them: a trainer calls this while it sets up)."""
     if backend not in ("auto", "torch"):
         raise ValueError(f"grid backend must be 'auto' or 'torch', got {backend!r}")
     if backend == "torch" or table.device.type != "cpu" or table.dtype != torch.float32:
@@ -139,7 +140,7 @@ class SpatialGrid:
     def query(self, x: torch.Tensor, track: bool) -> tuple[torch.Tensor, RowGather | None]:
         """Features (N, D) of points x (N, 3) in [0, 1]^3; points outside get zeros."""
         inside = ((x >= 0) & (x <= 1)).all(dim=1)
-        k = _kernels(self.table, self.backend)
+        k = grid_kernels(self.table, self.backend)
         if k is not None:
             t = torch.get_num_threads()
             out, g = compiled_lookup(
@@ -236,7 +237,7 @@ class HashGrid4D:
 
     def query(self, x: torch.Tensor, tau: float, grid: int, track: bool) -> tuple[torch.Tensor, RowGather | None]:
         """Concatenated level features (N, L*F)."""
-        k = _kernels(self.table, self.backend)
+        k = grid_kernels(self.table, self.backend)
         if k is not None:
             dense = [int(self.dense_level(lv)) for lv in range(self.levels)]
             args = (float(tau), int(grid), self.res, self.time_res, dense, self.table_size)

@@ -1,8 +1,9 @@
 """Compile-at-first-use of the C++/OpenMP CPU kernels, cached by source hash.
 
-Two extensions: the rasterizer (:data:`RASTER`, used by atgs.render.cpu) and the feature-grid
-encodings of the model (:data:`GRIDS`, used by atgs.model.grids). Each is built on its first use
-and imported from the cache afterwards."""
+Three extensions: the rasterizer (:data:`RASTER`, used by atgs.render.cpu), the feature-grid
+encodings of the model (:data:`GRIDS`, used by atgs.model.grids) and the row-sparse Adam step
+(:data:`SPARSE_ADAM`, used by atgs.train.optim). Each is built on its first use and imported
+from the cache afterwards."""
 
 from __future__ import annotations
 
@@ -34,6 +35,7 @@ class Kernel:
 
 RASTER = Kernel("atgs_raster", ("rasterize.cpp",), ("projection.h",), "the ATGS CPU rasterizer")
 GRIDS = Kernel("atgs_grids", ("grids.cpp",), (), "the ATGS CPU grid encodings")
+SPARSE_ADAM = Kernel("atgs_sparse_adam", ("sparse_adam.cpp",), (), "the ATGS CPU sparse Adam step")
 BASE_CFLAGS = ("-O3", "-fopenmp", "-std=c++17")
 LDFLAGS = ("-fopenmp",)
 

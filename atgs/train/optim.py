@@ -3,27 +3,73 @@
 Only the rows given to :meth:`SparseAdam.step` are read and written. Each row keeps its own step
 count, so bias correction is exact for rows that are touched rarely (hash-table rows, anchors
 of rarely visited keyframes); for rows touched every step this is exactly dense Adam.
+
+On the CPU, float32 tables are updated by a compiled kernel (atgs/render/csrc/sparse_adam.cpp,
+built on first use like the rasterizer) that reads and writes each row once; the torch code here
+is its reference and the path for other devices and dtypes (``backend="torch"`` forces it).
 """
 
 from __future__ import annotations
 
 import torch
 
+OPTIM_BACKENDS = ("auto", "torch")
+_NO_LR = torch.empty(0, dtype=torch.float32, device="cpu")  # the compiled step's "one learning rate for all rows"
+
+
+def _compiled_kernel():
+    """The compiled step, or None where it does not build (the torch version then serves)."""
+    from atgs.render.build import SPARSE_ADAM, cpu_backend_error, load_extension
+
+    return None if cpu_backend_error(SPARSE_ADAM) else load_extension(SPARSE_ADAM)
+
 
 class SparseAdam:
     def __init__(self, tables: dict[str, torch.Tensor], betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-15) -> None:
-        self.betas, self.eps = betas, eps
+                 eps: float = 1e-15, backend: str = "auto") -> None:
+        if backend not in OPTIM_BACKENDS:
+            raise ValueError(f"SparseAdam backend must be one of {OPTIM_BACKENDS}, got {backend!r}")
+        self.betas, self.eps, self.backend = betas, eps, backend
         self.exp_avg = {n: torch.zeros_like(t) for n, t in tables.items()}
         self.exp_avg_sq = {n: torch.zeros_like(t) for n, t in tables.items()}
         self.steps = {n: torch.zeros(t.shape[0], dtype=torch.int64, device=t.device) for n, t in tables.items()}
+        # build the kernel now (seconds, once per version), not inside a time-budgeted step
+        self._kernel = _compiled_kernel() if backend == "auto" and any(
+            t.device.type == "cpu" and t.dtype == torch.float32 for t in tables.values()) else None
+
+    def _compiled_for(self, name: str, table: torch.Tensor, grad: torch.Tensor, lr) -> bool:
+        if self._kernel is None:
+            return False
+        tensors = (table, grad, self.exp_avg[name], self.exp_avg_sq[name])
+        return (all(t.device.type == "cpu" and t.dtype == torch.float32 and t.is_contiguous() for t in tensors)
+                and (not isinstance(lr, torch.Tensor) or lr.device.type == "cpu"))
 
     def step(self, name: str, table: torch.Tensor, rows: torch.Tensor, grad: torch.Tensor,
-             lr: float | torch.Tensor) -> None:
+             lr: float | torch.Tensor, clip: float = 0.0) -> None:
         """Adam update of ``table[rows]`` in place with gradient ``grad`` (len(rows), ...).
-        ``rows`` must be unique; ``lr`` is a float or one learning rate per row."""
+        ``rows`` must be unique; ``lr`` is a float or one learning rate per row. Non-finite
+        gradient entries count as 0; with ``clip`` > 0 the gradient is first scaled to that norm
+        when above it."""
         if rows.numel() == 0:
             return
+        if self._compiled_for(name, table, grad, lr):
+            lr_rows = lr.float().contiguous() if isinstance(lr, torch.Tensor) else _NO_LR
+            self._kernel.step(table, self.exp_avg[name], self.exp_avg_sq[name], self.steps[name],
+                              rows.long().contiguous(), grad.contiguous(), lr_rows,
+                              0.0 if isinstance(lr, torch.Tensor) else float(lr),
+                              self.betas[0], self.betas[1], float(self.eps), float(clip), torch.get_num_threads())
+            return
+        self.step_reference(name, table, rows, grad, lr, clip)
+
+    def step_reference(self, name: str, table: torch.Tensor, rows: torch.Tensor, grad: torch.Tensor,
+                       lr: float | torch.Tensor, clip: float = 0.0) -> None:
+        """:meth:`step` in torch ops (any device and dtype; the compiled kernel's reference)."""
+        if rows.numel() == 0:
+            return
+        grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+        if clip > 0:  # on the device, without reading the norm back (float64 as Python's)
+            norm = grad.norm().double()
+            grad = grad * torch.where(norm > clip, clip / norm, 1.0).to(grad.dtype)
         b1, b2 = self.betas
         m = self.exp_avg[name].index_select(0, rows)
         v = self.exp_avg_sq[name].index_select(0, rows)

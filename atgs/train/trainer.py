@@ -28,6 +28,7 @@ from atgs.errors import UserError
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
 from atgs.model.config import ModelConfig
+from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians, warm_up
 from atgs.timeline import evenly_spaced
@@ -189,9 +190,11 @@ class Trainer:
             self.exposure.start_from(self.measured_exposure)
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
         self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        # compile the rasterizer now (gsplat's CUDA kernels take minutes on first use), not in the
-        # first step, where the time budget would pay for it
+        # compile the rasterizer now (gsplat's CUDA kernels take minutes on first use), and the
+        # grids' CPU kernels (the sparse optimizer built its own above), not in the first step,
+        # where the time budget would pay for them
         warm_up(self.device, cfg.render_backend)
+        grid_kernels(self.model.hash.table, self.model.hash.backend)
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
         self.budget = (TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg), reserve_views=self.final_views())
                        if cfg.minutes > 0 else None)
@@ -240,15 +243,14 @@ class Trainer:
         if name == "anchor_fade":
             return w * lr.anchor_fade
         # temporal grids: each decays with its own visit count
-        per_grid = self.model.hash.levels * self.model.hash.table_size
-        grid = rows // per_grid if name == "hash" else rows
-        visits, total = self.grid_visits[grid].double(), self._expected_visits()
-        p = (visits / total).clamp(0, 1)
+        # (one rate per grid, then one per row: the hash tables have ~10^5 rows a step)
+        p = (self.grid_visits.double() / self._expected_visits()).clamp(0, 1)
         if name == "hash":
             a, b = lr.temporal_init * self.model.extent, lr.temporal_final * self.model.extent
         else:
             a, b = lr.temporal_mlp_init, lr.temporal_mlp_final
-        return (w * torch.exp(math.log(a) * (1 - p) + math.log(b) * p)).float()
+        per_grid = (w * torch.exp(math.log(a) * (1 - p) + math.log(b) * p)).float()
+        return per_grid[rows // (self.model.hash.levels * self.model.hash.table_size) if name == "hash" else rows]
 
     # --- one optimisation step ---------------------------------------------------------------
     def compute_loss(self, dec: Decoded, out, gt: torch.Tensor) -> torch.Tensor:
@@ -344,12 +346,9 @@ class Trainer:
                 rows, inv = torch.unique(torch.cat([r for r, _ in parts]), return_inverse=True)
                 g = parts[0][1].new_zeros((rows.numel(),) + tuple(parts[0][1].shape[1:]))
                 g.index_add_(0, inv, torch.cat([x for _, x in parts]))
-            g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
-            clip = self.cfg.grad_clip
-            if clip > 0:  # clip on the device, without reading the norm back (float64 as Python's)
-                norm = g.norm().double()
-                g = g * torch.where(norm > clip, clip / norm, 1.0).float()
-            self.sparse_opt.step(name, tables[name], rows, g, self.sparse_lr(name, rows, self.step))
+            # (non-finite entries zeroed, clipped per table to norm grad_clip)
+            self.sparse_opt.step(name, tables[name], rows, g, self.sparse_lr(name, rows, self.step),
+                                 clip=self.cfg.grad_clip)
 
     def _apply_dense(self) -> None:
         lrs = self.dense_lrs(self.step)
