@@ -38,7 +38,7 @@ class SparseAdam:
             t.device.type == "cpu" and t.dtype == torch.float32 for t in tables.values()) else None
 
     def _compiled_for(self, name: str, table: torch.Tensor, grad: torch.Tensor, lr) -> bool:
-        if self._kernel is None:
+        if self._kernel is None or self.backend == "torch":
             return False
         tensors = (table, grad, self.exp_avg[name], self.exp_avg_sq[name])
         return (all(t.device.type == "cpu" and t.dtype == torch.float32 and t.is_contiguous() for t in tensors)
