@@ -86,10 +86,12 @@ class _CompiledLookup(torch.autograd.Function):
 
 
 def compiled_lookup(table: torch.Tensor, x: torch.Tensor, track: bool, touched: Callable, fwd: Callable,
-                    bwd: Callable, remap: bool) -> tuple[torch.Tensor, RowGather | None]:
+                    bwd: Callable, remap: bool, row_offset: int = 0) -> tuple[torch.Tensor, RowGather | None]:
     """A grid lookup through compiled kernels, with the semantics of :func:`gather_rows` +
     interpolation: with ``track`` the result depends on a leaf of the touched rows. ``remap``:
-    the backward scatters into the leaf rows directly (see :class:`_CompiledLookup`)."""
+    the backward scatters into the leaf rows directly (see :class:`_CompiledLookup`).
+    ``table`` may be a block of rows of a larger table starting at ``row_offset``: the
+    returned rows are then rows of the larger table."""
     x, table = x.detach().float().contiguous(), table.detach().contiguous()
     if not track:
         return fwd(x, table), None
@@ -99,7 +101,7 @@ def compiled_lookup(table: torch.Tensor, x: torch.Tensor, track: bool, touched: 
     if remap:
         to_leaf = torch.full((table.shape[0],), -1, dtype=torch.int64, device=table.device)
         to_leaf[rows] = torch.arange(rows.numel(), device=table.device)
-    return _CompiledLookup.apply(leaf, table, rows, to_leaf, x, fwd, bwd), RowGather(rows, leaf)
+    return _CompiledLookup.apply(leaf, table, rows, to_leaf, x, fwd, bwd), RowGather(rows + row_offset, leaf)
 
 
 def _corner_offsets(dims: int, device: torch.device) -> torch.Tensor:
@@ -240,12 +242,17 @@ class HashGrid4D:
         k = grid_kernels(self.table, self.backend)
         if k is not None:
             dense = [int(self.dense_level(lv)) for lv in range(self.levels)]
-            args = (float(tau), int(grid), self.res, self.time_res, dense, self.table_size)
+            # only grid ``grid``'s rows (one block of the table) go to the kernels, as grid 0: the
+            # touched mask and the backward's table-sized gradient then cover 1/M of the table
+            per_grid = self.levels * self.table_size
+            block = self.table[grid * per_grid:(grid + 1) * per_grid]
+            args = (float(tau), 0, self.res, self.time_res, dense, self.table_size)
             t = torch.get_num_threads()
             return compiled_lookup(
-                self.table, x, track, lambda p: k.hash_touched(p, *args, self.table.shape[0], t),
+                block, x, track, lambda p: k.hash_touched(p, *args, per_grid, t),
                 lambda p, v: k.hash_forward(p, *args, v, t),
-                lambda p, go, n, r: k.hash_backward(p, *args, go, n, r, t), remap=False)
+                lambda p, go, n, r: k.hash_backward(p, *args, go, n, r, t), remap=False,
+                row_offset=grid * per_grid)
         idx, w = self.indices(x, tau, grid)
         feats, g = gather_rows(self.table, idx, track)  # (N, L, 16, F)
         out = (feats * w[..., None]).sum(dim=2)
