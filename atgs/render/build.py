@@ -85,7 +85,7 @@ def load_extension(kernel: Kernel = RASTER) -> ModuleType:
 
     build_dir.mkdir(parents=True, exist_ok=True)
     # stderr: stays visible when stdout is piped or captured
-    print(f"compiling {kernel.what} (first use, ~1 min), cached in {build_dir}", file=sys.stderr, flush=True)
+    print(f"compiling {kernel.what} (first use, up to a minute), cached in {build_dir}", file=sys.stderr, flush=True)
     return load(
         name=name,
         sources=[str(CSRC / s) for s in kernel.sources],
