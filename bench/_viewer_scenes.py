@@ -75,6 +75,10 @@ def time_frames(renderer, g: Gaussians, width: int, height: int, repeats: int) -
     from atgs.viewer.splat_renderer import RenderSettings
 
     t = {k: [] for k in ("pack_ms", "upload_ms", "sort_ms", "draw_ms", "move_sort_ms", "move_draw_ms")}
+    # one untimed frame first: buffers sized, first-use costs (CUDA's lazily loaded sort
+    # kernels) paid; with 2 repeats the median would otherwise be half a first frame
+    renderer.set_gaussians(pack_gaussians(g))
+    renderer.render(bench_camera(width, height, -0.05), RenderSettings(), sync=True)
     for r in range(repeats):
         if g.means.is_cuda:
             torch.cuda.synchronize()

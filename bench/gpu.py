@@ -2,6 +2,7 @@
 
     python bench/gpu.py                    # writes bench/results/gpu.json and the table in docs/gpu.md
     python bench/gpu.py --parts train      # one part; the results of the others are kept
+    python bench/gpu.py --merge FILE       # take the rows of a results file from another machine
 
 Rows, one function each (``PARTS``; each returns a list of row dicts with a ``device``):
 - train: training steps per second of each preset on an N3DV-like scene (bench/_n3dv_like.py:
@@ -80,6 +81,9 @@ class GpuBenchConfig:
     out: Path = Path("bench/results/gpu.json")
     docs: Path | None = Path("docs/gpu.md")
     """Replace the table between the bench:gpu markers in this file (None: leave the docs alone)."""
+    merge: Path | None = None
+    """Measure nothing: take every part/device of this results file (written by this script on
+    another machine, e.g. a GPU one with ``--docs None``) into ``out``, replacing those rows."""
 
 
 def device_name(device: str) -> str:
@@ -285,9 +289,16 @@ def main(cfg: GpuBenchConfig) -> None:
     """Measures ``cfg.parts`` on ``cfg.devices``; the results file keeps the rows (and the
     measurement stamps) of every other part and device. It is written after each part on each
     device, so a later part that fails (or crashes the process) loses only its own rows."""
+    stamps, rows = previous_stamps(cfg.out)
+    if cfg.merge is not None:
+        their_stamps, their_rows = previous_stamps(cfg.merge)
+        taken = {tuple(key.split("/")) for key in their_stamps}
+        rows = [r for r in rows if (r["part"], r["device"]) not in taken] + their_rows
+        result = _result({**stamps, **their_stamps}, rows)
+        publish(result, cfg.out, markdown_table(result), cfg.docs, "gpu")
+        return
     load_before = os.getloadavg()
     ctx, renderer = warm_renderer(cfg.gl)
-    stamps, rows = previous_stamps(cfg.out)
     # what an unmeasured part's rows would have covered (one "not measured" row each)
     row_keys = {"train": ("preset", cfg.train_presets), "viewer": ("gaussians", cfg.counts),
                 "decode": ("preset", cfg.presets)}

@@ -9,6 +9,7 @@ exact 3-sigma ellipse of "cpu" and "torch", so only opaque splats' outer rims di
 from __future__ import annotations
 
 import functools
+import weakref
 
 import torch
 
@@ -32,6 +33,25 @@ def gsplat_import_error() -> str | None:
     if _C is None:
         return "gsplat found no CUDA compiler (nvcc) to build its kernels"
     return None
+
+
+def forward_grad_to_view(base: torch.Tensor, view: torch.Tensor) -> None:
+    """Make ``view.grad`` (``view = base[0]``) hold the gradient that reaches ``base``.
+
+    gsplat consumes its own (1, N, 2) ``means2d``, so a gradient never reaches our (N, 2) view;
+    a hook on ``base`` copies it over, so ``out.means2d.grad`` works as on the CPU backends. The
+    hook holds the view weakly: a strong reference closes a cycle (base -> hook -> view -> base)
+    through autograd's C++ side, which Python's collector cannot see, and every training step's
+    whole rendering graph stayed alive (~20 MB a step on the built-in scene: 28 GB after 1,400
+    CUDA steps)."""
+    ref = weakref.ref(view)
+
+    def copy_grad(g: torch.Tensor) -> None:
+        target = ref()
+        if target is not None:
+            target.grad = g[0].detach()
+
+    base.register_hook(copy_grad)
 
 
 def gsplat_available() -> bool:
@@ -74,9 +94,7 @@ def rasterize_cuda(
     radii = radii.max(dim=-1).values if radii.shape[-1] > 1 else radii[:, 0]
     means2d = base[0]
     if base.requires_grad:
-        # gsplat consumes its own (1, N, 2) tensor, so a gradient never reaches our (N, 2) view;
-        # copy it over when it passes, so out.means2d.grad works as on the CPU backends.
-        base.register_hook(lambda g: setattr(means2d, "grad", g[0].detach()))
+        forward_grad_to_view(base, means2d)
     return RasterOutput(
         image=render[0, :, :, :3],
         alpha=alpha[0, :, :, 0],
