@@ -101,7 +101,7 @@ def compiled_lookup(table: torch.Tensor, x: torch.Tensor, track: bool, touched: 
     if remap:
         to_leaf = torch.full((table.shape[0],), -1, dtype=torch.int64, device=table.device)
         to_leaf[rows] = torch.arange(rows.numel(), device=table.device)
-    return _CompiledLookup.apply(leaf, table, rows, to_leaf, x, fwd, bwd), RowGather(rows + row_offset, leaf)
+    return _CompiledLookup.apply(leaf, table, rows, to_leaf, x, fwd, bwd), RowGather(rows + row_offset if row_offset else rows, leaf)
 
 
 def _corner_offsets(dims: int, device: torch.device) -> torch.Tensor:
