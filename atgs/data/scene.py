@@ -28,6 +28,7 @@ from PIL import Image
 
 from atgs.cameras import Camera
 from atgs.io.atomic import atomic_dir
+from atgs.io.images import read_rgb8
 from atgs.progress import progress_bar
 from atgs.data.errors import DataError
 
@@ -189,9 +190,8 @@ class MemoryScene:
 
 
 def read_rgb(path: Path) -> np.ndarray:
-    """(H,W,3) uint8 of an image file (any mode converted to RGB)."""
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
+    """(H,W,3) uint8 of an image file (any mode: atgs.io.images.to_rgb8)."""
+    return read_rgb8(path)
 
 
 def resize_frame(img: np.ndarray, width: int, height: int) -> np.ndarray:

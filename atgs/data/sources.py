@@ -24,6 +24,7 @@ from atgs.cameras import Camera
 from atgs.data.camera_formats import cameras_from_poses_bounds, cameras_from_reconstruction, read_easyvolcap
 from atgs.data.errors import DataError
 from atgs.data.video import VIDEO_EXTS, iter_frames, video_info
+from atgs.io.images import read_rgb8
 
 SourceFormat = Literal["auto", "n3dv", "colmap-frames", "easyvolcap", "videos", "images"]
 IMAGE_FILE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -71,8 +72,7 @@ class Source:
 
 def load_image(path: Path) -> np.ndarray:
     try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
+        return read_rgb8(path)
     except FileNotFoundError:
         raise DataError(f"{path}: image not found") from None
     except OSError as e:
