@@ -100,3 +100,20 @@ def test_known_pose_triangulation_gives_the_same_points_on_any_thread_count(tmp_
     for pts, rgb in runs[1:]:
         np.testing.assert_array_equal(pts, runs[0][0])
         np.testing.assert_array_equal(rgb, runs[0][1])
+
+
+def test_sfm_without_a_model_names_the_capture_and_writes_nothing(tmp_path) -> None:
+    """Two cameras of flat grey images: SfM finds no model. The one-line error names the user's
+    folder (not the preparation's temporary copy) and --out is not created."""
+    from atgs.data.errors import DataError
+
+    src = tmp_path / "flat"
+    for cam in ("camA", "camB"):
+        (src / cam).mkdir(parents=True)
+        Image.fromarray(np.full((96, 128, 3), 128, np.uint8)).save(src / cam / "0000.png")
+    out = tmp_path / "p"
+    with pytest.raises(DataError) as err:
+        prepare(PrepareConfig(src=src, out=out, keyframes=1, progress=False))
+    msg = str(err.value)
+    assert msg.startswith(f"{src}:") and "structure-from-motion" in msg and "\n" not in msg
+    assert ".tmp" not in msg and not out.exists()

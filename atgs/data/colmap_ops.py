@@ -136,14 +136,16 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
 
 def sfm_static_cameras(image_root: Path, image_names: Sequence[str], camera_names: Sequence[str],
                        work_dir: Path, opts: ColmapOptions = ColmapOptions(),
-                       camera_model: str = "SIMPLE_RADIAL", shared_intrinsics: bool = True) -> list[Camera]:
+                       camera_model: str = "SIMPLE_RADIAL", shared_intrinsics: bool = True,
+                       source: str | Path | None = None) -> list[Camera]:
     """Poses and intrinsics of static cameras from one image each (incremental SfM).
 
     With one image per camera the focal length of each camera is weakly constrained, so by
     default all cameras share one intrinsic model (typical of a capture rig of identical
     cameras); ``shared_intrinsics=False`` estimates one model per camera.
 
-    Every camera must register, else a :class:`DataError` names the ones that failed.
+    Every camera must register, else a :class:`DataError` names the ones that failed. Errors
+    name ``source`` (the user's capture), else ``image_root``.
     """
     import pycolmap
 
@@ -161,14 +163,15 @@ def sfm_static_cameras(image_root: Path, image_names: Sequence[str], camera_name
         out_dir = work_dir / "sparse"
         out_dir.mkdir(exist_ok=True)
         models = pycolmap.incremental_mapping(db_path, image_root, out_dir, options=popts)
+    where = image_root if source is None else source
     if not models:
-        raise DataError(f"{image_root}: structure-from-motion found no model from the first frames; "
+        raise DataError(f"{where}: structure-from-motion found no model from the first frames; "
                         "the cameras need overlapping, textured views (or provide poses)")
     rec = max(models.values(), key=lambda r: r.num_reg_images())
     by_name = {img.name: img for img in rec.images.values() if img.has_pose}
     missing = [cn for n, cn in zip(image_names, camera_names) if n not in by_name]
     if missing:
-        raise DataError(f"{image_root}: SfM could not register camera(s) {', '.join(missing)}; "
+        raise DataError(f"{where}: SfM could not register camera(s) {', '.join(missing)}; "
                         "they need more overlap with the others (or provide poses)")
     cams = []
     for n, cn in zip(image_names, camera_names):

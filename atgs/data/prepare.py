@@ -275,6 +275,6 @@ def _sfm_cameras(src: Source, frame: int, work: Path, cfg: PrepareConfig, opts: 
         names.append(f"{name}.png")
     print(f"running SfM on {len(names)} cameras (pycolmap, CPU)...", file=sys.stderr) if cfg.progress else None
     return sfm_static_cameras(img_dir, names, src.camera_names, work, opts, cfg.sfm_camera_model,
-                              cfg.sfm_shared_intrinsics)
+                              cfg.sfm_shared_intrinsics, source=src.root)
 
 
