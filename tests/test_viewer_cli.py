@@ -225,3 +225,52 @@ def test_default_background_is_the_trained_one(tmp_path: Path) -> None:
                      *extra]) == 0
         img = np.asarray(Image.open(out), dtype=np.float64) / 255.0
         assert np.abs(img[empty] - np.asarray(want)).max() < 2.0 / 255, extra
+
+
+def test_covered_arc_is_the_circle_minus_the_largest_gap() -> None:
+    from atgs.viewer.scene_utils import covered_arc
+
+    start, span = covered_arc(np.radians([350.0, 10.0, 30.0]))  # wraps through 0
+    assert math.degrees(start) == pytest.approx(350.0) and math.degrees(span) == pytest.approx(40.0)
+    start, span = covered_arc(np.radians([0.0, 90.0, 180.0, 270.0]))
+    assert math.degrees(span) == pytest.approx(270.0)
+    assert covered_arc(np.array([1.0])) == (1.0, 0.0)
+
+
+def _azimuths(cams) -> np.ndarray:
+    return np.degrees(np.arctan2([c.center[1] for c in cams], [c.center[0] for c in cams]))
+
+
+def test_orbit_of_a_front_facing_rig_stays_over_the_captured_arc() -> None:
+    """Five cameras on a 60-degree arc around the origin: the orbit sweeps that arc to both ends
+    and back (it starts at the middle) instead of a revolution that looks at the uncaptured
+    back; a ring of twelve still gets one revolution in equal steps."""
+    from atgs.cameras import Camera, look_at
+
+    K = np.array([[80.0, 0, 48], [0, 80.0, 36], [0, 0, 1]])
+    arc = np.radians(np.linspace(60.0, 120.0, 5))
+    cams = [Camera(f"c{i}", 96, 72, K, look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3),
+                                                np.array([0, 0, 1.0]))) for i, a in enumerate(arc)]
+    orbit = orbit_path(cams, 40)
+    az = _azimuths(orbit)
+    assert az.min() == pytest.approx(60.0, abs=0.5) and az.max() == pytest.approx(120.0, abs=0.5)
+    assert az[0] == pytest.approx(90.0, abs=1e-6)
+    for c in orbit:
+        uv, _ = c.project(np.zeros((1, 3)))
+        np.testing.assert_allclose(uv[0], [c.cx, c.cy], atol=1e-6)
+
+    from builders import ring_cameras
+
+    steps = np.diff(np.unwrap(np.radians(_azimuths(orbit_path(ring_cameras(12, (96, 72)), 24)))))
+    np.testing.assert_allclose(np.degrees(steps), 15.0, atol=1e-6)
+
+
+def test_orbit_of_one_camera_is_a_revolution_and_of_a_close_pair_a_30_degree_sweep() -> None:
+    from builders import ring_cameras
+
+    one = ring_cameras(1, (96, 72), height=0.0)  # level: its up is the scene's z
+    steps = np.diff(np.unwrap(np.radians(_azimuths(orbit_path(one, 8, np.zeros(3))))))
+    np.testing.assert_allclose(np.degrees(steps), 45.0, atol=1e-6)
+    pair = [ring_cameras(360, (96, 72), height=0.0)[k] for k in (0, 4)]  # 4 degrees apart
+    az = _azimuths(orbit_path(pair, 40, np.zeros(3)))
+    assert az.max() - az.min() == pytest.approx(30.0, abs=0.2) and az[0] == pytest.approx(2.0, abs=1e-6)

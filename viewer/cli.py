@@ -81,7 +81,8 @@ class RenderConfig:
     out: Path = Path("video.mp4")
     """Video file (.mp4, .mkv, .mov), or a directory name (no suffix) for lossless PNG frames 00000.png, ..."""
     path: str = "orbit"
-    """orbit: one revolution around the scene; cameras: move through the training cameras in order;
+    """orbit: one revolution around the scene (a front-facing rig: a sweep over the arc its cameras
+    cover and back); cameras: move through the training cameras in order;
     FILE.json: a camera path saved by the player (atgs-view), rendered exactly as its preview."""
     fps: float | None = None
     """Video frame rate (default: the path file's, else the sequence's fps)."""

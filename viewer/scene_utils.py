@@ -100,9 +100,33 @@ def orbit_center(source: GaussianSource) -> np.ndarray:
     return 0.5 * (lo + hi)
 
 
+# A rig whose cameras leave a gap wider than this (radians of azimuth around the look centre;
+# 150 degrees: three cameras 120 degrees apart still get a revolution) is front-facing: a full
+# revolution would spend much of its frames behind what it captured.
+FULL_ORBIT_MAX_GAP = math.radians(150.0)
+MIN_SWEEP = math.radians(30.0)  # the narrowest sweep of a front-facing orbit
+
+
+def covered_arc(azimuths: np.ndarray) -> tuple[float, float]:
+    """(start, span) in radians of the smallest arc that holds every azimuth: the circle minus
+    its largest gap between neighbouring cameras."""
+    a = np.sort(np.mod(np.asarray(azimuths, dtype=np.float64), 2 * math.pi))
+    if len(a) < 2:
+        return (float(a[0]) if len(a) else 0.0), 0.0
+    gaps = np.diff(np.append(a, a[0] + 2 * math.pi))
+    k = int(np.argmax(gaps))  # the largest gap runs from a[k] to the next camera
+    start = float(a[(k + 1) % len(a)])
+    return start, float(2 * math.pi - gaps[k])
+
+
 def orbit_path(cameras: list[Camera], n: int, center: np.ndarray | None = None) -> list[Camera]:
-    """n cameras on one revolution around the rig's look center, at the rig's mean radius and
-    height, with the first training camera's intrinsics."""
+    """n cameras around the rig's look center, at the rig's mean radius and height, with the
+    first training camera's intrinsics, looking at the center.
+
+    A rig around the scene (no gap between cameras wider than 150 degrees of azimuth) gets one
+    revolution. A front-facing rig gets a loop that sweeps to both ends of the arc its cameras
+    cover and back (a sine in azimuth, starting at the arc's middle, at least 30 degrees wide), so
+    no frame looks at the uncaptured back of the scene. A single camera gets a revolution."""
     if not cameras:
         raise ViewerError("orbit path needs at least one camera in the checkpoint")
     c0 = cameras[0]
@@ -117,9 +141,15 @@ def orbit_path(cameras: list[Camera], n: int, center: np.ndarray | None = None) 
         e1 = np.cross(up, [1.0, 0, 0]) if abs(up[0]) < 0.9 else np.cross(up, [0, 1.0, 0])
         e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
+    start, span = covered_arc(np.arctan2(radial @ e2, radial @ e1))
+    # one camera (a PLY without cameras gets a framing one) says nothing of what was captured
+    full = len(cameras) == 1 or span >= 2 * math.pi - FULL_ORBIT_MAX_GAP
+    if span < MIN_SWEEP:  # cameras close together still get some parallax
+        start, span = start + 0.5 * span - 0.5 * MIN_SWEEP, MIN_SWEEP
     out = []
     for i in range(n):
-        a = 2 * math.pi * i / max(n, 1)
+        t = i / max(n, 1)
+        a = 2 * math.pi * t if full else start + 0.5 * span * (1.0 + math.sin(2 * math.pi * t))
         eye = ctr + radius * (math.cos(a) * e1 + math.sin(a) * e2) + height * up
         out.append(Camera(f"orbit{i:05d}", c0.width, c0.height, c0.K.copy(), look_at(eye, ctr, up)))
     return out
