@@ -43,7 +43,7 @@ def gather_rows(table: torch.Tensor, idx: torch.Tensor, track: bool) -> tuple[to
     rows = mask.nonzero().squeeze(1)
     remap = torch.empty(table.shape[0], dtype=torch.int64, device=table.device)
     remap[rows] = torch.arange(rows.numel(), device=table.device)
-    leaf = table[rows].detach().requires_grad_(True)
+    leaf = table.index_select(0, rows).detach().requires_grad_(True)
     out = leaf[remap[flat]].reshape(*idx.shape, table.shape[1])
     return out, RowGather(rows, leaf)
 
@@ -81,7 +81,7 @@ class _CompiledLookup(torch.autograd.Function):
         if remap.numel():
             grad = ctx.bwd(x, grad_out.contiguous(), ctx.leaf_rows, remap)
         else:
-            grad = ctx.bwd(x, grad_out.contiguous(), ctx.table_rows, remap)[rows]
+            grad = ctx.bwd(x, grad_out.contiguous(), ctx.table_rows, remap).index_select(0, rows)
         return grad, None, None, None, None, None, None
 
 
@@ -96,7 +96,7 @@ def compiled_lookup(table: torch.Tensor, x: torch.Tensor, track: bool, touched: 
     if not track:
         return fwd(x, table), None
     rows = touched(x).nonzero().squeeze(1)
-    leaf = table[rows].detach().requires_grad_(True)
+    leaf = table.index_select(0, rows).detach().requires_grad_(True)
     to_leaf = _NO_REMAP
     if remap:
         to_leaf = torch.full((table.shape[0],), -1, dtype=torch.int64, device=table.device)

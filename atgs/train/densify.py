@@ -50,12 +50,13 @@ class DensifyStats:
             return
         # a non-finite screen-space gradient (the trainer zeroes it for the update) must not
         # poison the running sums: such Gaussians are not counted this step
-        vis = (radii > 0) & torch.isfinite(means2d_grad).all(dim=1)
-        slots = (dec.anchor_ids * q + dec.slot_ids)[vis]
-        g = means2d_grad[vis] * torch.tensor([0.5 * width, 0.5 * height], device=self.device)
+        vis = ((radii > 0) & torch.isfinite(means2d_grad).all(dim=1)).nonzero().squeeze(1)
+        slots = (dec.anchor_ids * q + dec.slot_ids).index_select(0, vis)  # unique: one Gaussian each
+        g = means2d_grad.index_select(0, vis) * torch.tensor([0.5 * width, 0.5 * height], device=self.device)
         self.grad_accum.index_add_(0, slots, g.norm(dim=1))
         self.grad_count.index_add_(0, slots, torch.ones(slots.numel(), device=self.device))
-        self.last_pos[slots] = dec.keyframe_means()[vis]  # at the keyframe: growth places anchors there
+        # at the keyframe: growth places anchors there
+        self.last_pos.index_copy_(0, slots, dec.keyframe_means().index_select(0, vis))
 
     def append(self, n: int, q: int) -> None:
         z = DensifyStats.zeros(n, q, self.device)
