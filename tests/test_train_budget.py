@@ -183,3 +183,56 @@ def test_evaluations_and_saves_stay_regular_when_the_budget_resizes_their_interv
     for steps in (evals, saves[:-1]):  # the last save is the end of the run
         gaps = [b - a for a, b in zip([0, *steps], steps)]
         assert len(steps) >= 4 and all(10 <= g <= 12 for g in gaps), steps
+
+
+def test_an_evaluation_is_not_read_as_a_slow_step() -> None:
+    """A 4-minute run at 0.5 s a step whose periodic evaluation at step 78 took 11 s once ended
+    at step 79 (57 s in): the evaluation was read as the pace, and the final evaluation's
+    reserve at that pace exceeded the time left. Reported as overhead, it is spread over the
+    steps instead."""
+    def run(report_overhead: bool) -> tuple[int, float, TimeBudget]:
+        # re-planning after every step: the alignment the real run hit (a plan right after the
+        # evaluation, over an interval of one step)
+        b = TimeBudget(240.0, ScheduleBase.of(preset("cpu")[1]), reserve_views=40, replan_seconds=0.5)
+        step, used, overhead, planned = 0, 0.0, 0.0, 5000
+        while step < planned:
+            used += 0.5
+            step += 1
+            if step == 78:  # the evaluation
+                used += 11.0
+                overhead += 11.0
+            n = b.plan(step, used, planned, overhead if report_overhead else 0.0)
+            if n is not None:
+                planned = n
+        return step, used, b
+
+    steps, used, b = run(report_overhead=False)
+    assert steps < 100  # what happened before
+    steps, used, b = run(report_overhead=True)
+    assert b.pace == pytest.approx(0.5)
+    reserve = 40 * 0.5 + 1.0  # a step per view of the final evaluation
+    assert b.reserve() == pytest.approx(reserve)
+    # the time left after the evaluation and the reserve, at 0.5 s a step and the evaluation's
+    # 11 s spread over the steps (an estimate that can only make the run end a little early)
+    assert 240.0 - reserve - 30.0 <= used <= 240.0 - reserve + 1.0, (steps, used)
+
+
+def test_trainer_reports_evaluations_and_saves_as_overhead(tmp_path) -> None:
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
+    m, t = preset("tiny")
+    t = dataclasses.replace(t, minutes=0.5, iterations=40, eval_every=10, save_every=0, eval_max_frames=1)
+    tr = Trainer(scene, m, t, tmp_path / "run")
+    extra = [0.0]
+    tr.clock = lambda: 0.5 * tr.step + extra[0]  # steps take 0.5 s, an evaluation 3 s more
+    real_evaluate = tr.evaluate
+
+    def slow_evaluate(*a, **k):
+        extra[0] += 3.0
+        return real_evaluate(*a, **k)
+
+    tr.evaluate = slow_evaluate
+    res = tr.run_steps(progress=False)
+    assert extra[0] >= 3.0 and res["seconds_per_step"] == pytest.approx(0.5)
+    assert res["seconds_used"] <= 30.0  # on time, evaluations included
+    ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=True)
+    assert ck["trainer"]["budget"]["overhead"] == pytest.approx(extra[0])

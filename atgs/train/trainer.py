@@ -201,6 +201,7 @@ class Trainer:
         self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
         self._session_start: float | None = None  # clock() when run_steps began
         self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
+        self._overhead = 0.0  # seconds of periodic evaluations and saves of this trainer (in the above)
         self._planned_once = False
 
     # --- data -------------------------------------------------------------------------------
@@ -442,7 +443,8 @@ class Trainer:
                 "densify": self.stats.state_dict(), "sampler": self.sampler.state_dict(),
                 "grid_visits": self.grid_visits.clone(), "generator": self.gen.get_state(),
                 "skipped": self.skipped, "bad_in_row": self.bad_in_row,
-                "budget": None if self.budget is None else self.budget.state_dict(self._time_used()),
+                "budget": None if self.budget is None else self.budget.state_dict(self._time_used(),
+                                                                                     self._overhead_used()),
                 "exposure": None if self.exposure is None else self.exposure.state_dict(),
             },
         }
@@ -508,11 +510,15 @@ class Trainer:
         now = 0.0 if self._session_start is None else self.clock() - self._session_start
         return before + now
 
+    def _overhead_used(self) -> float:
+        """The part of :meth:`_time_used` that went to periodic evaluations and checkpoints."""
+        return self._overhead + (self.budget.overhead if self.budget is not None else 0.0)
+
     def _follow_budget(self, bar) -> None:
         """Re-size the schedule to the time left (no-op without --minutes)."""
         if self.budget is None:
             return
-        n = self.budget.plan(self.step, self._time_used(), self.cfg.iterations)
+        n = self.budget.plan(self.step, self._time_used(), self.cfg.iterations, self._overhead_used())
         if n is None:
             return
         first = self.budget.pace > 0 and self._planned_once is False
@@ -564,12 +570,16 @@ class Trainer:
                        "eval_psnr": "", "eval_ssim": ""}
                 if cfg.eval_every > 0 and self.step - last_eval >= cfg.eval_every and self.step < cfg.iterations:
                     last_eval = self.step
+                    t_eval = self.clock()
                     ev = self.evaluate()
+                    self._overhead += self.clock() - t_eval  # not step time: the budget's pace excludes it
                     row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
                 self.run.log(row)
                 if cfg.save_every > 0 and self.step - last_save >= cfg.save_every and self.step < cfg.iterations:
                     last_save = self.step
+                    t_save = self.clock()
                     self.save()
+                    self._overhead += self.clock() - t_save
                 bar.update(1)
                 self._follow_budget(bar)
                 if self.step % 5 == 0 or self.step == cfg.iterations:
