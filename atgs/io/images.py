@@ -28,10 +28,11 @@ def to_rgb8(im: Image.Image) -> np.ndarray:
         a = np.clip(a * 255.0 if np.nanmax(a) <= 1.0 else a, 0, 255)
         return np.repeat(np.rint(np.nan_to_num(a)).astype(np.uint8)[..., None], 3, axis=2)
     if im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info):
-        rgba = np.asarray(im.convert("RGBA"), dtype=np.float32)
-        if rgba[..., 3].min() >= 255:
-            return rgba[..., :3].astype(np.uint8)
-        return np.rint(rgba[..., :3] * (rgba[..., 3:] / 255.0)).astype(np.uint8)
+        rgba = im.convert("RGBA")
+        if rgba.getchannel("A").getextrema()[0] == 255:  # opaque after all: no float copy
+            return np.asarray(rgba.convert("RGB"))
+        a = np.asarray(rgba, dtype=np.float32)
+        return np.rint(a[..., :3] * (a[..., 3:] / 255.0)).astype(np.uint8)
     return np.asarray(im.convert("RGB"))
 
 

@@ -201,7 +201,7 @@ class Trainer:
         self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
         self._session_start: float | None = None  # clock() when run_steps began
         self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
-        self._overhead = 0.0  # seconds of periodic evaluations and saves of this trainer (in the above)
+        self._overhead = 0.0  # of those, seconds of periodic evaluations and saves (not step time)
         self._planned_once = False
 
     # --- data -------------------------------------------------------------------------------
