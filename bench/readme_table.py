@@ -206,6 +206,19 @@ def motion_points(r: dict) -> Cells:
                  f"{span(rec, '{:.0%}')} of the moving surfaces within 3 % of a point; docs/data.md")
 
 
+def velocity_init(r: dict) -> Cells:
+    acc, runs = r["accuracy"], r["training"]
+    objs = acc["objects"]
+    zero, flow, oracle = runs["zero"], runs["flow"], runs["oracle"]
+    return Cells(f"built-in scene, {len(objs)} moving objects; preset cpu at {flow['iterations']:,} steps, 3 runs at once",
+                 run_of(flow["date"], [x["loadavg"][0] for x in runs.values()]),
+                 f"median cosine to the true velocity {span((o['cosine'] for o in objs.values()), '{:.2f}')}, length "
+                 f"ratio {span((o['ratio'] for o in objs.values()), '{:.2f}')} ({acc['seconds']:.0f} s of set-up); "
+                 f"held out {zero['psnr']:.2f} dB from 0, {flow['psnr']:.2f} dB from the flow, {oracle['psnr']:.2f} dB "
+                 f"from the true motion (moving pixels {zero['split']['psnr_moving']:.2f} / "
+                 f"{flow['split']['psnr_moving']:.2f} / {oracle['split']['psnr_moving']:.2f} dB); docs/training.md")
+
+
 def oracle_gap(r: dict) -> Cells:
     cases = r["cases"]
     gaps = [x["gap_db"] for x in cases]
@@ -439,6 +452,8 @@ ROWS = (
     Row("moving", "moving.py", "what limits moving content", "", moving),
     Row("motion_points", "motion_points.py", "moving-content points from motion masks (visual hull) at 4x the "
         "keyframes", "", motion_points),
+    Row("velocity_init", "velocity_init.py", "per-keyframe anchors' velocities from optical flow: the estimate "
+        "against the true motion, and held-out PSNR at equal steps", "", velocity_init),
     Row("budget_knobs", "budget_knobs.py", "knobs of the default run at a fixed time: anchor motion, window W, background, regularisers, exposure, dropout, views per step, model size", "", budget_knobs),
     Row("step", "step.py", "CPU training step: compiled grid kernels vs torch gathers", "", train_step),
     Row("short_runs", "short_runs.py", "short CPU runs: growth threshold, learning rates, cameras per frame, "

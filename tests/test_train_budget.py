@@ -5,6 +5,7 @@ so nothing here depends on the machine's speed."""
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import pytest
 import torch
@@ -68,10 +69,31 @@ def test_rescaled_schedule_is_proportional_and_never_drifts() -> None:
 
 def _budget_trainer(scene, out, minutes: float) -> Trainer:
     m, t = preset("tiny")
-    t = dataclasses.replace(t, minutes=minutes, iterations=40, eval_every=0, save_every=0)
+    # the simulated clock covers the steps only: no real set-up time (the scene flow) in the budget
+    t = dataclasses.replace(t, minutes=minutes, iterations=40, eval_every=0, save_every=0, velocity_from_flow=False)
     tr = Trainer(scene, m, t, out)
     tr.clock = lambda: 0.5 * tr.step  # every step takes half a second
     return tr
+
+
+def test_the_scene_flow_set_up_is_paid_from_the_budget(tmp_path, monkeypatch) -> None:
+    """Starting the anchors' velocities from optical flow takes set-up time (tens of seconds on the
+    built-in scene): a --minutes budget counts it as used before the first step."""
+    import atgs.train.trainer as trainer_module
+
+    real = trainer_module.initial_velocities
+
+    def slow(*args, **kwargs):
+        time.sleep(0.3)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "initial_velocities", slow)
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
+    m, t = preset("tiny")
+    on = Trainer(scene, m, dataclasses.replace(t, minutes=1.0), tmp_path / "on")
+    off = Trainer(scene, m, dataclasses.replace(t, minutes=1.0, velocity_from_flow=False), tmp_path / "off")
+    assert on.scene_flow_stats is not None and on.budget.used >= 0.3
+    assert off.scene_flow_stats is None and off.budget.used == 0.0
 
 
 def test_trainer_fills_the_budget_and_resume_counts_the_time_used(tmp_path) -> None:
@@ -117,6 +139,7 @@ def test_the_rasterizer_compiles_in_set_up_not_in_the_budget(tmp_path, monkeypat
     scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
     m, t = preset("tiny")
     t.render_backend, t.minutes = "torch", 0.5
+    t.velocity_from_flow = False  # set-up the budget does pay for (test above)
     tr = Trainer(scene, m, t, tmp_path / "run")
     assert calls == [(torch.device("cpu"), "torch")]
     # (set-up renders with the CPU backend elsewhere too: carving random anchors, exposure)
@@ -138,7 +161,7 @@ def test_the_cpu_kernels_build_in_set_up_not_in_the_budget(tmp_path, monkeypatch
     monkeypatch.setattr(optim, "_compiled_kernel", lambda: asked.append(("optim", None)) or real_compiled())
     scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
     m, t = preset("tiny")
-    t.minutes = 0.5
+    t.minutes, t.velocity_from_flow = 0.5, False  # the scene flow is set-up the budget pays for
     tr = Trainer(scene, m, t, tmp_path / "run")
     assert asked == [("optim", None), ("grids", "auto")]
     assert tr.sparse_opt._kernel is not None, "the compiled sparse Adam step serves the CPU tables"

@@ -164,7 +164,7 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     scene = load_scene(args)
     if args.auto:
         apply_auto(args, scene, explicit)
-    trainer = Trainer(scene, args.model, args.train, args.out, device=device)
+    trainer = Trainer(scene, args.model, args.train, args.out, device=device, progress=args.progress)
     trainer.run.stage_config({"preset": args.preset, "data": str(args.data) if args.data else None,
                               "device": str(device), "model": to_dict(args.model), "train": to_dict(args.train)})
     m = trainer.model

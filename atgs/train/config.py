@@ -100,6 +100,10 @@ class TrainConfig:
     # for it, where black is the worst one (docs/training.md, "Window and background").
     background_from_images: bool = True
     random_background: bool = False  # a random colour per step; evaluation still renders over `background`
+    # Not in the paper: start the per-keyframe anchors' velocities (--model.anchor-velocity) from
+    # the training images' optical flow (atgs.train.scene_flow) instead of 0; the set-up time is
+    # paid from a --minutes budget. Measured in docs/training.md ("Velocities from optical flow").
+    velocity_from_flow: bool = True
     # Not in the paper: a learned gain and bias per colour channel for each training camera, for
     # rigs whose cameras are exposed differently (atgs.train.exposure). Held-out cameras and the
     # viewer render the training cameras' average exposure. "auto": on when the gains measured

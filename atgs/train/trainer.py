@@ -37,6 +37,7 @@ from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
+from atgs.train.scene_flow import grey_of, initial_velocities
 from atgs.train.losses import VOLUME_REDUCTIONS, depth_distortion, image_loss, offset_loss, psnr, volume_loss
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
@@ -122,9 +123,9 @@ def check_backend(device: torch.device, backend: str) -> None:
 
 class Trainer:
     def __init__(self, scene: SceneData, model_cfg: ModelConfig, cfg: TrainConfig, out_dir: str | Path,
-                 model: ATGSModel | None = None, device: torch.device | str = "cpu") -> None:
+                 model: ATGSModel | None = None, device: torch.device | str = "cpu", progress: bool = True) -> None:
         """``device``: where training runs (``atgs.device.resolve_device`` picks it for the CLI);
-        a given ``model`` is moved there."""
+        a given ``model`` is moved there. ``progress``: a bar for the set-up's longer steps."""
         self.device = torch.device(device)
         check_backend(self.device, cfg.render_backend)
         if cfg.views_per_step < 1 or cfg.cameras_per_frame < 1:
@@ -156,6 +157,7 @@ class Trainer:
         self.cams = [c.scaled(s) if s != 1.0 else c for c in scene.cameras]
         self.train_idx, self.test_idx = list(scene.train_indices), list(scene.test_indices)
         self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+        fresh_model = model is None
         if model is None:  # built on the CPU (the same initialisation on every device), then moved
             model = ATGSModel.from_points(
                 model_cfg, torch.as_tensor(np.asarray(scene.points, dtype=np.float32), device="cpu"),
@@ -198,6 +200,12 @@ class Trainer:
         # --minutes: the step count is sized from the measured pace (atgs.train.budget)
         self.budget = (TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg), reserve_views=self.final_views())
                        if cfg.minutes > 0 else None)
+        self.scene_flow_stats: dict | None = None
+        if fresh_model and cfg.velocity_from_flow and model_cfg.anchor_velocity:
+            t0 = time.perf_counter()
+            self._velocities_from_flow(progress)
+            if self.budget is not None:  # set-up the budget pays for: it counts as time used
+                self.budget.used += time.perf_counter() - t0
         self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
         self._session_start: float | None = None  # clock() when run_steps began
         self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
@@ -208,6 +216,30 @@ class Trainer:
     def _load_image(self, cam: int, frame: int) -> np.ndarray:
         c = self.cams[cam]
         return resize_frame(self.scene.image_uint8(cam, frame), c.width, c.height)
+
+    def _velocities_from_flow(self, progress: bool = True) -> None:
+        """Start the per-keyframe anchors' velocities from the training images' optical flow
+        (atgs.train.scene_flow); anchors it cannot measure keep 0."""
+        m = self.model
+        if m.num_keyframes < 2 or not bool((m.anchor_keyframe >= 0).any()) or len(self.train_idx) < 2:
+            return
+        cams = [self.scene.cameras[i] for i in self.train_idx]
+        bar = progress_bar(m.num_keyframes, "scene flow", unit="keyframe", enabled=progress)
+
+        def grey(ci: int, f: int) -> torch.Tensor:
+            return grey_of(self.scene.image_uint8(self.train_idx[ci], f))
+
+        def step(k: int, total: int) -> None:
+            bar.update(k - bar.n)
+
+        with torch.no_grad():
+            vel, stats = initial_velocities(m.anchor_mu.cpu(), m.anchor_keyframe.cpu(), m.voxel_size,
+                                            m.timeline.keyframe_frames(), m.num_frames, cams, grey,
+                                            progress=step)
+            m.anchor_velocity.copy_(vel.to(m.anchor_velocity.device))
+        bar.update(bar.total - bar.n)
+        bar.close()
+        self.scene_flow_stats = stats
 
     def _background(self) -> torch.Tensor:
         if self.cfg.random_background:  # drawn on the CPU (the generator's device), then moved
@@ -604,6 +636,8 @@ class Trainer:
             names = [self.scene.cameras[i].name for i in self.train_idx]
             result["camera_exposure"] = {n: {"gain": [round(float(x), 4) for x in g], "bias": [round(float(x), 4) for x in b]}
                                          for n, g, b in zip(names, gains.cpu(), biases.cpu())}
+        if self.scene_flow_stats is not None:  # anchors tracked / measured / given a velocity
+            result["scene_flow"] = dict(self.scene_flow_stats)
         if stopped_early:
             result["stopped_early"] = self.step
         return result
