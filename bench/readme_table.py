@@ -216,7 +216,10 @@ def velocity_init(r: dict) -> Cells:
                  f"ratio {span((o['ratio'] for o in objs.values()), '{:.2f}')} ({acc['seconds']:.0f} s of set-up); "
                  f"held out {zero['psnr']:.2f} dB from 0, {flow['psnr']:.2f} dB from the flow, {oracle['psnr']:.2f} dB "
                  f"from the true motion (moving pixels {zero['split']['psnr_moving']:.2f} / "
-                 f"{flow['split']['psnr_moving']:.2f} / {oracle['split']['psnr_moving']:.2f} dB); docs/training.md")
+                 f"{flow['split']['psnr_moving']:.2f} / {oracle['split']['psnr_moving']:.2f} dB)"
+                 + "".join(f"; {k.split('@', 1)[1]} rig at {v['flow']['iterations']:,} steps: {v['zero']['psnr']:.2f} -> "
+                           f"{v['flow']['psnr']:.2f} dB" for k, v in sorted(r.items()) if k.startswith("training@"))
+                 + "; docs/training.md")
 
 
 def oracle_gap(r: dict) -> Cells:

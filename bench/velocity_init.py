@@ -12,7 +12,8 @@
   thread each: velocities starting at 0 (`--train.no-velocity-from-flow`), from the flow (the
   default), and from the true motion (the oracle, the bound of what a better estimate could give).
   Held-out cam00 over all frames (the trainer's final evaluation) and the moving / static / seen
-  split of bench/_splits.py.
+  split of bench/_splits.py. `--scene-dir DIR` runs this part on another prepared synthetic scene
+  (e.g. `atgs-synth --layout front6`), `--cases zero flow` without the oracle.
 - budget (not in the default parts): preset `cpu-fast` with its 5-minute budget, with and without
   the flow, two runs at once with one torch thread each: the set-up is paid from the budget, so
   this is the trade at equal time (`--parts budget`).
@@ -53,6 +54,10 @@ CASES = {"zero": "velocities start at 0", "flow": "from optical flow (default)",
 @dataclass
 class VelocityBench:
     parts: tuple[str, ...] = ("accuracy", "training")
+    scene_dir: Path | None = None
+    """training: another prepared synthetic scene (atgs-synth output prepared with atgs-prepare)
+    instead of the built-in one; its rows are kept under its folder's name."""
+    cases: tuple[str, ...] = tuple(CASES)  # training: which of zero, flow, oracle
     replot: bool = False  # the tables again from the results file, nothing run
     iterations: int = 600
     work_dir: Path = Path("/tmp/atgs-bench-velocity")
@@ -137,12 +142,12 @@ def accuracy() -> dict:
             "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
 
 
-def train_case(case: str, iterations: int, work_dir: Path) -> dict:
+def train_case(case: str, iterations: int, work_dir: Path, scene_dir: Path | None = None) -> dict:
     from _splits import held_out_splits
 
-    scene_dir = built_in()
+    scene_dir = scene_dir or built_in()
     scene = PreparedScene.load(scene_dir)
-    run = work_dir / f"run-{case}"
+    run = work_dir / f"run-{scene_dir.name}-{case}"
     tr = _trainer(scene, run, iterations, flow=case == "flow")
     if case == "oracle":
         vel, _ = true_velocities(tr.model, scene, load_ground_truth(scene_dir / "synth.json"))
@@ -151,7 +156,7 @@ def train_case(case: str, iterations: int, work_dir: Path) -> dict:
     tr.run_steps(progress=False)
     secs = time.perf_counter() - t0
     ev = tr.final_evaluation(None)
-    return {"case": case, "what": CASES[case], "iterations": iterations, "train_s": round(secs, 1),
+    return {"case": case, "what": CASES[case], "scene": scene_dir.name, "iterations": iterations, "train_s": round(secs, 1),
             "psnr": round(ev["psnr"], 2), "ssim": round(ev["ssim"], 4), "views": ev["views"],
             "split": held_out_splits(run / "ckpt.pt", scene_dir), "scene_flow": tr.scene_flow_stats,
             "loadavg": list(os.getloadavg()), "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
@@ -210,6 +215,22 @@ def table(result: dict) -> str:
         lines += ["", f"Built-in large-motion scene, preset cpu at a fixed {r['iterations']:,} steps, three runs at "
                   f"once with one torch thread each ({r['date']}); held-out cam00 over all frames, the split every "
                   f"8th frame (bench/_splits.py). `python bench/velocity_init.py`."]
+    for key in sorted(k for k in result if k.startswith("training@")):
+        runs = result[key]
+        lines += ["", f"| velocities ({key.split('@', 1)[1]}) | steps | PSNR | SSIM | moving | static | seen | change at window switches / other frames |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for case in CASES:
+            r = runs.get(case)
+            if r is None:
+                continue
+            s = r["split"]
+            lines.append(f"| {r['what']} | {r['iterations']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} | {s['psnr_moving']:.2f} | "
+                         f"{s['psnr_static']:.2f} | {s['psnr_seen']:.2f} | {s['psnr_change_switch']:.2f} / "
+                         f"{s['psnr_change_steady']:.2f} |")
+        r = next(iter(runs.values()))
+        lines += ["", f"The same at a fixed {r['iterations']:,} steps on another layout, {r.get('layout', key.split('@', 1)[1])}, "
+                  f"runs at once with one torch thread each ({r['date']}). `python bench/velocity_init.py --parts training "
+                  f"--scene-dir DIR --cases zero flow --iterations {r['iterations']}`."]
     budget = result.get("budget") or {}
     if budget:
         lines += ["", "| velocities | preset, budget | steps | PSNR | SSIM | moving | static | seen |", "|---|---|---|---|---|---|---|---|"]
@@ -221,7 +242,7 @@ def table(result: dict) -> str:
             lines.append(f"| {r['what']} | {r['preset']}, {r['minutes']:g} min | {r['steps']:,} | {r['psnr']:.2f} | "
                          f"{r['ssim']:.3f} | {s['psnr_moving']:.2f} | {s['psnr_static']:.2f} | {s['psnr_seen']:.2f} |")
         r = next(iter(budget.values()))
-        lines += ["", f"The same scene with preset cpu-fast's time budget, the set-up paid from it, two runs at once "
+        lines += ["", f"The built-in scene with preset cpu-fast's time budget, the set-up paid from it, two runs at once "
                   f"with one torch thread each ({r['date']}). `python bench/velocity_init.py --parts budget`."]
     return "\n".join(lines)
 
@@ -230,7 +251,8 @@ def main() -> None:
     args = tyro.cli(VelocityBench)
     if args.worker:
         case, _, kind = args.worker.partition(":")
-        r = budget_case(case, 5.0, args.work_dir) if kind == "budget" else train_case(case, args.iterations, args.work_dir)
+        r = (budget_case(case, 5.0, args.work_dir) if kind == "budget"
+             else train_case(case, args.iterations, args.work_dir, args.scene_dir))
         print(json.dumps(r), flush=True)
         return
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
@@ -244,12 +266,13 @@ def main() -> None:
 
     def one(worker: str) -> dict:
         cmd = [sys.executable, __file__, "--worker", worker, "--iterations", str(args.iterations),
-               "--work-dir", str(args.work_dir)]
+               "--work-dir", str(args.work_dir)] + (["--scene-dir", str(args.scene_dir)] if args.scene_dir else [])
         return run_worker(cmd, args.work_dir / f"{worker.replace(':', '-')}.log")
 
     if "training" in args.parts:
-        with ThreadPoolExecutor(len(CASES)) as pool:
-            result["training"] = dict(zip(CASES, pool.map(one, CASES)))
+        key = "training" if args.scene_dir is None else f"training@{args.scene_dir.name}"
+        with ThreadPoolExecutor(len(args.cases)) as pool:
+            result[key] = dict(zip(args.cases, pool.map(one, args.cases)))
     if "budget" in args.parts:
         pair = ("zero", "flow")
         with ThreadPoolExecutor(len(pair)) as pool:
