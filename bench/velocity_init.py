@@ -199,41 +199,30 @@ def table(result: dict) -> str:
                   f"{acc['stats']['measured']:,} of {acc['stats']['tracked']:,} tracked anchors measured; set-up "
                   f"{acc['seconds']:.0f} s with {acc['threads']} torch thread{'s' if acc['threads'] != 1 else ''} "
                   f"({acc['date']}).", ""]
-    runs = result.get("training") or {}
-    if runs:
-        lines += ["| velocities | steps | PSNR | SSIM | moving | static | seen | change at window switches / other frames |",
-                  "|---|---|---|---|---|---|---|---|"]
-        for case in CASES:
-            r = runs.get(case)
-            if r is None:
-                continue
+    for key in ["training"] + sorted(k for k in result if k.startswith("training@")):
+        runs = result.get(key) or {}
+        if not runs:
+            continue
+        where = key.split("@", 1)[1] if "@" in key else ""
+        lines += [f"| velocities{f' ({where})' if where else ''} | steps | PSNR | SSIM | moving | static | seen | "
+                  "change at window switches / other frames |", "|---|---|---|---|---|---|---|---|"]
+        for r in (runs[c] for c in CASES if c in runs):
             s = r["split"]
             lines.append(f"| {r['what']} | {r['iterations']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} | {s['psnr_moving']:.2f} | "
                          f"{s['psnr_static']:.2f} | {s['psnr_seen']:.2f} | {s['psnr_change_switch']:.2f} / "
                          f"{s['psnr_change_steady']:.2f} |")
         r = next(iter(runs.values()))
-        lines += ["", f"Built-in large-motion scene, preset cpu at a fixed {r['iterations']:,} steps, three runs at "
-                  f"once with one torch thread each ({r['date']}); held-out cam00 over all frames, the split every "
-                  f"8th frame (bench/_splits.py). `python bench/velocity_init.py`."]
-    for key in sorted(k for k in result if k.startswith("training@")):
-        runs = result[key]
-        lines += ["", f"| velocities ({key.split('@', 1)[1]}) | steps | PSNR | SSIM | moving | static | seen | change at window switches / other frames |",
-                  "|---|---|---|---|---|---|---|---|"]
-        for case in CASES:
-            r = runs.get(case)
-            if r is None:
-                continue
-            s = r["split"]
-            lines.append(f"| {r['what']} | {r['iterations']:,} | {r['psnr']:.2f} | {r['ssim']:.3f} | {s['psnr_moving']:.2f} | "
-                         f"{s['psnr_static']:.2f} | {s['psnr_seen']:.2f} | {s['psnr_change_switch']:.2f} / "
-                         f"{s['psnr_change_steady']:.2f} |")
-        r = next(iter(runs.values()))
-        lines += ["", f"The same at a fixed {r['iterations']:,} steps on another layout, {r.get('layout', key.split('@', 1)[1])}, "
-                  f"runs at once with one torch thread each ({r['date']}). `python bench/velocity_init.py --parts training "
-                  f"--scene-dir DIR --cases zero flow --iterations {r['iterations']}`."]
+        if not where:
+            lines += ["", f"Built-in large-motion scene, preset cpu at a fixed {r['iterations']:,} steps, three runs at "
+                      f"once with one torch thread each ({r['date']}); held-out cam00 over all frames, the split every "
+                      f"8th frame (bench/_splits.py). `python bench/velocity_init.py`.", ""]
+        else:
+            lines += ["", f"The same at a fixed {r['iterations']:,} steps on another layout, {r.get('layout', where)}, "
+                      f"runs at once with one torch thread each ({r['date']}). `python bench/velocity_init.py --parts "
+                      f"training --scene-dir DIR --cases zero flow --iterations {r['iterations']}`.", ""]
     budget = result.get("budget") or {}
     if budget:
-        lines += ["", "| velocities | preset, budget | steps | PSNR | SSIM | moving | static | seen |", "|---|---|---|---|---|---|---|---|"]
+        lines += ["| velocities | preset, budget | steps | PSNR | SSIM | moving | static | seen |", "|---|---|---|---|---|---|---|---|"]
         for case in ("zero", "flow"):
             r = budget.get(case)
             if r is None:
