@@ -23,6 +23,7 @@ from atgs.cameras import Camera
 from atgs.device import usable_device
 from atgs.errors import UserError
 from atgs.io.atomic import atomic_file
+from atgs.render.environment import EnvironmentMap
 
 FORMAT = "atgs-checkpoint"
 VERSION = 1
@@ -93,6 +94,13 @@ def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>", device:
     bg = (data.get("train_config") or {}).get("background")
     if bg is not None and len(bg) == 3:
         model.background = tuple(float(c) for c in bg)
+    env = data.get("environment")
+    if env is not None:  # the background by direction (--train.background-by-direction)
+        try:
+            model.environment = EnvironmentMap.from_state(env)
+        except (KeyError, TypeError, ValueError) as e:
+            raise CheckpointError(f"{path}: checkpoint's environment map is malformed ({e}); "
+                                  "re-save it with atgs-train --resume") from None
     return model.to(usable_device(device))
 
 

@@ -66,7 +66,8 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
 
     scene, model, cfg = PreparedScene.load(scene_dir), atgs.load(ckpt), MotionPointsConfig()
     bg_rgb = (read_checkpoint(ckpt).get("train_config") or {}).get("background") or (0.0, 0.0, 0.0)
-    bg_t = torch.tensor(bg_rgb, dtype=torch.float32)
+    # what the run trained over: its background by direction if it has one, else its colour
+    bg_t = model.environment or torch.tensor(bg_rgb, dtype=torch.float32)
     gt_scene = None
     if (Path(scene_dir) / "synth.json").is_file():
         from atgs.data.synth import load_ground_truth
@@ -117,7 +118,7 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
     out = {"psnr_moving": db("moving"), "psnr_static": db("static"),
            "moving_fraction": round(n["moving"] / max(n["all"], 1), 4), "every_nth_frame": every,
            "psnr_change_switch": db("switch"), "psnr_change_steady": db("steady"),
-           "background": [float(c) for c in bg_rgb]}
+           "background": [float(c) for c in bg_rgb], "background_by_direction": model.environment is not None}
     if gt_scene is not None:
         out.update({"psnr_seen": db("seen"), "psnr_unseen": db("unseen"),
                     "unseen_fraction": round(n.get("unseen", 0) / max(n["all"], 1), 4),

@@ -222,6 +222,15 @@ def velocity_init(r: dict) -> Cells:
                  + "; docs/training.md")
 
 
+def background(r: dict) -> Cells:
+    runs = [x for pair in r.values() for x in pair.values()]
+    gains = "; ".join(f"{name} ({pair['direction']['iterations']:,} steps) {pair['colour']['psnr']:.2f} -> "
+                      f"{pair['direction']['psnr']:.2f} dB" for name, pair in r.items())
+    return Cells(f"{len(r)} scenes, preset cpu at equal steps, the two cases of a scene at once",
+                 run_of(max(x["date"] for x in runs), [x["loadavg"][0] for x in runs]),
+                 f"held out, one colour -> by direction: {gains}; docs/training.md")
+
+
 def oracle_gap(r: dict) -> Cells:
     cases = r["cases"]
     gaps = [x["gap_db"] for x in cases]
@@ -457,6 +466,8 @@ ROWS = (
         "keyframes", "", motion_points),
     Row("velocity_init", "velocity_init.py", "per-keyframe anchors' velocities from optical flow: the estimate "
         "against the true motion, and held-out PSNR at equal steps", "", velocity_init),
+    Row("background", "background.py", "the background by direction (an environment map from the training "
+        "images) against one colour, held-out PSNR at equal steps", "", background),
     Row("budget_knobs", "budget_knobs.py", "knobs of the default run at a fixed time: anchor motion, window W, background, regularisers, exposure, dropout, views per step, model size", "", budget_knobs),
     Row("step", "step.py", "CPU training step: compiled grid kernels vs torch gathers", "", train_step),
     Row("short_runs", "short_runs.py", "short CPU runs: growth threshold, learning rates, cameras per frame, "

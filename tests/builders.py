@@ -22,6 +22,17 @@ UP_Z = np.array([0.0, 0.0, 1.0])
 
 # --- cameras -------------------------------------------------------------------------------------
 
+def textured_copy(scene: MemoryScene, seed: int = 0) -> MemoryScene:
+    """``scene`` with noise images everywhere (no uniform backdrop): the mean colour and the
+    background by direction then come from textured images."""
+    rng = np.random.default_rng(seed)
+    h, w = scene.cameras[0].height, scene.cameras[0].width
+    frames = {(c, f): rng.integers(40, 256, (h, w, 3), dtype=np.uint8)
+              for c in range(len(scene.cameras)) for f in range(scene.num_frames)}
+    return MemoryScene(scene.cameras, scene.num_frames, scene.fps, scene.keyframes, scene.points,
+                       scene.point_keyframes, scene.test_cameras, frames)
+
+
 def ring_cameras(n: int = 3, size: tuple[int, int] = (32, 24), focal: float | None = None,
                  radius: float = 3.0, height: float = 1.0) -> list[Camera]:
     """``n`` cameras on a ring around the origin, looking at it (z up); focal 0.9 W by default."""

@@ -136,14 +136,11 @@ def test_background_from_images_is_the_mean_colour_of_a_textured_capture_and_is_
     import numpy as np
 
     from atgs.checkpoint import read_checkpoint
-    from atgs.data.scene import MemoryScene
+    from builders import textured_copy
 
     # textured everywhere (no backdrop): the toy scene's cameras over noise images
-    rng = np.random.default_rng(0)
-    frames = {(c, f): rng.integers(40, 256, (scene.cameras[0].height, scene.cameras[0].width, 3), dtype=np.uint8)
-              for c in range(len(scene.cameras)) for f in range(scene.num_frames)}
-    textured = MemoryScene(scene.cameras, scene.num_frames, scene.fps, scene.keyframes, scene.points,
-                           scene.point_keyframes, scene.test_cameras, frames)
+    textured = textured_copy(scene)
+    frames = textured.frames
     m, t = preset("tiny")
     t.iterations, t.eval_max_frames = 2, 1
     assert t.background_from_images  # the default

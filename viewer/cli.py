@@ -114,10 +114,12 @@ def render_settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
 
 
 def use_trained_background(settings: RenderSettings, cfg: ViewConfig | RenderConfig, source) -> None:
-    """Without --background, draw over the colour the model was trained over (what atgs-eval
-    renders over too), so what no camera saw looks as it did in the evaluation."""
+    """Without --background, draw over what the model was trained over, its colour or its
+    background by direction (what atgs-eval renders over too), so what no camera saw looks as it
+    did in the evaluation."""
     if cfg.background is None:
         settings.background = tuple(float(c) for c in getattr(source, "background", (0.0, 0.0, 0.0)))
+        settings.environment = getattr(source, "environment", None)  # its background by direction, if any
 
 
 def run_headless(cfg: ViewConfig) -> Path:

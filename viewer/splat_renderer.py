@@ -67,6 +67,9 @@ class RenderSettings:
     scale_modifier: float = 1.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     exact_sort: bool = False  # float argsort instead of the 16-bit radix sort
+    environment: object | None = None
+    """A background by direction (``atgs.render.environment.EnvironmentMap``: ``texels`` (H, W, 3),
+    ``basis`` (3, 3)) drawn instead of ``background`` in colour mode, as the model trained over it."""
     min_alpha: float = ALPHA_MIN
     """Alpha cutoff: fragments below it are discarded, triangles shrink to where alpha can reach it,
     and Gaussians whose opacity is below it are culled before the draw. 1/255 (default) is the
@@ -125,6 +128,12 @@ class SplatRenderer:
             vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("present_color.frag")
         )
         self.present_color_vao = ctx.vertex_array(self.present_color_prog, [])
+        self.environment_prog = ctx.program(
+            vertex_shader=load_shader("present.vert"), fragment_shader=load_shader("environment.frag")
+        )
+        self.environment_vao = ctx.vertex_array(self.environment_prog, [])
+        self._env_texture: moderngl.Texture | None = None
+        self._env_source: object | None = None  # the map the texture holds
         self._columns: list[moderngl.Buffer | None] = [None] * (len(COLUMNS) + 1)  # + SH
         self._index_buf: moderngl.Buffer | None = None
         self._vao: moderngl.VertexArray | None = None
@@ -264,7 +273,10 @@ class SplatRenderer:
         fbo.use()
         self.ctx.viewport = (0, 0, W, H)
         bg = (0.0, 0.0, 0.0) if s.mode == "depth" else tuple(float(c) for c in s.background)
-        fbo.clear(bg[0], bg[1], bg[2], 0.0)
+        if s.mode == "color" and s.environment is not None:
+            self._draw_environment(camera, s.environment)
+        else:
+            fbo.clear(bg[0], bg[1], bg[2], 0.0)
         vao = self._vertex_array() if self._count and self._drawn else None
         if vao is not None:
             uniforms = {
@@ -298,6 +310,27 @@ class SplatRenderer:
         self.timings.draw_ms = (time.perf_counter() - t0) * 1e3
         self.timings.drawn = self._drawn if self._count else 0
         return fbo
+
+    def _draw_environment(self, camera: Camera, env: object) -> None:
+        """Fill the bound target with the map's colour along each pixel's ray (alpha 0)."""
+        if self._env_source is not env:
+            texels = np.ascontiguousarray(np.asarray(getattr(env, "texels"), dtype=np.float32))
+            if self._env_texture is not None:
+                self._env_texture.release()
+            tex = self.ctx.texture((texels.shape[1], texels.shape[0]), 3, texels.tobytes(), dtype="f4")
+            tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            tex.repeat_x, tex.repeat_y = True, False  # around in azimuth, clamped at the poles
+            self._env_texture, self._env_source = tex, env
+        basis = np.asarray(getattr(env, "basis"), dtype=np.float64).reshape(3, 3)
+        cam_to_map = basis @ camera.R.T  # camera -> world -> map
+        p = self.environment_prog
+        self._env_texture.use(0)
+        p["u_env"].value = 0
+        p["u_intr"].value = (camera.fx, camera.fy, camera.cx, camera.cy)
+        p["u_size"].value = (float(camera.width), float(camera.height))
+        p["u_cam_to_map"].write(np.ascontiguousarray(cam_to_map.T, dtype=np.float32).tobytes())  # column major
+        self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        self.environment_vao.render(moderngl.TRIANGLES, vertices=3)
 
     def read(self) -> np.ndarray:
         """The target as (H, W, 4) float32, top row first: premultiplied rgb (or z*alpha) and alpha."""
@@ -347,7 +380,8 @@ class SplatRenderer:
 
     def release(self) -> None:
         for obj in (self._vao, self._index_buf, *self._columns, self.present_vao, *self._programs.values(),
-                    self.present_prog, self.present_color_vao, self.present_color_prog):
+                    self.present_prog, self.present_color_vao, self.present_color_prog, self.environment_vao,
+                    self.environment_prog, self._env_texture):
             if obj is not None:
                 obj.release()
         if self._target is not None:

@@ -54,7 +54,8 @@ def run(args: EvalArgs) -> EvalResult:
         raise EvalError(f"--data {data}: not a directory" + ("" if args.data else " (path stored in the checkpoint)"))
     scene = PreparedScene.load(data)
     out = args.out or args.ckpt.parent / "eval"
-    background = (ckpt.get("train_config") or {}).get("background")  # render over what training used
+    # render over what training used: model_from_checkpoint set the model's environment map or colour
+    background = model.environment or (ckpt.get("train_config") or {}).get("background")
     settings = {"checkpoint": str(args.ckpt.resolve()), "data": str(Path(data).resolve()),
                 "step": ckpt.get("step")}
     return evaluate(model, scene, args.eval, out, background=background, settings=settings)

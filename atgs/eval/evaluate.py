@@ -38,6 +38,7 @@ from atgs.eval.lpips import LPIPS, load_lpips
 from atgs.eval.metrics import all_metrics, ms_ssim_levels
 from atgs.gaussians import Gaussians
 from atgs.progress import progress_bar
+from atgs.render.environment import EnvironmentMap
 from atgs.render import rasterize_gaussians
 from atgs.timeline import evenly_spaced
 
@@ -175,7 +176,7 @@ def image_frames(frames: Sequence[int], count: int) -> set[int]:
 
 # --- rendering and images --------------------------------------------------------------------------
 
-def render_view(g: Gaussians, cam: Camera, background: torch.Tensor | None, backend: str) -> torch.Tensor:
+def render_view(g: Gaussians, cam: Camera, background: "torch.Tensor | EnvironmentMap | None", backend: str) -> torch.Tensor:
     """(H,W,3) render of ``g`` from ``cam``, clamped to [0,1]."""
     return rasterize_gaussians(g, cam, background=background, backend=backend).image.detach().clamp(0.0, 1.0)
 
@@ -191,22 +192,26 @@ def comparison_image(render: np.ndarray, gt: np.ndarray, gain: float) -> np.ndar
 # --- the evaluation --------------------------------------------------------------------------------
 
 def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, out: Path | None = None,
-             *, background: Sequence[float] | torch.Tensor | None = None,
+             *, background: "Sequence[float] | torch.Tensor | EnvironmentMap | None" = None,
              settings: dict[str, Any] | None = None, keep_renders: bool = False,
              camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
     """Evaluate ``model`` on ``scene`` (see the module docstring).
 
-    ``background``: the RGB the model was trained over (the trainer's ``background``; default
-    ``model.background`` if it has one, else black). ``settings`` are extra entries for
+    ``background``: what the model was trained over, an RGB or an
+    :class:`~atgs.render.environment.EnvironmentMap` (default ``model.environment``, else
+    ``model.background``, else black). ``settings`` are extra entries for
     summary.json (e.g. checkpoint and data paths). ``keep_renders`` keeps the (H,W,3) renders in
     the result. ``camera_transform(camera index, render)``: what a camera did to the image before
     it is compared (the trainer's per-camera exposure when it evaluates a training camera); the
     result is clipped to [0, 1]. Raises :class:`EvalError` on bad input.
     """
     cfg = cfg or EvalConfig()
-    if background is None:
-        background = getattr(model, "background", None)
-    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device="cpu").reshape(3)
+    if background is None:  # the model's own: its environment map if it has one, else its colour
+        background = getattr(model, "environment", None) or getattr(model, "background", None)
+    if isinstance(background, EnvironmentMap):
+        bg = background
+    else:
+        bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device="cpu").reshape(3)
     cam_indices = select_cameras(model, scene, cfg.cameras)
     frames = select_frames(model, scene, cfg.frames, cfg.every)
     if not 0.0 < cfg.resolution_scale <= 1.0:
@@ -233,7 +238,7 @@ def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, 
 
 
 def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[int], frames: list[int],
-         lpips_net: Any, lpips_reason: str, tmp: Path | None, background: torch.Tensor | None,
+         lpips_net: Any, lpips_reason: str, tmp: Path | None, background: torch.Tensor | EnvironmentMap | None,
          settings: dict[str, Any] | None, keep_renders: bool,
          camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
     t0 = time.perf_counter()
@@ -253,7 +258,9 @@ def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[
                 num_gaussians.append(len(g))
                 for ci, cam in zip(cam_indices, cams):
                     gt_np = _ground_truth(scene, ci, f, cam)  # checked against the scene, resized to cam
-                    bg = None if background is None else background.to(g.means.device, g.means.dtype)
+                    bg = background
+                    if isinstance(bg, torch.Tensor):
+                        bg = bg.to(g.means.device, g.means.dtype)
                     render = render_view(g, cam, bg, cfg.backend)  # on the model's device
                     if camera_transform is not None:
                         render = camera_transform(ci, render).clamp(0, 1)
@@ -329,7 +336,9 @@ def _summary(rows: list[dict[str, Any]], cams: list[Camera], frames: list[int], 
             "cameras": [c.name for c in cams],
             "frames": frames,
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
-            "background": None if background is None else [float(v) for v in background],
+            "background": (None if background is None else "environment map, mean "
+                           + str([round(v, 4) for v in background.mean_colour()])
+                           if isinstance(background, EnvironmentMap) else [float(v) for v in background]),
             "image_sizes": sorted({f"{c.width}x{c.height}" for c in cams}),
             "ms_ssim_levels": ms_ssim_levels(h, w) if cams else None,
             "mean_gaussians": float(np.mean(num_gaussians)) if num_gaussians else 0.0,

@@ -27,6 +27,7 @@ from atgs.model.grids import HashGrid4D, SpatialGrid
 from atgs.model.smoothing import filter_variance, sampling_rates, smooth
 from atgs.model.motion import MIN_FADE, MOTION_TABLES, fade_weight, initial_fade, keyframe_distance, max_fade_width
 from atgs.model.random_anchors import random_anchor_points
+from atgs.render.environment import EnvironmentMap
 from atgs.timeline import Timeline
 
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
@@ -113,6 +114,8 @@ class ATGSModel:
         self.test_camera_names: list[str] = []
         # the RGB training rendered over (its train_config.background): viewers and evaluation use it
         self.background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        # or, when training rendered over a background by direction, that map (it wins over the RGB)
+        self.environment: EnvironmentMap | None = None
         self.bbox_min, self.bbox_max = bbox_min.float(), bbox_max.float()
         gen = torch.Generator().manual_seed(seed)
         d = cfg.feature_dim

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from atgs.render.environment import EnvironmentMap
 from atgs.render.projection import project
 from atgs.render.reference import rasterize_reference
 from atgs.render.types import RasterOutput
@@ -37,7 +39,8 @@ def rasterize(
 
     means (N,3); quats (N,4) as (w,x,y,z), any norm; scales (N,3) linear; opacities (N,) in
     [0,1]; colors (N,3); viewmat (4,4) world-to-camera, OpenCV axes; K (3,3) pinhole
-    intrinsics, pixel centers at +0.5; background (3,) or None (black).
+    intrinsics, pixel centers at +0.5; background (3,), (height, width, 3) (one colour per
+    pixel, e.g. an environment map's, composited as ``C + T * background``) or None (black).
     backend: "cpu" (compiled C++/OpenMP, float32), "torch" (slow dense reference, any float
     dtype), "cuda" (gsplat; tested on a GPU only), "auto" (cuda if the tensors are on a GPU and
     gsplat imports, else cpu if the extension builds, else torch with a warning).
@@ -53,6 +56,12 @@ def rasterize(
     if background is None:
         background = torch.zeros(3, dtype=means.dtype, device=means.device)
     background = as_tensor(background, "background", means)
+    if background.dim() == 3:  # per pixel: render over black, then add T * background
+        out = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, None, backend)
+        if tuple(background.shape) != tuple(out.image.shape):
+            raise RasterInputError(f"rasterize(): argument 'background' has shape {tuple(background.shape)}; "
+                                   f"expected (3,) or {tuple(out.image.shape)} (height, width, 3)")
+        return replace(out, image=out.image + (1.0 - out.alpha)[..., None] * background)
     tensors = dict(
         means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
         viewmat=viewmat, K=K, background=background,
@@ -73,11 +82,15 @@ def rasterize(
 def rasterize_gaussians(
     gaussians: "Gaussians",
     camera: "Camera",
-    background: torch.Tensor | np.ndarray | None = None,
+    background: "torch.Tensor | np.ndarray | EnvironmentMap | None" = None,
     backend: str = "auto",
 ) -> RasterOutput:
     """Convenience wrapper: render an :class:`atgs.gaussians.Gaussians` through an
-    :class:`atgs.cameras.Camera` (pinhole part only; prepared scenes are undistorted)."""
+    :class:`atgs.cameras.Camera` (pinhole part only; prepared scenes are undistorted).
+    ``background`` may also be an :class:`~atgs.render.environment.EnvironmentMap`: each pixel
+    then shows the map's colour in its direction."""
+    if isinstance(background, EnvironmentMap):
+        background = background.image(camera, gaussians.means.device, gaussians.means.dtype)
     return rasterize(
         *gaussians.as_tuple(), camera.w2c, camera.K, camera.width, camera.height,
         background=background, backend=backend,

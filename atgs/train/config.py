@@ -99,6 +99,11 @@ class TrainConfig:
     # colour. What no training camera sees has no Gaussians; the mean is the least-squares guess
     # for it, where black is the worst one (docs/training.md, "Window and background").
     background_from_images: bool = True
+    # With it, not one colour but one per direction (atgs.train.background): each ray's background
+    # is the mean colour the training images show in about its direction, so what lies just
+    # beyond the cameras' frames gets the colour framed next to it. Not with a uniform backdrop.
+    # Measured in docs/training.md ("Background by direction").
+    background_by_direction: bool = True
     random_background: bool = False  # a random colour per step; evaluation still renders over `background`
     # Not in the paper: start the per-keyframe anchors' velocities (--model.anchor-velocity) from
     # the training images' optical flow (atgs.train.scene_flow) instead of 0; the set-up time is

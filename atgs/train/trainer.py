@@ -32,6 +32,7 @@ from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians, warm_up
 from atgs.timeline import evenly_spaced
+from atgs.train.background import resolve_background
 from atgs.train.config import TrainConfig
 from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
@@ -71,32 +72,6 @@ def _bounds(scene: SceneData) -> torch.Tensor | None:
     b = getattr(scene, "bounds", None)
     # on the CPU: the model is initialised there and moved afterwards
     return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32), device="cpu").reshape(2, 3)
-
-
-def background_from_images(scene: SceneData, cams: Sequence[int], samples: int = 24,
-                           border: int = 2, tolerance: float = 0.04, backdrop_fraction: float = 0.5
-                           ) -> tuple[float, float, float]:
-    """The colour to train and render over, from ``samples`` (camera, frame) images spread over
-    ``cams`` and the sequence. A capture with a uniform backdrop (at least ``backdrop_fraction``
-    of the pixels of the images' ``border``-pixel frames within ``tolerance`` of their median
-    colour) gets that colour, so empty space stays empty; any other capture gets the mean colour
-    of the images, the least-squares guess for what no training camera sees (black, the usual
-    default, is the worst guess there)."""
-    if not cams:
-        return (0.0, 0.0, 0.0)
-    n = max(samples, len(cams))
-    frames = evenly_spaced(scene.num_frames, min(n, scene.num_frames))
-    means, edges = [], []
-    for i in range(n):
-        img = scene.image_uint8(cams[i % len(cams)], frames[i % len(frames)])[..., :3].astype(np.float32) / 255.0
-        means.append(img.reshape(-1, 3).mean(axis=0))
-        b = max(1, min(border, min(img.shape[:2]) // 2))
-        edges += [img[:b].reshape(-1, 3), img[-b:].reshape(-1, 3), img[:, :b].reshape(-1, 3), img[:, -b:].reshape(-1, 3)]
-    edge = np.concatenate(edges)
-    median = np.median(edge, axis=0)
-    if np.mean(np.abs(edge - median).max(axis=1) <= tolerance) >= backdrop_fraction:
-        return tuple(float(v) for v in median)
-    return tuple(float(v) for v in np.mean(means, axis=0))
 
 
 class NonFiniteError(UserError, RuntimeError):
@@ -139,8 +114,11 @@ class Trainer:
             raise UserError(f"--train.lr.moving-anchors {cfg.lr.moving_anchors}: a factor on learning rates, use > 0")
         if not 0 <= cfg.drop_gaussians < 1:
             raise UserError(f"--train.drop-gaussians {cfg.drop_gaussians}: a fraction of the Gaussians, use 0 <= rate < 1")
-        if cfg.background_from_images:  # resolved once; the saved config carries the colour
-            cfg = replace(cfg, background=background_from_images(scene, list(scene.train_indices)))
+        environment = None if model is None else model.environment  # (a resumed run keeps its own)
+        if cfg.background_from_images:  # resolved once; the checkpoint carries the colour and the map
+            colour, environment = resolve_background(scene, list(scene.train_indices),
+                                                     cfg.background_by_direction and not cfg.random_background)
+            cfg = replace(cfg, background=colour)
         self.measured_exposure: np.ndarray | None = None  # (train cameras, 3) when "auto" measured it
         if cfg.camera_exposure not in ("auto", "on", "off"):
             raise UserError(f"--train.camera-exposure {cfg.camera_exposure!r}: use auto, on or off")
@@ -172,6 +150,7 @@ class Trainer:
         self.model_cfg = model_cfg = self.model.cfg  # a loaded model may have switched features off
         self.model.test_camera_names = list(scene.test_cameras)
         self.model.background = tuple(float(c) for c in cfg.background)
+        self.model.environment = environment
         self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
         dec = model.decoder
         self.dense_opt = torch.optim.Adam(
@@ -244,7 +223,7 @@ class Trainer:
     def _background(self) -> torch.Tensor:
         if self.cfg.random_background:  # drawn on the CPU (the generator's device), then moved
             return torch.rand(3, generator=self.gen, device=self.gen.device).to(self.device)
-        return self.fixed_background
+        return self.model.environment or self.fixed_background
 
     # --- learning rates -----------------------------------------------------------------------
     def _expected_visits(self) -> int:
@@ -445,7 +424,7 @@ class Trainer:
         def as_exposed(ci: int, img: torch.Tensor) -> torch.Tensor:
             return exposure.apply(img, self.train_slot[ci])
 
-        res = evaluate(self.model, self.scene, cfg, out, background=self.cfg.background,
+        res = evaluate(self.model, self.scene, cfg, out, background=self.model.environment or self.cfg.background,
                        camera_transform=as_exposed if exposure is not None else None)
         return {"psnr": res.mean("psnr"), "ssim": res.mean("ssim"), "views": res.summary["num_views"],
                 "on_test_cameras": bool(self.test_idx)}
@@ -470,6 +449,7 @@ class Trainer:
             "time_range": [0.0, (m.num_frames - 1) / m.fps if m.fps > 0 else 0.0],
             "keyframes": m.timeline.keyframe_frames(), "step": self.step, "model": m.state_dict(),
             "data_dir": str(getattr(self.scene, "root", "") or ""),
+            "environment": None if m.environment is None else m.environment.to_state(),
             "trainer": {
                 "sparse_opt": self.sparse_opt.state_dict(), "dense_opt": self.dense_opt.state_dict(),
                 "densify": self.stats.state_dict(), "sampler": self.sampler.state_dict(),

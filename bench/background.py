@@ -1,0 +1,131 @@
+"""The background by direction (`--train.background-by-direction`) against one colour, at equal steps.
+
+    python bench/background.py                                  # the built-in scene (~10 min on 2 cores)
+    python bench/background.py --no-built-in --scene-dirs A B --iterations 400   # other prepared scenes
+    python bench/background.py --replot                         # the table again from the results file
+
+Per scene, preset `cpu` for a fixed step count, both cases at once with one torch thread each:
+the background by direction (an environment map from the training images, the default) and the
+images' mean colour (`--train.no-background-by-direction`, the default before 2026-11-26). Held-out
+cameras over all frames (the trainer's final evaluation) and the split of bench/_splits.py
+(moving / static; seen / unseen on atgs-synth scenes, where the unseen pixels are what the
+background is for). Results: bench/results/background.json and the bench:background table in
+docs/training.md.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import tyro
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _docs import git_commit, publish, run_worker  # noqa: E402
+
+from atgs.data.scene import PreparedScene  # noqa: E402
+from atgs.data.synth import ensure_default_scene  # noqa: E402
+from atgs.io.cache import cache_dir  # noqa: E402
+from atgs.train.config import preset  # noqa: E402
+from atgs.train.trainer import Trainer  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+CASES = {"direction": "by direction (default)", "colour": "the images' mean colour"}
+
+
+@dataclass
+class BackgroundBench:
+    built_in: bool = True  # the built-in large-motion scene
+    scene_dirs: tuple[Path, ...] = ()  # other prepared scenes
+    labels: tuple[str, ...] = ()  # their names in the table (default: their folders' names)
+    iterations: int = 1200
+    replot: bool = False  # the table again from the results file, nothing run
+    work_dir: Path = Path("/tmp/atgs-bench-background")
+    out: Path = ROOT / "bench" / "results" / "background.json"
+    docs: Path | None = ROOT / "docs" / "training.md"
+    worker: str = ""  # internal: "CASE@SCENE_DIR", run one case and print its JSON
+
+
+def train_case(case: str, scene_dir: Path, iterations: int, work_dir: Path) -> dict:
+    from _splits import held_out_splits
+
+    scene = PreparedScene.load(scene_dir)
+    m, t = preset("cpu", iterations=iterations)
+    t.eval_every = t.save_every = 0
+    t.threads = 1
+    t.background_by_direction = case == "direction"
+    run = work_dir / f"run-{scene_dir.name}-{case}"
+    shutil.rmtree(run, ignore_errors=True)
+    torch.manual_seed(0)
+    tr = Trainer(scene, m, t, run, progress=False)
+    t0 = time.perf_counter()
+    tr.run_steps(progress=False)
+    secs = time.perf_counter() - t0
+    ev = tr.final_evaluation(None)
+    cams = scene.cameras
+    return {"case": case, "what": CASES[case], "scene": scene_dir.name, "iterations": iterations,
+            "cameras": f"{len(scene.train_indices)} training + {len(scene.test_indices)} held out, "
+                       f"{cams[0].width}x{cams[0].height}, {scene.num_frames} frame{'s' if scene.num_frames > 1 else ''}",
+            "train_s": round(secs, 1), "psnr": round(ev["psnr"], 2), "ssim": round(ev["ssim"], 4),
+            "split": held_out_splits(run / "ckpt.pt", scene_dir), "loadavg": list(os.getloadavg()),
+            "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
+
+
+def table(result: dict) -> str:
+    lines = ["| scene | cameras | steps | background | PSNR | SSIM | static | moving | seen | unseen |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    dates = set()
+    for name, runs in result.items():
+        for case in CASES:
+            r = runs.get(case)
+            if r is None:
+                continue
+            s = r["split"]
+            dates.add(r["date"])
+            lines.append(f"| {name} | {r['cameras']} | {r['iterations']:,} | {r['what']} | {r['psnr']:.2f} | "
+                         f"{r['ssim']:.3f} | {fmt(s.get('psnr_static'))} | {fmt(s.get('psnr_moving'))} | "
+                         f"{fmt(s.get('psnr_seen'))} | {fmt(s.get('psnr_unseen'))} |")
+    lines += ["", f"Preset cpu at a fixed step count, the two cases of a scene at once with one torch thread each "
+              f"({', '.join(sorted(dates))}); held-out cameras over all frames, the split every 8th frame "
+              "(bench/_splits.py; seen / unseen only on atgs-synth scenes). `python bench/background.py`."]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    args = tyro.cli(BackgroundBench)
+    if args.worker:
+        case, _, scene_dir = args.worker.partition("@")
+        print(json.dumps(train_case(case, Path(scene_dir), args.iterations, args.work_dir)), flush=True)
+        return
+    result = json.loads(args.out.read_text()) if args.out.exists() else {}
+    if args.replot:
+        publish(result, args.out, table(result), args.docs, "background")
+        return
+    if args.labels and len(args.labels) != len(args.scene_dirs):
+        raise SystemExit(f"--labels: {len(args.labels)} given for {len(args.scene_dirs)} --scene-dirs")
+    scenes = ([("built-in", ensure_default_scene(cache_dir(), progress=False))] if args.built_in else []) + list(
+        zip(args.labels or [d.name for d in args.scene_dirs], args.scene_dirs))
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+    for label, scene_dir in scenes:
+        PreparedScene.load(scene_dir)  # a bad path fails here, before any worker starts
+
+        def one(case: str, scene_dir: Path = scene_dir) -> dict:
+            cmd = [sys.executable, __file__, "--worker", f"{case}@{scene_dir}", "--iterations", str(args.iterations),
+                   "--work-dir", str(args.work_dir)]
+            return run_worker(cmd, args.work_dir / f"{scene_dir.name}-{case}.log")
+
+        with ThreadPoolExecutor(len(CASES)) as pool:
+            result[label] = dict(zip(CASES, pool.map(one, CASES)))
+        publish(result, args.out, table(result), args.docs, "background")
+
+
+if __name__ == "__main__":
+    main()
