@@ -46,6 +46,7 @@ class BackgroundBench:
     scene_dirs: tuple[Path, ...] = ()  # other prepared scenes
     labels: tuple[str, ...] = ()  # their names in the table (default: their folders' names)
     iterations: int = 1200
+    cases: tuple[str, ...] = tuple(CASES)  # which of direction, colour (the others' results are kept)
     replot: bool = False  # the table again from the results file, nothing run
     work_dir: Path = Path("/tmp/atgs-bench-background")
     out: Path = ROOT / "bench" / "results" / "background.json"
@@ -122,8 +123,8 @@ def main() -> None:
                    "--work-dir", str(args.work_dir)]
             return run_worker(cmd, args.work_dir / f"{scene_dir.name}-{case}.log")
 
-        with ThreadPoolExecutor(len(CASES)) as pool:
-            result[label] = dict(zip(CASES, pool.map(one, CASES)))
+        with ThreadPoolExecutor(len(args.cases)) as pool:
+            result[label] = {**result.get(label, {}), **dict(zip(args.cases, pool.map(one, args.cases)))}
         publish(result, args.out, table(result), args.docs, "background")
 
 
