@@ -54,11 +54,10 @@ def run(args: EvalArgs) -> EvalResult:
         raise EvalError(f"--data {data}: not a directory" + ("" if args.data else " (path stored in the checkpoint)"))
     scene = PreparedScene.load(data)
     out = args.out or args.ckpt.parent / "eval"
-    # render over what training used: model_from_checkpoint set the model's environment map or colour
-    background = model.environment or (ckpt.get("train_config") or {}).get("background")
     settings = {"checkpoint": str(args.ckpt.resolve()), "data": str(Path(data).resolve()),
                 "step": ckpt.get("step")}
-    return evaluate(model, scene, args.eval, out, background=background, settings=settings)
+    # over what training used: model_from_checkpoint gave the model its environment map or colour
+    return evaluate(model, scene, args.eval, out, settings=settings)
 
 
 def format_summary(result: EvalResult) -> str:

@@ -31,6 +31,7 @@ from atgs.model.config import ModelConfig
 from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians, warm_up
+from atgs.render.environment import EnvironmentMap
 from atgs.timeline import evenly_spaced
 from atgs.train.background import resolve_background
 from atgs.train.config import TrainConfig
@@ -220,7 +221,8 @@ class Trainer:
         bar.close()
         self.scene_flow_stats = stats
 
-    def _background(self) -> torch.Tensor:
+    def _background(self) -> "torch.Tensor | EnvironmentMap":
+        """A random colour per step, else the run's background by direction or its colour."""
         if self.cfg.random_background:  # drawn on the CPU (the generator's device), then moved
             return torch.rand(3, generator=self.gen, device=self.gen.device).to(self.device)
         return self.model.environment or self.fixed_background
