@@ -4,7 +4,8 @@
   (atgs.data.motion_points.motion_mask at full size);
 - seen / unseen: a pixel is *seen* when the surface it shows (the synthetic scene's true depth)
   is visible (in the image, not occluded) in at least one training camera. Nothing can recover
-  the colour of an unseen pixel, so its error is not the model's.
+  the colour of an unseen pixel, so its error is not the model's. ``by_views`` splits the pixels
+  further by how many training cameras see their surface (one camera: colour, but no depth).
 - temporal: the PSNR of the frame-to-frame change, (R[f+1] - R[f]) against (G[f+1] - G[f]),
   over the consecutive pairs of frames where the model's keyframe window changes ("switch") and
   over the others: popping when the active anchor set changes shows as a lower switch figure.
@@ -16,6 +17,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+
+VIEW_BINS = 7  # the per-view-count split: 0, 1, ..., 5 and 6 or more training cameras
 
 
 def _visible_count(gt, scene, ci: int, frame: int, renderers: dict) -> np.ndarray:
@@ -97,9 +100,12 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
                 add("moving", err, mask)
                 add("static", err, ~mask)
                 if gt_scene is not None:
-                    seen = _visible_count(gt_scene, scene, ci, f, renderers) > 0
+                    count = _visible_count(gt_scene, scene, ci, f, renderers)
+                    seen = count > 0
                     add("seen", err, seen)
                     add("unseen", err, ~seen)
+                    for k in range(VIEW_BINS):  # by how many training cameras see the surface
+                        add(f"views{k}", err, count == k if k < VIEW_BINS - 1 else count >= k)
             prev = None  # frame-to-frame change over every consecutive pair
             for f in range(scene.num_frames):
                 gt = scene.image_uint8(ci, f).astype(np.float32) / 255.0
@@ -122,5 +128,12 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
     if gt_scene is not None:
         out.update({"psnr_seen": db("seen"), "psnr_unseen": db("unseen"),
                     "unseen_fraction": round(n.get("unseen", 0) / max(n["all"], 1), 4),
-                    "unseen_error_share": round(se.get("unseen", 0.0) / max(se["all"], 1e-12), 3)})
+                    "unseen_error_share": round(se.get("unseen", 0.0) / max(se["all"], 1e-12), 3),
+                    # seen by 0, 1, ..., VIEW_BINS - 1 or more training cameras: share of the
+                    # pixels, PSNR, share of the squared error
+                    "by_views": [{"views": k if k < VIEW_BINS - 1 else f">={k}",
+                                  "fraction": round(n.get(f"views{k}", 0) / max(n["all"], 1), 4),
+                                  "psnr": db(f"views{k}"),
+                                  "error_share": round(se.get(f"views{k}", 0.0) / max(se["all"], 1e-12), 3)}
+                                 for k in range(VIEW_BINS)]})
     return out

@@ -2,6 +2,7 @@
 
     python bench/background.py                                  # the built-in scene (~10 min on 2 cores)
     python bench/background.py --no-built-in --scene-dirs A B --iterations 400   # other prepared scenes
+    python bench/background.py --no-built-in --scene-dirs A --labels "A, seed 1" --seed 1   # another seed
     python bench/background.py --replot                         # the table again from the results file
 
 Per scene, preset `cpu` for a fixed step count, both cases at once with one torch thread each:
@@ -46,6 +47,7 @@ class BackgroundBench:
     scene_dirs: tuple[Path, ...] = ()  # other prepared scenes
     labels: tuple[str, ...] = ()  # their names in the table (default: their folders' names)
     iterations: int = 1200
+    seed: int = 0  # the trainer's seed (anchor sampling, view order)
     cases: tuple[str, ...] = tuple(CASES)  # which of direction, colour (the others' results are kept)
     replot: bool = False  # the table again from the results file, nothing run
     work_dir: Path = Path("/tmp/atgs-bench-background")
@@ -54,7 +56,7 @@ class BackgroundBench:
     worker: str = ""  # internal: "CASE@SCENE_DIR", run one case and print its JSON
 
 
-def train_case(case: str, scene_dir: Path, iterations: int, work_dir: Path) -> dict:
+def train_case(case: str, scene_dir: Path, iterations: int, work_dir: Path, seed: int = 0) -> dict:
     from _splits import held_out_splits
 
     scene = PreparedScene.load(scene_dir)
@@ -62,9 +64,10 @@ def train_case(case: str, scene_dir: Path, iterations: int, work_dir: Path) -> d
     t.eval_every = t.save_every = 0
     t.threads = 1
     t.background_by_direction = case == "direction"
-    run = work_dir / f"run-{scene_dir.name}-{case}"
+    t.seed = seed
+    run = work_dir / f"run-{scene_dir.name}-{case}" if seed == 0 else work_dir / f"run-{scene_dir.name}-{case}-s{seed}"
     shutil.rmtree(run, ignore_errors=True)
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     tr = Trainer(scene, m, t, run, progress=False)
     t0 = time.perf_counter()
     tr.run_steps(progress=False)
@@ -74,7 +77,7 @@ def train_case(case: str, scene_dir: Path, iterations: int, work_dir: Path) -> d
     return {"case": case, "what": CASES[case], "scene": scene_dir.name, "iterations": iterations,
             "cameras": f"{len(scene.train_indices)} training + {len(scene.test_indices)} held out, "
                        f"{cams[0].width}x{cams[0].height}, {scene.num_frames} frame{'s' if scene.num_frames > 1 else ''}",
-            "train_s": round(secs, 1), "psnr": round(ev["psnr"], 2), "ssim": round(ev["ssim"], 4),
+            "seed": seed, "train_s": round(secs, 1), "psnr": round(ev["psnr"], 2), "ssim": round(ev["ssim"], 4),
             "split": held_out_splits(run / "ckpt.pt", scene_dir), "loadavg": list(os.getloadavg()),
             "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
 
@@ -104,7 +107,7 @@ def main() -> None:
     args = tyro.cli(BackgroundBench)
     if args.worker:
         case, _, scene_dir = args.worker.partition("@")
-        print(json.dumps(train_case(case, Path(scene_dir), args.iterations, args.work_dir)), flush=True)
+        print(json.dumps(train_case(case, Path(scene_dir), args.iterations, args.work_dir, args.seed)), flush=True)
         return
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
     if args.replot:
@@ -120,8 +123,8 @@ def main() -> None:
 
         def one(case: str, scene_dir: Path = scene_dir) -> dict:
             cmd = [sys.executable, __file__, "--worker", f"{case}@{scene_dir}", "--iterations", str(args.iterations),
-                   "--work-dir", str(args.work_dir)]
-            return run_worker(cmd, args.work_dir / f"{scene_dir.name}-{case}.log")
+                   "--work-dir", str(args.work_dir), "--seed", str(args.seed)]
+            return run_worker(cmd, args.work_dir / f"{scene_dir.name}-{case}-s{args.seed}.log")
 
         with ThreadPoolExecutor(len(args.cases)) as pool:
             result[label] = {**result.get(label, {}), **dict(zip(args.cases, pool.map(one, args.cases)))}

@@ -226,7 +226,7 @@ def background(r: dict) -> Cells:
     runs = [x for pair in r.values() for x in pair.values()]
     gains = "; ".join(f"{name} ({pair['direction']['iterations']:,} steps) {pair['colour']['psnr']:.2f} -> "
                       f"{pair['direction']['psnr']:.2f} dB" for name, pair in r.items())
-    return Cells(f"{len(r)} scenes, preset cpu at equal steps, the two cases of a scene at once",
+    return Cells(f"{len(r)} pairs (scene, steps, seed), preset cpu at equal steps, the two cases of a pair at once",
                  run_of(max(x["date"] for x in runs), [x["loadavg"][0] for x in runs]),
                  f"held out, one colour -> by direction: {gains}; docs/training.md")
 
