@@ -65,7 +65,7 @@ def train_case(case: str, scene_dir: Path, iterations: int, work_dir: Path, seed
     t.threads = 1
     t.background_by_direction = case == "direction"
     t.seed = seed
-    run = work_dir / f"run-{scene_dir.name}-{case}" if seed == 0 else work_dir / f"run-{scene_dir.name}-{case}-s{seed}"
+    run = work_dir / f"run-{scene_dir.name}-{case}-s{seed}"  # as its log: one folder per scene, case and seed
     shutil.rmtree(run, ignore_errors=True)
     torch.manual_seed(seed)
     tr = Trainer(scene, m, t, run, progress=False)
