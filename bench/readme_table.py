@@ -376,8 +376,11 @@ def gpu(r: dict) -> Cells:
                 continue
             value = {"train": lambda x: x["steps_per_s"], "viewer": lambda x: x["fps_new_frame"],
                      "decode": lambda x: x["decode_ms"]}[part]
-            parts.append(what.format(span([value(x) for x in rows], "{:.1f}"), rows[0].get("size", "")))
-        cuda_text = f"CUDA ({measured[0]['device_name']}): " + ", ".join(parts)
+            # parts may come from different GPU sessions (bench/gpu.py --merge): each names its card
+            names = sorted({x["device_name"] for x in rows})
+            parts.append(what.format(span([value(x) for x in rows], "{:.1f}"), rows[0].get("size", ""))
+                         + f" ({', '.join(names)})")
+        cuda_text = "CUDA: " + ", ".join(parts)
     else:
         cuda_text = f"CUDA: {cuda[0]['status']}"
     verdict = "**not measured**"
