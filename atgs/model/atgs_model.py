@@ -246,11 +246,13 @@ class ATGSModel:
     def has_motion(self) -> bool:
         return bool(self.cfg.temporal_fade or self.cfg.anchor_velocity)
 
-    def fade_of(self, f: int, anchors: torch.Tensor, log_fade: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+    def fade_of(self, f: int, anchors: torch.Tensor, log_fade: torch.Tensor | None = None,
+                distances: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(keyframe distances, fade weights) of ``anchors`` (global ids) at frame f; weights are
-        1 without ``temporal_fade``. ``log_fade``: the anchors' stored fades (a tracked leaf)."""
-        d = keyframe_distance(self.timeline, f, self.anchor_keyframe.index_select(0, anchors))
+        1 without ``temporal_fade``. ``log_fade``: the anchors' stored fades (a tracked leaf);
+        ``distances``: their keyframe distances, when already known."""
+        d = keyframe_distance(self.timeline, f, self.anchor_keyframe.index_select(0, anchors)) \
+            if distances is None else distances
         if not self.cfg.temporal_fade:
             return d, torch.ones_like(d)
         lf = self.anchor_fade.index_select(0, anchors) if log_fade is None else log_fade
@@ -334,8 +336,11 @@ class ATGSModel:
                 seen |= self.in_frustum(c)
             mask &= seen
         active = mask.nonzero().squeeze(1)
+        dist = None  # keyframe distances of the active anchors, once computed
         if self.cfg.temporal_fade:  # anchors faded out at this frame cannot show: skip them
-            active = active.index_select(0, (self.fade_of(f, active)[1] >= self.fade_cut()).nonzero().squeeze(1))
+            dist, w = self.fade_of(f, active)
+            shown = (w >= self.fade_cut()).nonzero().squeeze(1)
+            active, dist = active.index_select(0, shown), dist.index_select(0, shown)
         sparse: list[SparseLeaf] = []
 
         def rows_of(name: str, rows: torch.Tensor) -> torch.Tensor:
@@ -375,7 +380,7 @@ class ATGSModel:
         shift = None
         if self.has_motion:
             fade = rows_of("anchor_fade", active) if self.cfg.temporal_fade else None
-            d, w = self.fade_of(f, active, fade)
+            d, w = self.fade_of(f, active, fade, distances=dist)
             opac = opac * w[:, None]
             if self.cfg.anchor_velocity:
                 shift = (rows_of("anchor_velocity", active) * d[:, None])[:, None, :].expand(-1, q, -1)
