@@ -40,7 +40,8 @@ from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_
 from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.scene_flow import grey_of, initial_velocities
-from atgs.train.losses import VOLUME_REDUCTIONS, depth_distortion, image_loss, offset_loss, psnr, volume_loss
+from atgs.train.losses import (VOLUME_REDUCTIONS, depth_distortion, depth_smoothness, image_loss, offset_loss, psnr,
+                               volume_loss)
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
@@ -109,8 +110,9 @@ class Trainer:
                             f"{cfg.cameras_per_frame}: both must be >= 1")
         if cfg.volume_reduction not in VOLUME_REDUCTIONS:
             raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
-        if cfg.lambda_distortion < 0:
-            raise UserError(f"--train.lambda-distortion {cfg.lambda_distortion}: a loss weight, use >= 0 (0 = off)")
+        for flag, weight in (("lambda-distortion", cfg.lambda_distortion), ("lambda-depth-smooth", cfg.lambda_depth_smooth)):
+            if weight < 0:
+                raise UserError(f"--train.{flag} {weight}: a loss weight, use >= 0 (0 = off)")
         if not cfg.lr.moving_anchors > 0:
             raise UserError(f"--train.lr.moving-anchors {cfg.lr.moving_anchors}: a factor on learning rates, use > 0")
         if not 0 <= cfg.drop_gaussians < 1:
@@ -279,6 +281,8 @@ class Trainer:
         if cfg.lambda_distortion > 0:
             loss = loss + cfg.lambda_distortion * depth_distortion(out.alpha, out.depth, out.depth_sq,
                                                                    self.model.voxel_size)
+        if cfg.lambda_depth_smooth > 0:
+            loss = loss + cfg.lambda_depth_smooth * depth_smoothness(out.alpha, out.depth, gt, cfg.depth_smooth_edge)
         return loss
 
     def train_step(self) -> StepResult:
