@@ -156,7 +156,8 @@ def demo(r: dict) -> Cells:
     return Cells(f"`{r['command']}`, {r['eval_views']} held-out views",
                  run_of(r["date"], one_minute(r["machine"])),
                  f"{figure}; {r['steps']} steps in {r['train_seconds']:.0f} s of training, "
-                 f"{r['wall_seconds'] / 60:.0f} min in all",
+                 f"{r['wall_seconds'] / 60:.0f} min in all"
+                 + ("" if r.get("fresh_cache", True) else " (the scene already made and prepared)"),
                  quality_verdict(r["psnr"], r["ssim"], r["train_seconds"]))
 
 
