@@ -134,9 +134,11 @@ def test_the_trainer_adds_the_weighted_term_to_its_loss(tmp_path):
     assert with_term - without == pytest.approx(2.5 * term, rel=1e-5)
 
 
-def test_a_negative_weight_is_refused(tmp_path):
+@pytest.mark.parametrize("field,flag", [("lambda_depth_smooth", "lambda-depth-smooth"),
+                                        ("lambda_distortion", "lambda-distortion")])
+def test_a_negative_loss_weight_is_refused(tmp_path, field, flag):
     scene = make_toy_scene(num_frames=4, num_cameras=4, width=32, height=24, keyframes=2)
     m, t = growing_tiny_config(5)
-    t.lambda_depth_smooth = -1.0
-    with pytest.raises(UserError, match="lambda-depth-smooth"):
+    setattr(t, field, -1.0)
+    with pytest.raises(UserError, match=flag):
         Trainer(scene, m, t, tmp_path)

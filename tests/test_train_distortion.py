@@ -1,10 +1,8 @@
 """--train.lambda-distortion in a real training loop: it thins the rays' depth spread."""
 
-import pytest
 import torch
 
 from builders import growing_tiny_config, make_toy_scene
-from atgs.errors import UserError
 from atgs.render import rasterize_gaussians
 from atgs.train.losses import depth_distortion
 from atgs.train.trainer import Trainer
@@ -33,11 +31,3 @@ def test_distortion_thins_the_surfaces_the_run_learns(tmp_path):
         tr.train(progress=False, final_renders=False)
         runs[lam] = _mean_distortion(tr)
     assert runs[5.0] < 0.8 * runs[0.0], runs
-
-
-def test_a_negative_weight_is_refused(tmp_path):
-    scene = make_toy_scene(num_frames=4, num_cameras=4, width=32, height=24, keyframes=2)
-    m, t = growing_tiny_config(5)
-    t.lambda_distortion = -1.0
-    with pytest.raises(UserError, match="lambda-distortion"):
-        Trainer(scene, m, t, tmp_path)
