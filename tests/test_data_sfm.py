@@ -102,9 +102,10 @@ def test_known_pose_triangulation_gives_the_same_points_on_any_thread_count(tmp_
         np.testing.assert_array_equal(rgb, runs[0][1])
 
 
-def test_sfm_without_a_model_names_the_capture_and_writes_nothing(tmp_path) -> None:
+def test_sfm_without_a_model_names_the_capture_and_writes_nothing(tmp_path, capfd) -> None:
     """Two cameras of flat grey images: SfM finds no model. The one-line error names the user's
-    folder (not the preparation's temporary copy) and --out is not created."""
+    folder (not the preparation's temporary copy), --out is not created, and COLMAP's own log
+    line for it (glog, written to the process's stderr) does not come before it."""
     from atgs.data.errors import DataError
 
     src = tmp_path / "flat"
@@ -117,3 +118,4 @@ def test_sfm_without_a_model_names_the_capture_and_writes_nothing(tmp_path) -> N
     msg = str(err.value)
     assert msg.startswith(f"{src}:") and "structure-from-motion" in msg and "\n" not in msg
     assert ".tmp" not in msg and not out.exists()
+    assert "sparse model" not in capfd.readouterr().err

@@ -39,11 +39,13 @@ RANDOM_SEED = 0  # every COLMAP stage that samples (verification, triangulation,
 @contextlib.contextmanager
 def _quiet_glog(where: Path | None = None):
     """COLMAP logs through glog to stderr; keep the console for our progress bars. pycolmap
-    failures (check failures surface as ValueError/RuntimeError) become one-line DataErrors."""
+    failures (check failures surface as ValueError/RuntimeError) become one-line DataErrors.
+    Its ERROR lines are silenced too (level 3: only FATAL, which aborts): every failure they
+    announce ("Failed to create any sparse model") reaches the user as our own one line."""
     import pycolmap
 
     old = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 2
+    pycolmap.logging.minloglevel = 3
     try:
         yield
     except (ValueError, RuntimeError) as e:
