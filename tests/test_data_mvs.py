@@ -309,6 +309,48 @@ def test_degenerate_rigs_give_a_one_line_error(tmp_path, capsys, case) -> None:
             "nothing in common": "no two cameras see a common region"}[case] in err[-1]
 
 
+def test_held_out_cameras_never_feed_the_keyframe_points(tmp_path) -> None:
+    """Three cameras, cam00 held out: the points are the same whatever cam00's image shows (its
+    pixels would otherwise leak into the held-out score)."""
+    cams = ring(4, w=64, h=48)[:3]
+    imgs = [raycast(c, ss=1)[0] for c in cams]
+    noise = np.random.default_rng(0).integers(0, 256, imgs[0].shape, dtype=np.uint8)
+    runs = []
+    for name, first in (("real", imgs[0]), ("noise", noise)):
+        root = write_prepared_scene(tmp_path / name, cams, lambda ci, f: first if ci == 0 else imgs[ci], 1)
+        runs.append(keyframe_points(root, cams, [cams[0].name], [0], ".png", tmp_path / f"work-{name}",
+                                    ColmapOptions(), CFG, FillConfig(), progress=False))
+    assert len(runs[0].points) > 100
+    np.testing.assert_array_equal(runs[0].points, runs[1].points)
+    np.testing.assert_array_equal(runs[0].colors, runs[1].colors)
+
+
+def test_a_two_camera_capture_holds_out_none_by_default(tmp_path, capsys) -> None:
+    """The convention (hold out cam00) would leave one camera to train on: none is held out, with
+    a note. Asking for it explicitly is a one-line error that writes nothing."""
+    from atgs.cli.prepare import main as prepare_main
+    from atgs.data.scene import PreparedScene
+
+    eye = np.array([2.6, 0.0, 1.6])
+    cams = [_look(eye, [0, 0, 0.3], "cam00"), _look([0.0, 2.6, 1.6], [0, 0, 0.3], "cam01")]
+    src = _rig_source(tmp_path, cams)
+    assert prepare_main([src, "--out", str(tmp_path / "held"), "--keyframes", "1", "--test-cams", "cam00"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"atgs-prepare: error: {src}: --test-cams cam00 holds out all but 1") and "cam01" in err[-1]
+    assert not (tmp_path / "held").exists()
+    assert prepare_main([src, "--out", str(tmp_path / "out"), "--keyframes", "1", "--no-progress"]) == 0
+    assert "none held out" in capsys.readouterr().err
+    scene = PreparedScene.load(tmp_path / "out")
+    assert scene.test_cameras == [] and len(scene.train_indices) == 2
+    # atgs-train's closing line says its figure is from a training view, not a held-out one
+    from atgs.cli.train import main as train_main
+
+    assert train_main(["--data", str(tmp_path / "out"), "--out", str(tmp_path / "run"), "--preset", "tiny",
+                       "--iterations", "2", "--no-progress"]) == 0
+    done = [ln for ln in capsys.readouterr().out.splitlines() if "done," in ln]
+    assert done and "training-view (no held-out camera) PSNR" in done[-1] and "test PSNR" not in done[-1]
+
+
 def test_an_empty_point_cloud_trains(tmp_path, capsys) -> None:
     from atgs.data.scene import PreparedScene
     from atgs.train.config import preset

@@ -195,8 +195,10 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
     result["eval"] = trainer.final_evaluation(args.out / "eval")  # the figure atgs-eval gives
     trainer.run.write_result(result)
     ev = result.get("eval", {})
+    # a scene without held-out cameras is scored on a training camera: say so, not "test"
+    which = "test" if ev.get("on_test_cameras", True) else "training-view (no held-out camera)"
     print(f"{PROG}: done, {result['steps']} steps in {result['seconds']:.0f} s; "
-          f"test PSNR {ev.get('psnr', float('nan')):.2f} dB, SSIM {ev.get('ssim', float('nan')):.4f}; "
+          f"{which} PSNR {ev.get('psnr', float('nan')):.2f} dB, SSIM {ev.get('ssim', float('nan')):.4f}; "
           f"checkpoint {ckpt}")
     if result.get("camera_exposure"):
         print(f"{PROG}: {exposure_summary(result['camera_exposure'])}")

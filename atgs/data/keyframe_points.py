@@ -52,12 +52,11 @@ def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs
     capture in error messages (default: ``root/images``, which may be a temporary folder)."""
     from tqdm import tqdm
 
+    # Held-out cameras never feed the points: their images would leak into the held-out score.
     use_idx = [i for i, c in enumerate(cams) if c.name not in test]
-    if len(use_idx) < 2:
-        use_idx = list(range(len(cams)))
     use = [cams[i] for i in use_idx]
     where = where or str(root / "images")
-    check_camera_layout(use, where)
+    check_camera_layout(use, where, held_out=len(cams) - len(use))
     hints = None if depth_hints is None else [depth_hints[i] for i in use_idx]
     P, C, K, fill_mask = [], [], [], []
     counts: dict[str, list[int]] = {"sift": [], "stereo": [], "fill": [], "extend": []}

@@ -115,9 +115,24 @@ def parse_frame_range(spec: str | None, start: int | None, end: int | None, n: i
     return range(s, e, step)
 
 
-def resolve_test_cams(spec: tuple[str, ...] | None, names: list[str], default: list[str]) -> list[str]:
+MIN_TRAIN_CAMERAS = 2  # keyframe points need two views, and held-out views never feed the model
+
+
+def resolve_test_cams(spec: tuple[str, ...] | None, names: list[str], default: list[str],
+                      where: str = "the capture") -> list[str]:
+    """The held-out cameras: ``spec`` (names or indices), else the dataset's convention
+    ``default`` unless it would leave fewer than two training cameras; then none, with a note (a
+    two-camera rig trains on both). An explicit ``spec`` that leaves one training camera is an
+    error: its images would be the only ones the points could come from."""
     if spec is None:
-        return [n for n in default if n in names]
+        test = [n for n in default if n in names]
+        if test and len(names) - len(test) < MIN_TRAIN_CAMERAS:
+            if len(names) >= MIN_TRAIN_CAMERAS:
+                print(f"note: {where} has {len(names)} cameras: none held out (the convention would hold out "
+                      f"{', '.join(test)} and leave one to train on), so atgs-train scores a training view; "
+                      "a third camera gives a held-out view", file=sys.stderr)
+            return []
+        return test
     out = []
     for s in spec:
         for item in str(s).split(","):
@@ -130,7 +145,14 @@ def resolve_test_cams(spec: tuple[str, ...] | None, names: list[str], default: l
                 out.append(names[int(item)])
             else:
                 raise DataError(f"--test-cams {item!r}: no such camera (cameras: {', '.join(names)})")
-    return sorted(set(out), key=names.index)
+    out = sorted(set(out), key=names.index)
+    train = [n for n in names if n not in out]
+    if out and len(train) < MIN_TRAIN_CAMERAS:
+        left = f"only {train[0]} is left" if train else "none is left"
+        raise DataError(f"{where}: --test-cams {','.join(out)} holds out all but {len(train)} of the {len(names)} "
+                        f"cameras ({left}); the keyframe points need {MIN_TRAIN_CAMERAS} training cameras and never "
+                        "use held-out ones: hold out fewer (--test-cams with no names holds out none)")
+    return out
 
 
 def check_frame_counts(src: Source, trim: bool) -> int:
@@ -165,7 +187,7 @@ def prepare(cfg: PrepareConfig) -> Path:
     n_src = check_frame_counts(src, cfg.trim_mismatch)
     sel = parse_frame_range(cfg.frames, cfg.start, cfg.end, n_src)
     num_frames = len(sel)
-    test = resolve_test_cams(cfg.test_cams, src.camera_names, src.default_test)
+    test = resolve_test_cams(cfg.test_cams, src.camera_names, src.default_test, where=str(cfg.src))
     colmap_opts = ColmapOptions(max_image_size=cfg.sift_max_image_size)
     timings: dict[str, float] = {}
     with atomic_dir(out, cfg.overwrite) as tmp:
@@ -229,7 +251,7 @@ def _motion_points(root: Path, cams: list[Camera], test: list[str], num_frames: 
     if not cfg.motion.enabled:
         return None
     cfg.motion.validate()
-    train = [c for c in cams if c.name not in test] or list(cams)
+    train = [c for c in cams if c.name not in test]  # two or more: keyframe_points checked
     kfs = motion_keyframes(num_frames, cfg.keyframes, cfg.motion.per_interval)
     box = compute_bounds(kp.points, cams)
     mp = motion_points(lambda ci, f: read_rgb(frame_path(root, train[ci].name, f, ext)), train, num_frames, kfs, box,

@@ -59,11 +59,14 @@ def project(cam: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 # --- depth ranges ----------------------------------------------------------------------------
 
-def check_camera_layout(cams: Sequence[Camera], where: str = "cameras") -> None:
-    """One-line errors for layouts no multi-view method can use."""
+def check_camera_layout(cams: Sequence[Camera], where: str = "cameras", held_out: int = 0) -> None:
+    """One-line errors for layouts no multi-view method can use (``cams``: the training cameras;
+    ``held_out``: how many test cameras were set aside)."""
     if len(cams) < 2:
-        raise DataError(f"{where}: {len(cams)} camera(s); depth needs at least 2 cameras at different positions "
-                        "(hold out fewer test cameras with --test-cams)")
+        raise DataError(f"{where}: {len(cams)} training camera(s)"
+                        + (f" besides {held_out} held out" if held_out else "")
+                        + "; depth needs at least 2 cameras at different positions"
+                        + (" (hold out fewer test cameras with --test-cams)" if held_out else ""))
     c = np.array([cam.center for cam in cams])
     spread = float(np.linalg.norm(c - c.mean(0), axis=1).max())
     if not np.isfinite(c).all():
