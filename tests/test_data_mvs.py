@@ -349,6 +349,12 @@ def test_a_two_camera_capture_holds_out_none_by_default(tmp_path, capsys) -> Non
                        "--iterations", "2", "--no-progress"]) == 0
     done = [ln for ln in capsys.readouterr().out.splitlines() if "done," in ln]
     assert done and "training-view (no held-out camera) PSNR" in done[-1] and "test PSNR" not in done[-1]
+    # atgs-eval has no held-out camera to default to: one line naming the scene and --cameras
+    from atgs.cli.evaluate import main as eval_main
+
+    assert eval_main([str(tmp_path / "run" / "ckpt.pt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"atgs-eval: error: {tmp_path / 'out'}: no test cameras") and "--cameras" in err[-1]
 
 
 def test_an_empty_point_cloud_trains(tmp_path, capsys) -> None:

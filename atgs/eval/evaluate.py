@@ -131,7 +131,9 @@ def select_cameras(model: EvalModel, scene: EvalScene, names: Sequence[str]) -> 
     else:
         indices = list(scene.test_indices)
         if not indices:
-            raise EvalError("the scene has no test cameras; name the cameras to evaluate with --cameras")
+            where = getattr(scene, "root", None)  # a PreparedScene names its folder
+            raise EvalError(f"{where if where is not None else 'the scene'}: no test cameras (none was held out); "
+                            "name the cameras to evaluate with --cameras (their figures are training views)")
     model_cams = {c.name: c for c in model.cameras}
     for i in indices:
         sc = scene.cameras[i]
