@@ -105,12 +105,15 @@ def test_tracked_decode_touches_only_active_rows_and_sampled_segment():
 def test_frustum_culling_drops_anchors_behind_camera():
     model = _toy_model()
     cam = model.cameras[0]
-    vis = model.in_frustum(cam)
+    model.refresh_reach()
+    model.reach.settled.zero_()  # reach 0: the test is the centre's
+    vis = model.visible_anchors(0, [cam])
     uv, z = cam.project(model.anchor_mu.numpy())
     inside = (z > 0.01) & (uv[:, 0] > -0.15 * 32) & (uv[:, 0] < 32 * 1.15) & (uv[:, 1] > -0.15 * 24) & (uv[:, 1] < 24 * 1.15)
     assert np.array_equal(vis.numpy(), inside)
+    model.refresh_reach()
     dec = model.decode_frame(0, cam, track=False)
-    assert set(dec.active.tolist()) <= set(vis.nonzero().squeeze(1).tolist())
+    assert set(dec.active.tolist()) <= set(model.visible_anchors(0, [cam]).nonzero().squeeze(1).tolist())
 
 
 @pytest.mark.parametrize("K_model,expected", [(2, 2), (4, 4)])

@@ -21,6 +21,7 @@ from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
 from atgs.model.anchors import STATIC, AnchorInit, anchor_voxel_size, init_anchors, split_static
 from atgs.model.config import ModelConfig
+from atgs.model.culling import AnchorReach, gaussian_reach, visible_anchors
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
@@ -126,6 +127,8 @@ class ATGSModel:
         # anchor motion (atgs.model.motion): velocity per keyframe interval, log fade width
         self.anchor_velocity = torch.zeros(self.num_anchors, 3, device=self.anchor_mu.device)
         self.anchor_fade = torch.full((self.num_anchors, 1), self.initial_fade(), device=self.anchor_mu.device)
+        # how far each anchor's Gaussians reach (atgs.model.culling): measured by the decodes
+        self.reach = AnchorReach(self.num_anchors, self.anchor_mu.device)
         self.spatial = SpatialGrid(cfg.spatial_resolution if cfg.use_spatial_grid else 2, d)
         h = cfg.hash
         M = timeline.num_segments
@@ -236,6 +239,7 @@ class ATGSModel:
         for name, table in self.sparse_tensors().items():
             self.set_sparse_tensor(name, table.to(device))
         self.decoder.to(device)
+        self.reach.to(device)
         self.inference_cache.clear()
         return self
 
@@ -300,7 +304,8 @@ class ATGSModel:
 
     def decode_frame(self, f: int, camera: Camera | Sequence[Camera] | None = None, track: bool = True) -> Decoded:
         """Decode frame f for training (``track``: sparse leaves for the optimizer); with
-        cameras, only the anchors near their frusta (the union for several) are decoded."""
+        cameras, only the anchors whose Gaussians may reach their frusta (the union for several;
+        :meth:`visible_anchors`) are decoded."""
         tl = self.timeline
         return self._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), camera, track)
 
@@ -313,28 +318,47 @@ class ATGSModel:
             mask |= k == 0
         return mask
 
-    def in_frustum(self, cam: Camera, margin: float = 0.15) -> torch.Tensor:
-        R = torch.as_tensor(cam.R, dtype=torch.float32, device=self.device)
-        tr = torch.as_tensor(cam.t, dtype=torch.float32, device=self.device)
-        pc = self.anchor_mu @ R.T + tr
-        z = pc[:, 2]
-        zs = z.clamp_min(1e-6)
-        u = cam.fx * pc[:, 0] / zs + cam.cx
-        v = cam.fy * pc[:, 1] / zs + cam.cy
-        mw, mh = margin * cam.width, margin * cam.height
-        return (z > 0.01) & (u > -mw) & (u < cam.width + mw) & (v > -mh) & (v < cam.height + mh)
+    def visible_anchors(self, f: int, cams: Sequence[Camera], candidates: torch.Tensor | None = None,
+                        margin: float = 0.15) -> torch.Tensor:
+        """(A,) mask: anchors (of the ``candidates`` mask, default all) whose Gaussians may reach
+        one of ``cams`` at frame f (the sphere of their measured reach about their centre at f
+        against the frustum and the rasterizer's near plane; atgs.model.culling)."""
+        ids = torch.arange(self.num_anchors, device=self.device) if candidates is None else candidates.nonzero().squeeze(1)
+        centres = self.anchor_mu.index_select(0, ids)
+        if self.cfg.anchor_velocity:
+            d = keyframe_distance(self.timeline, f, self.anchor_keyframe.index_select(0, ids))
+            centres = centres + self.anchor_velocity.index_select(0, ids) * d[:, None]
+        out = torch.zeros(self.num_anchors, dtype=torch.bool, device=self.device)
+        out[ids] = visible_anchors(centres, self.reach.bound(ids), list(cams), margin)
+        return out
+
+    def refresh_reach(self) -> int:
+        """Measure the reach of every anchor no decode has measured since the last refresh (each
+        at its keyframe's frame, static ones at the first keyframe's), then settle the bounds
+        (atgs.model.culling). Returns how many anchors were measured here."""
+        stale = torch.zeros(self.num_anchors, dtype=torch.bool, device=self.device)
+        stale[self.reach.stale()] = True
+        n = int(stale.sum())
+        frames = self.timeline.keyframe_frames()
+        with torch.no_grad():
+            for j, f in enumerate(frames):
+                own = (self.anchor_keyframe == j) | ((self.anchor_keyframe == STATIC) if j == 0 else False)
+                if bool((stale & own).any()):
+                    tl = self.timeline
+                    self._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), None, False, only=stale & own)
+        self.reach.settle()
+        return n
 
     def normalized_positions(self, mu: torch.Tensor) -> torch.Tensor:
         return (mu - self.bbox_min) / (self.bbox_max - self.bbox_min)
 
-    def _decode(self, f: int, m: int, tau: float, camera: Camera | Sequence[Camera] | None, track: bool) -> Decoded:
+    def _decode(self, f: int, m: int, tau: float, camera: Camera | Sequence[Camera] | None, track: bool,
+                only: torch.Tensor | None = None) -> Decoded:
         mask = self.active_anchors(f)
+        if only is not None:
+            mask &= only
         if camera is not None and self.cfg.frustum_cull:
-            cams = [camera] if isinstance(camera, Camera) else list(camera)
-            seen = self.in_frustum(cams[0])
-            for c in cams[1:]:
-                seen |= self.in_frustum(c)
-            mask &= seen
+            mask = self.visible_anchors(f, [camera] if isinstance(camera, Camera) else list(camera), mask)
         active = mask.nonzero().squeeze(1)
         dist = None  # keyframe distances of the active anchors, once computed
         if self.cfg.temporal_fade:  # anchors faded out at this frame cannot show: skip them
@@ -373,6 +397,7 @@ class ATGSModel:
         if var is not None:
             scales, opacities = smooth(raw.scales, raw.opacities, var.index_select(0, active))
             raw = DecodedGaussians(raw.means, raw.quats, scales, opacities, raw.colors)
+        self.reach.record(active, gaussian_reach(raw.means.detach(), raw.scales.detach(), mu))
         q = self.cfg.gaussians_per_anchor
         anchor_ids = active[:, None].expand(-1, q).reshape(-1)
         slot_ids = torch.arange(q, device=active.device).repeat(active.numel())
@@ -416,10 +441,12 @@ class ATGSModel:
         self.anchor_keyframe = torch.cat([self.anchor_keyframe, keyframe.long()])
         self.anchor_velocity = torch.cat([self.anchor_velocity, velocity.float()])
         self.anchor_fade = torch.cat([self.anchor_fade, fade.float()])
+        self.reach.append(n)
 
     def keep_anchors(self, keep: torch.Tensor) -> None:
         for name in ("anchor_mu", "anchor_keyframe") + ANCHOR_TABLES:
             setattr(self, name, getattr(self, name)[keep].contiguous())
+        self.reach.keep(keep)
 
     # --- serialization ---------------------------------------------------------------------
     def sparse_tensors(self) -> dict[str, torch.Tensor]:

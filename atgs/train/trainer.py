@@ -28,6 +28,7 @@ from atgs.errors import UserError
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
 from atgs.model.config import ModelConfig
+from atgs.model.culling import REFRESH_STEPS as REACH_REFRESH_STEPS
 from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians, warm_up
@@ -39,6 +40,7 @@ from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
+from atgs.train.generalisation import evaluation_gap_warning
 from atgs.train.scene_flow import grey_of, initial_velocities
 from atgs.train.losses import (VOLUME_REDUCTIONS, depth_distortion, depth_smoothness, image_loss, offset_loss, psnr,
                                volume_loss)
@@ -154,6 +156,8 @@ class Trainer:
         self.model.test_camera_names = list(scene.test_cameras)
         self.model.background = tuple(float(c) for c in cfg.background)
         self.model.environment = environment
+        # measured before the first culled decode (atgs.model.culling): unknown reach culls nothing
+        self.model.refresh_reach()
         self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
         dec = model.decoder
         self.dense_opt = torch.optim.Adam(
@@ -193,6 +197,7 @@ class Trainer:
         self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
         self._overhead = 0.0  # of those, seconds of periodic evaluations and saves (not step time)
         self._planned_once = False
+        self.warnings: list[str] = []  # said during the run (atgs.train.generalisation), also in the result
 
     # --- data -------------------------------------------------------------------------------
     def _load_image(self, cam: int, frame: int) -> np.ndarray:
@@ -348,6 +353,8 @@ class Trainer:
         if self.exposure is not None:
             self.exposure.step(cfg.grad_clip)
         self.step += 1
+        if self.step % REACH_REFRESH_STEPS == 0:  # anchors no view decoded lately: their reach drifts
+            model.refresh_reach()
         self._maybe_densify()
         if not losses:
             return StepResult(float("nan"), float("nan"), 0, False)
@@ -592,6 +599,10 @@ class Trainer:
                     ev = self.evaluate()
                     self._overhead += self.clock() - t_eval  # not step time: the budget's pace excludes it
                     row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
+                    warning = evaluation_gap_warning(self.step, ev["psnr"], ema_psnr, ev["on_test_cameras"])
+                    if warning is not None and not self.warnings:  # once a run: the log has every figure
+                        self.warnings.append(warning)
+                        bar.write(warning)
                 self.run.log(row)
                 if cfg.save_every > 0 and self.step - last_save >= cfg.save_every and self.step < cfg.iterations:
                     last_save = self.step
@@ -624,6 +635,8 @@ class Trainer:
                                          for n, g, b in zip(names, gains.cpu(), biases.cpu())}
         if self.scene_flow_stats is not None:  # anchors tracked / measured / given a velocity
             result["scene_flow"] = dict(self.scene_flow_stats)
+        if self.warnings:
+            result["warnings"] = list(self.warnings)
         if stopped_early:
             result["stopped_early"] = self.step
         return result
