@@ -13,7 +13,7 @@ from typing import Annotated
 import tyro
 
 from atgs.data.synth import EncodeConfig, synthesize
-from atgs.data.synth_scene import LAYOUTS, Layout, Preset, Rig, SynthConfig
+from atgs.data.synth_scene import LAYOUTS, Bounds, Layout, Preset, Rig, Subject, SynthConfig
 from atgs.io.cli import run_cli
 
 
@@ -26,7 +26,7 @@ class SynthArgs:
     frames: int = 120
     """Number of frames per camera."""
     cameras: int = 12
-    """Number of cameras (ring around the scene, alternating two heights)."""
+    """Number of cameras (ring: around the scene, alternating two heights; dome: split over its rings)."""
     width: int = 256
     """Frame width in pixels."""
     height: int = 192
@@ -39,13 +39,26 @@ class SynthArgs:
     """Spread the cameras over this arc of the ring (360 = all around; e.g. 90 = a converging arc)."""
     rig: Rig = "ring"
     """'ring': cameras on the ring looking at the center; 'front': an N3DV-like front-facing grid
-    (two rows, 1.6 m wide, nearly parallel axes)."""
+    (two rows, 1.6 m wide, nearly parallel axes); 'dome': a capture stage, --dome-rings rings of
+    cameras whose bodies are drawn (the cameras see each other), the backdrop 0.5 m behind them."""
+    dome_rings: int = 3
+    """Rings of the dome rig: 1 (one height, 1.6 m), 2 (0.8 and 2.6 m) or 3 (0.6, 1.7 and 3.2 m)."""
+    subject: Subject = "objects"
+    """'objects': the five moving objects; 'person': a 1.75 m figure walking a circle of 1 m radius
+    (1 m/s with large-motion, 0.4 m/s with small-motion) and the small orbiting box."""
     texture_contrast: float = 1.0
     """1: the textures as made; towards 0: flatter (0: textureless flat colours)."""
     layout: Layout | None = None
-    """A named layout that sets cameras, size and rig (overrides those options): 'ring12' (the
+    """A named layout that sets cameras, size and rig (overrides the options it names): 'ring12' (the
     default scene: 12 cameras, 256x192), 'ring10-low' (10 cameras, 200x150), 'front6' (6 cameras,
-    front-facing), 'ring12-flat' (the default with textureless surfaces)."""
+    front-facing), 'ring12-flat' (the default with textureless surfaces), 'dome24' (a person in a
+    3-ring dome of 24 cameras, 320x240), 'dome12-low' (the same with 12 cameras on 2 rings, 200x150),
+    'ring10' (10 cameras at one height, 4.6 m out, 200x150), 'sparse4' (4 cameras 90 degrees apart,
+    200x150); the last four are dome rigs (visible camera bodies)."""
+    bounds: Bounds = "true"
+    """Near/far written to poses_bounds.npy (the pixels do not change): 'true' (measured), 'loose'
+    (near/10, far*10), 'narrow' (pulled 3/4 of the way to their geometric mean), 'none' (0/0: missing).
+    The true ones are in synth.json ("true_near_far")."""
     depth: bool = False
     """Also write the true depth of every frame (depth/<frame>.npz, docs/data.md)."""
     codec: str = "libx264rgb"
@@ -68,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> None:
         cfg = SynthConfig(frames=a.frames, cameras=a.cameras, width=a.width, height=a.height, seed=a.seed,
                           preset=a.preset, fps=a.fps, arc_deg=a.arc_deg, rig=a.rig,
-                          texture_contrast=a.texture_contrast)
+                          texture_contrast=a.texture_contrast, dome_rings=a.dome_rings, subject=a.subject,
+                          bounds=a.bounds)
         if a.layout is not None:
             cfg = replace(cfg, **LAYOUTS[a.layout])
         t = time.perf_counter()

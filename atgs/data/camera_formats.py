@@ -9,13 +9,19 @@
   ``K_<cam>``, ``dist_<cam>`` (and optional ``H_<cam>``, ``W_<cam>``) and ``Rot_<cam>``
   (or Rodrigues ``R_<cam>``), ``T_<cam>`` (world to camera). A small reader/writer lives here
   so that OpenCV is not a dependency just for two text files.
+- Dynamic 3D Gaussians (Luiten et al. 2024; CMU Panoptic as they package it) ``train_meta.json`` /
+  ``test_meta.json``: ``w``, ``h`` and per timestep t, per listed camera c: ``k[t][c]`` (3x3
+  OpenCV intrinsics), ``w2c[t][c]`` (4x4 OpenCV world to camera), ``fn[t][c]`` (image path
+  relative to ``ims/``), ``cam_id[t][c]`` (integer id). Cameras are named by their id.
 - OpenGL: ``Camera.gl_view()`` / ``gl_projection()`` and :func:`camera_from_gl` back.
 """
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -317,3 +323,124 @@ def _matrix_from_rodrigues(r: np.ndarray) -> np.ndarray:
     k = r / angle
     Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * (Kx @ Kx)
+
+
+# --- Dynamic 3D Gaussians train_meta.json / test_meta.json ------------------------------------
+
+D3DGS_KEYS = ("w", "h", "k", "w2c", "fn", "cam_id")
+
+
+@dataclass
+class D3dgsMeta:
+    """One ``*_meta.json``, its cameras in ascending id order (the file lists them per timestep,
+    in any order)."""
+
+    path: Path
+    width: int
+    height: int
+    cam_ids: list[int]
+    K: np.ndarray  # (cameras, timesteps, 3, 3)
+    w2c: np.ndarray  # (cameras, timesteps, 4, 4)
+    files: list[list[str]]  # [camera][timestep]: image path relative to ims/
+
+
+def read_d3dgs_meta(path: Path) -> D3dgsMeta:
+    """Parse and check one meta file; every timestep must list every camera once."""
+    path = Path(path)
+    try:
+        md = json.loads(path.read_text())
+    except OSError as e:
+        raise DataError(f"{path}: cannot read ({e.strerror})") from None
+    except ValueError as e:
+        raise DataError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(md, dict):
+        raise DataError(f"{path}: expected a JSON object with keys {', '.join(D3DGS_KEYS)}")
+    missing = [k for k in D3DGS_KEYS if k not in md]
+    if missing:
+        raise DataError(f"{path}: missing key {missing[0]!r} (Dynamic 3D Gaussians metas hold {', '.join(D3DGS_KEYS)})")
+    w, h = md["w"], md["h"]
+    if not all(type(v) is int and v > 0 for v in (w, h)):
+        raise DataError(f"{path}: 'w' and 'h' must be positive integers (the image size), got {w!r} and {h!r}")
+    steps = md["fn"]
+    if not isinstance(steps, list) or not steps:
+        raise DataError(f"{path}: 'fn' must be a non-empty list with one list of file names per timestep")
+    for key in ("k", "w2c", "cam_id"):
+        if not isinstance(md[key], list) or len(md[key]) != len(steps):
+            raise DataError(f"{path}: {key!r} must be a list of {len(steps)} timesteps, like 'fn'")
+    tracks: dict[int, list[tuple[int, np.ndarray, np.ndarray, str]]] = {}
+    for t in range(len(steps)):
+        ids, fns, ks, ws = (md[key][t] for key in ("cam_id", "fn", "k", "w2c"))
+        if not all(isinstance(x, list) for x in (ids, fns, ks, ws)) or not len(ids) == len(fns) == len(ks) == len(ws):
+            raise DataError(f"{path}: timestep {t}: 'cam_id', 'fn', 'k' and 'w2c' must be lists of one entry per camera")
+        for c, (cid, fn) in enumerate(zip(ids, fns)):
+            if type(cid) is not int or not isinstance(fn, str):
+                raise DataError(f"{path}: cam_id[{t}][{c}] must be an integer and fn[{t}][{c}] a file name")
+            K = _json_matrix(ks[c], 3, path, f"k[{t}][{c}]")
+            tracks.setdefault(cid, []).append((t, K, _json_matrix(ws[c], 4, path, f"w2c[{t}][{c}]"), fn))
+    for cid, track in tracks.items():
+        if [t for t, *_ in track] != list(range(len(steps))):
+            raise DataError(f"{path}: camera {cid} is listed {len(track)} times over {len(steps)} timesteps; "
+                            "every timestep must list every camera once")
+    ids = sorted(tracks)
+
+    def stacked(j: int, n: int) -> np.ndarray:  # entry j of every (t, K, w2c, fn) as (cameras, timesteps, n, n)
+        return np.array([[e[j] for e in tracks[i]] for i in ids]).reshape(len(ids), len(steps), n, n)
+
+    return D3dgsMeta(path, w, h, ids, stacked(1, 3), stacked(2, 4), [[e[3] for e in tracks[i]] for i in ids])
+
+
+def _json_matrix(value, n: int, path: Path, where: str) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        m = None
+    if m is None or m.shape != (n, n) or not np.all(np.isfinite(m)):
+        raise DataError(f"{path}: {where} is not a {n}x{n} matrix of finite numbers")
+    return m
+
+
+def cameras_from_d3dgs(meta: D3dgsMeta) -> list[Camera]:
+    """One camera per id (named by the id). Static rigs only: a camera's ``k`` and ``w2c`` must
+    be the same at every timestep, since a prepared scene holds one pose per camera."""
+    cams = []
+    for cid, Ks, w2cs in zip(meta.cam_ids, meta.K, meta.w2c):
+        for key, m in (("k", Ks), ("w2c", w2cs)):
+            moved = np.flatnonzero(~np.all(np.isclose(m, m[0], rtol=1e-6, atol=1e-6), axis=(1, 2)))
+            if moved.size:
+                raise DataError(f"{meta.path}: camera {cid} moves (its {key} at timestep {moved[0]} differs from "
+                                "timestep 0); atgs-prepare reads static camera rigs only")
+        K, w2c = Ks[0], w2cs[0]
+        R = w2c[:3, :3]
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0 or not np.allclose(w2c[3], [0, 0, 0, 1]):
+            raise DataError(f"{meta.path}: w2c of camera {cid} is not a rigid transform (its 3x3 part is not a rotation "
+                            "or its last row is not 0 0 0 1); expected OpenCV world-to-camera matrices")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+            raise DataError(f"{meta.path}: k of camera {cid} is not a pinhole matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]")
+        cams.append(Camera(str(cid), meta.width, meta.height, K, w2c))
+    return cams
+
+
+def write_d3dgs(root: Path, cameras: Sequence[Camera], test_names: Sequence[str], num_frames: int,
+                ext: str = ".jpg") -> None:
+    """Write ``train_meta.json`` (the cameras not in ``test_names``) and ``test_meta.json`` over
+    ``num_frames`` timesteps, naming the images ``<id>/<frame:06d><ext>`` under ``ims/`` (not
+    written here). Names must be decimal ids (the format names cameras by integer) and all
+    cameras one size (the metas hold one ``w``, ``h``)."""
+    bad = [c.name for c in cameras if not c.name.isdigit() or str(int(c.name)) != c.name]
+    if bad:
+        raise ValueError(f"camera names {bad} are not decimal ids; Dynamic 3D Gaussians cameras are integers")
+    sizes = {(c.width, c.height) for c in cameras}
+    if len(sizes) != 1:
+        raise ValueError(f"cameras of several sizes {sorted(sizes)}; the metas hold one w and h")
+    (w, h), = sizes
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    test = set(test_names)
+    for fname, group in (("train_meta.json", [c for c in cameras if c.name not in test]),
+                         ("test_meta.json", [c for c in cameras if c.name in test])):
+        md = {"w": w, "h": h,
+              "k": [[c.K.tolist() for c in group] for _ in range(num_frames)],
+              "w2c": [[c.w2c.tolist() for c in group] for _ in range(num_frames)],
+              "fn": [[f"{c.name}/{f:06d}{ext}" for c in group] for f in range(num_frames)],
+              "cam_id": [[int(c.name) for c in group] for _ in range(num_frames)]}
+        (root / fname).write_text(json.dumps(md))

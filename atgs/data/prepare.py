@@ -4,6 +4,7 @@ Steps (each long one shows a progress bar):
 1. detect/open the source and check that every camera has the same number of frames;
 2. cameras: from the dataset's poses, or pycolmap SfM on the first selected frame (static rig);
 3. frames: decode lazily, undistort when the model has distortion, downscale, write PNG/JPG;
+   foreground masks (sources that have them) the same way, kept where half an output pixel is foreground;
 4. keyframe points at each of K keyframes (atgs.data.keyframe_points): pycolmap SIFT +
    triangulation with fixed poses, CPU PatchMatch stereo fused across views, and a fill of the
    space seen by two cameras where both leave pixels uncovered; coverage per camera;
@@ -32,7 +33,7 @@ from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
 from atgs.data.motion_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
 from atgs.data.mvs import FillConfig, StereoConfig
-from atgs.data.scene import compute_bounds, frame_path, read_rgb, save_frame, write_scene_metadata
+from atgs.data.scene import compute_bounds, frame_path, read_rgb, save_frame, save_mask, write_scene_metadata
 from atgs.data.sources import Source, SourceFormat, open_source
 from atgs.data.undistort import apply_undistort_map, build_undistort_map
 from atgs.timeline import evenly_spaced
@@ -43,7 +44,8 @@ class PrepareConfig:
     """Turn a multi-view video dataset into a prepared ATGS scene."""
 
     src: Annotated[Path, tyro.conf.Positional]
-    """Dataset directory (N3DV, COLMAP frame folders, EasyVolcap, plain videos or image folders)."""
+    """Dataset directory (N3DV, COLMAP frame folders, EasyVolcap, Dynamic 3D Gaussians, plain videos or image
+    folders)."""
     out: Path
     """Output directory; written atomically, never half-written."""
     format: SourceFormat = "auto"
@@ -79,7 +81,7 @@ class PrepareConfig:
     sfm_shared_intrinsics: bool = True
     """SfM: one intrinsic model for all cameras (identical cameras); else one per camera."""
     fps: float | None = None
-    """Frame rate of the source (default: from the videos; 30 for image folders)."""
+    """Frame rate of the source (default: from the videos; 30 for image folders and Dynamic 3D Gaussians)."""
     name: str | None = None
     """Scene name (default: the output directory name)."""
     progress: bool = True
@@ -172,8 +174,6 @@ def check_frame_counts(src: Source, trim: bool) -> int:
 
 def prepare(cfg: PrepareConfig) -> Path:
     """Run the whole ingest; returns the prepared directory."""
-    from tqdm import tqdm
-
     t0 = time.perf_counter()
     out = Path(cfg.out)
     check_output_dir(out, cfg.overwrite)  # fail before any slow work
@@ -201,20 +201,7 @@ def prepare(cfg: PrepareConfig) -> Path:
         out_cams = [_output_camera(c, cfg.downscale) for c in cams]
         t = time.perf_counter()
         ext = "." + cfg.image_format
-        with tqdm(total=len(cams) * num_frames, desc="extract frames", unit="img", disable=not cfg.progress) as bar:
-            for ci, (cam, ocam) in enumerate(zip(cams, out_cams)):
-                (tmp / "images" / ocam.name).mkdir(parents=True)
-                umap = build_undistort_map(cam) if cam.dist is not None else None
-                for j, (_, img) in enumerate(src.frames(ci, sel)):
-                    if img.shape[:2] != (cam.height, cam.width):
-                        raise DataError(f"{src.file_of(ci)}: frame {sel[j]} is {img.shape[1]}x{img.shape[0]}, "
-                                        f"expected {cam.width}x{cam.height}")
-                    if umap is not None:
-                        img = apply_undistort_map(umap, img)
-                    if (ocam.width, ocam.height) != (cam.width, cam.height):
-                        img = np.asarray(Image.fromarray(img).resize((ocam.width, ocam.height), Image.BOX))
-                    save_frame(tmp, ocam, j, img, ext)
-                    bar.update(1)
+        _extract_frames(tmp, src, cams, out_cams, sel, ext, cfg.progress)
         timings["frames"] = time.perf_counter() - t
         t = time.perf_counter()
         kfs = evenly_spaced(num_frames, cfg.keyframes)  # the model's keyframe rule
@@ -241,8 +228,48 @@ def prepare(cfg: PrepareConfig) -> Path:
                              test_cameras=test, name=cfg.name or out.name, source=source,
                              extra={"coverage": kp.coverage, "keyframe_points": kp.counts,
                                     "motion_points": motion.stats if motion is not None else {"enabled": False}},
-                             motion=motion)
+                             motion=motion, masks=src.masks is not None)
     return out
+
+
+def _extract_frames(root: Path, src: Source, cams: list[Camera], out_cams: list[Camera], sel: range, ext: str,
+                    progress: bool) -> None:
+    """Every selected frame onto its output camera, and its mask when the source has masks."""
+    from tqdm import tqdm
+
+    with tqdm(total=len(cams) * len(sel), desc="extract frames", unit="img", disable=not progress) as bar:
+        for ci, (cam, ocam) in enumerate(zip(cams, out_cams)):
+            (root / "images" / ocam.name).mkdir(parents=True)
+            if src.masks is not None:
+                (root / "masks" / ocam.name).mkdir(parents=True)
+            umap = build_undistort_map(cam) if cam.dist is not None else None
+            for j, (_, img) in enumerate(src.frames(ci, sel)):
+                if img.shape[:2] != (cam.height, cam.width):
+                    raise DataError(f"{src.file_of(ci)}: frame {sel[j]} is {img.shape[1]}x{img.shape[0]}, "
+                                    f"expected {cam.width}x{cam.height}")
+                save_frame(root, ocam, j, _resample(img, ocam, umap), ext)
+                if src.masks is not None:
+                    save_mask(root, ocam, j, _output_mask(src, ci, sel[j], cam, ocam, umap))
+                bar.update(1)
+
+
+def _resample(img: np.ndarray, ocam: Camera, umap) -> np.ndarray:
+    """``img`` undistorted (when ``umap`` is given) and box-downscaled to ``ocam``'s size: frames
+    (uint8) and masks (float) alike."""
+    if umap is not None:
+        img = apply_undistort_map(umap, img).reshape(img.shape)
+    if img.shape[:2] != (ocam.height, ocam.width):
+        img = np.asarray(Image.fromarray(img).resize((ocam.width, ocam.height), Image.BOX))
+    return img
+
+
+def _output_mask(src: Source, ci: int, frame: int, cam: Camera, ocam: Camera, umap) -> np.ndarray:
+    """Source mask -> output camera: the share of foreground in each output pixel (the frames' box
+    filter), foreground from one half up, so mask and frame edges stay aligned."""
+    m = src.mask(ci, frame)
+    if m.shape != (cam.height, cam.width):
+        raise DataError(f"{src.masks[ci][frame]}: mask is {m.shape[1]}x{m.shape[0]}, its image {cam.width}x{cam.height}")
+    return _resample(m.astype(np.float32), ocam, umap) >= 0.5
 
 
 def _motion_points(root: Path, cams: list[Camera], test: list[str], num_frames: int, ext: str,

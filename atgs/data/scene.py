@@ -8,6 +8,8 @@ Layout (contract, see docs/ARCHITECTURE.md and docs/data.md)::
                     "test_cameras": [names], "keyframes": [frame indices, ascending],
                     "bounds": {"min": [x,y,z], "max": [x,y,z]}, "source": {...}}
       images/<camera name>/<frame:06d>.png  (or .jpg)   frame 0 .. num_frames-1
+      masks/<camera name>/<frame:06d>.png   optional (scene.json "masks": true): foreground
+                   masks, uint8 greyscale, 255 = foreground, the size of the frames
       points.ply   x y z red green blue keyframe   (keyframe = index into "keyframes")
       motion_points.ply   optional, same columns: points on moving content only, keyframe =
                    index into scene.json's "motion_keyframes" (atgs.data.motion_points)
@@ -41,6 +43,10 @@ def frame_path(root: Path, camera_name: str, frame: int, ext: str = ".png") -> P
     return Path(root) / "images" / camera_name / f"{frame:06d}{ext}"
 
 
+def mask_path(root: Path, camera_name: str, frame: int) -> Path:
+    return Path(root) / "masks" / camera_name / f"{frame:06d}.png"
+
+
 @dataclass
 class PreparedScene:
     """A prepared multi-view video scene (read-only view of a directory)."""
@@ -62,6 +68,7 @@ class PreparedScene:
     motion_keyframes: list[int] = field(default_factory=list)
     motion_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     motion_point_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    has_masks: bool = False  # masks/<camera>/<frame>.png: foreground masks from the source
 
     # --- loading ------------------------------------------------------------------------
     @classmethod
@@ -106,11 +113,15 @@ class PreparedScene:
         if len(kfs) and (kfs.min() < 0 or kfs.max() >= len(keyframes)):
             raise DataError(f"{root / 'points.ply'}: keyframe index out of range [0, {len(keyframes)})")
         mkfs, mpts, mk = _read_motion_points(root, meta, meta_path, num_frames)
+        has_masks = meta.get("masks") is True
+        if has_masks and not mask_path(root, names[0], 0).is_file():
+            raise DataError(f"{mask_path(root, names[0], 0)}: not found but scene.json says the scene has masks; "
+                            "re-run atgs-prepare")
         return cls(
             root=root, name=str(meta.get("name", root.name)), fps=fps, num_frames=num_frames,
             cameras=cameras, test_cameras=test_cameras, keyframes=keyframes, bounds=bounds,
             points=pts, point_colors=cols, point_keyframes=kfs, source=dict(meta.get("source", {})),
-            image_ext=ext, motion_keyframes=mkfs, motion_points=mpts, motion_point_keyframes=mk,
+            image_ext=ext, motion_keyframes=mkfs, motion_points=mpts, motion_point_keyframes=mk, has_masks=has_masks,
         )
 
     # --- camera splits ------------------------------------------------------------------
@@ -129,12 +140,16 @@ class PreparedScene:
         return [i for i, c in enumerate(self.cameras) if c.name not in test]
 
     # --- frames -------------------------------------------------------------------------
-    def image_path(self, cam_index: int, frame: int) -> Path:
+    def _check_index(self, cam_index: int, frame: int) -> str:
+        """The camera's name, after checking both indices."""
         if not 0 <= cam_index < len(self.cameras):
             raise IndexError(f"camera index {cam_index} out of range [0, {len(self.cameras)})")
         if not 0 <= frame < self.num_frames:
             raise IndexError(f"frame {frame} out of range [0, {self.num_frames})")
-        return frame_path(self.root, self.cameras[cam_index].name, frame, self.image_ext)
+        return self.cameras[cam_index].name
+
+    def image_path(self, cam_index: int, frame: int) -> Path:
+        return frame_path(self.root, self._check_index(cam_index, frame), frame, self.image_ext)
 
     def image(self, cam_index: int, frame: int) -> np.ndarray:
         """Frame ``frame`` of camera ``cam_index`` as (H,W,3) float32 in [0,1], read from disk now."""
@@ -148,6 +163,16 @@ class PreparedScene:
             raise DataError(f"{path}: frame file missing; re-run atgs-prepare") from None
         except OSError as e:
             raise DataError(f"{path}: unreadable image ({e}); re-run atgs-prepare") from None
+        return self._check_size(path, arr, cam_index)
+
+    def mask(self, cam_index: int, frame: int) -> np.ndarray:
+        """Foreground mask of frame ``frame`` of camera ``cam_index``, (H,W) bool, read from disk now."""
+        if not self.has_masks:
+            raise DataError(f"{self.root / 'scene.json'}: the scene has no masks (its source had none)")
+        path = mask_path(self.root, self._check_index(cam_index, frame), frame)
+        return self._check_size(path, read_mask(path), cam_index)
+
+    def _check_size(self, path: Path, arr: np.ndarray, cam_index: int) -> np.ndarray:
         cam = self.cameras[cam_index]
         if arr.shape[:2] != (cam.height, cam.width):
             raise DataError(f"{path}: size {arr.shape[1]}x{arr.shape[0]} differs from camera {cam.name} ({cam.width}x{cam.height})")
@@ -192,6 +217,25 @@ class MemoryScene:
 def read_rgb(path: Path) -> np.ndarray:
     """(H,W,3) uint8 of an image file (any mode: atgs.io.images.to_rgb8)."""
     return read_rgb8(path)
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """(H,W) bool foreground of a mask image of any mode: white (128 or more in any channel) is
+    foreground; a mask coded 0/1 (nothing above 1, as some datasets store them) has 1 as foreground."""
+    try:
+        v = read_rgb8(path).max(axis=2)
+    except FileNotFoundError:
+        raise DataError(f"{path}: mask not found") from None
+    except OSError as e:
+        raise DataError(f"{path}: unreadable mask ({e})") from None
+    return v >= (1 if v.max() <= 1 else 128)
+
+
+def save_mask(root: Path, cam: Camera, frame: int, mask: np.ndarray) -> None:
+    """Write one foreground mask of a prepared scene: greyscale PNG, 255 = foreground."""
+    if mask.shape != (cam.height, cam.width):
+        raise ValueError(f"mask {frame} of {cam.name}: shape {mask.shape} != ({cam.height},{cam.width})")
+    Image.fromarray(np.where(mask, 255, 0).astype(np.uint8)).save(mask_path(root, cam.name, frame), compress_level=1)
 
 
 def resize_frame(img: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -347,10 +391,11 @@ def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int,
                          point_colors: np.ndarray, point_keyframes: np.ndarray, *, fps: float,
                          keyframes: Sequence[int], test_cameras: Sequence[str], name: str,
                          bounds: np.ndarray | None = None, source: dict | None = None,
-                         extra: dict | None = None, motion=None) -> None:
+                         extra: dict | None = None, motion=None, masks: bool = False) -> None:
     """Write scene.json and points.ply into ``root`` (whose images/ already exist), then validate.
     ``extra`` adds informational keys (e.g. "coverage") that readers may ignore; ``motion`` (an
-    :class:`atgs.data.motion_points.MotionPoints`) adds motion_points.ply and "motion_keyframes"."""
+    :class:`atgs.data.motion_points.MotionPoints`) adds motion_points.ply and "motion_keyframes";
+    ``masks`` records that masks/ holds a mask of every frame (the key is absent otherwise)."""
     root = Path(root)
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     if bounds is None:
@@ -367,6 +412,7 @@ def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int,
         "bounds": {"min": np.asarray(bounds)[0].tolist(), "max": np.asarray(bounds)[1].tolist()},
         "source": dict(source or {}),
         **(extra or {}),
+        **({"masks": True} if masks else {}),
     }
     if motion is not None and len(motion.keyframes):
         meta["motion_keyframes"] = [int(k) for k in motion.keyframes]

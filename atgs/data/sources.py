@@ -5,6 +5,9 @@ Supported (``--format``):
 - ``colmap-frames``: ``frameNNNNNN/images/camXX.png`` + a COLMAP model in ``sparse/0`` (at the
   top level or inside the first frame folder), the 3DGStream / VRU / MeetRoom style;
 - ``easyvolcap``: ``intri.yml`` + ``extri.yml`` + ``images/<cam>/<frame>.jpg``;
+- ``d3dgs``: Dynamic 3D Gaussians (CMU Panoptic): ``train_meta.json`` + ``test_meta.json`` +
+  ``ims/<cam>/<frame>.jpg``, optional foreground masks ``seg/<cam>/<frame>.png``; the cameras of
+  ``test_meta.json`` are held out by default;
 - ``videos``: plain ``*.mp4`` (one per static camera) with no poses -> SfM on the first frame;
 - ``images``: ``<cam>/<frame>.png`` folders with no poses -> SfM on the first frame.
 """
@@ -21,12 +24,14 @@ import numpy as np
 from PIL import Image
 
 from atgs.cameras import Camera
-from atgs.data.camera_formats import cameras_from_poses_bounds, cameras_from_reconstruction, read_easyvolcap
+from atgs.data.camera_formats import (cameras_from_d3dgs, cameras_from_poses_bounds, cameras_from_reconstruction,
+                                     read_d3dgs_meta, read_easyvolcap)
 from atgs.data.errors import DataError
+from atgs.data.scene import read_mask
 from atgs.data.video import VIDEO_EXTS, iter_frames, video_info
 from atgs.io.images import read_rgb8
 
-SourceFormat = Literal["auto", "n3dv", "colmap-frames", "easyvolcap", "videos", "images"]
+SourceFormat = Literal["auto", "n3dv", "colmap-frames", "easyvolcap", "d3dgs", "videos", "images"]
 IMAGE_FILE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 _FRAME_DIR = re.compile(r"^frame_?\d+$|^\d+$")
 
@@ -46,6 +51,7 @@ class Source:
     videos: list[Path] | None = None  # one video per camera, or
     images: list[list[Path]] | None = None  # per camera, the frame files in order
     extra: dict = field(default_factory=dict)
+    masks: list[list[Path]] | None = None  # per camera, a foreground mask file per frame (d3dgs seg/)
 
     def file_of(self, ci: int) -> Path:
         return self.videos[ci] if self.videos is not None else self.root / self.camera_names[ci]
@@ -68,6 +74,10 @@ class Source:
         else:
             for i in indices:
                 yield i, load_image(self.images[ci][i])
+
+    def mask(self, ci: int, i: int) -> np.ndarray:
+        """Foreground mask (H,W) bool of frame ``i`` of camera ``ci``; sources with ``masks`` only."""
+        return read_mask(self.masks[ci][i])
 
 
 def load_image(path: Path) -> np.ndarray:
@@ -111,6 +121,8 @@ def detect_format(root: Path) -> str:
         raise DataError(f"{root}: source path does not exist")
     if not root.is_dir():
         raise DataError(f"{root}: source must be a directory (of videos, image folders or frame folders)")
+    if (root / "train_meta.json").is_file():
+        return "d3dgs"
     if (root / "poses_bounds.npy").is_file():
         return "n3dv"
     if (root / "intri.yml").is_file() or (root / "extri.yml").is_file():
@@ -125,10 +137,10 @@ def detect_format(root: Path) -> str:
         return "images"
     if not any(root.iterdir()):
         raise DataError(f"{root}: folder is empty; expected camXX.mp4 videos, <cam>/ image folders, "
-                        "frameNNNNNN/images/ folders or intri.yml/extri.yml")
+                        "frameNNNNNN/images/ folders, intri.yml/extri.yml or train_meta.json")
     raise DataError(f"{root}: cannot recognise the layout; expected camXX.mp4 (+ poses_bounds.npy), "
-                    "<cam>/ image folders, frameNNNNNN/images/ + sparse/0, or intri.yml/extri.yml + images/; "
-                    "or pass --format")
+                    "<cam>/ image folders, frameNNNNNN/images/ + sparse/0, intri.yml/extri.yml + images/, or "
+                    "train_meta.json + ims/; or pass --format")
 
 
 def open_source(root: Path, fmt: SourceFormat = "auto") -> Source:
@@ -137,7 +149,7 @@ def open_source(root: Path, fmt: SourceFormat = "auto") -> Source:
     if not root.is_dir():
         raise DataError(f"{root}: source directory not found")
     return {"n3dv": _open_n3dv, "colmap-frames": _open_colmap_frames, "easyvolcap": _open_easyvolcap,
-            "videos": _open_videos, "images": _open_images}[kind](root)
+            "d3dgs": _open_d3dgs, "videos": _open_videos, "images": _open_images}[kind](root)
 
 
 # --- video layouts --------------------------------------------------------------------------
@@ -247,3 +259,36 @@ def _open_colmap_frames(root: Path) -> Source:
     src.extra["colmap_model"] = str(model)
     src.extra["missing"] = {n: str(fl[k]) for n, fl, k in zip(names, files, counts) if k < len(fl)}
     return src
+
+
+def _open_d3dgs(root: Path) -> Source:
+    train_path, test_path = root / "train_meta.json", root / "test_meta.json"
+    if not train_path.is_file():
+        raise DataError(f"{train_path}: not found (Dynamic 3D Gaussians captures need train_meta.json)")
+    metas = [read_d3dgs_meta(train_path)] + ([read_d3dgs_meta(test_path)] if test_path.is_file() else [])
+    cams: dict[str, Camera] = {}
+    files: dict[str, list[str]] = {}
+    for meta in metas:
+        for cam, fns in zip(cameras_from_d3dgs(meta), meta.files):
+            if cam.name in cams:
+                raise DataError(f"{meta.path}: camera {cam.name} is also in {train_path.name}; list each camera in one meta")
+            cams[cam.name], files[cam.name] = cam, fns
+    if not cams:
+        raise DataError(f"{train_path}: lists no cameras")
+    names = sorted(cams, key=int)
+    # the metas hold every frame's name: a missing file is an error now, not hours into training
+    images = [[root / "ims" / f for f in files[n]] for n in names]
+    _require_files(images, ", but the metas list it (restore it, or drop its timestep from the metas)")
+    src = _image_source("d3dgs", root, names, images, [cams[n] for n in names],
+                        [str(i) for i in metas[1].cam_ids] if len(metas) > 1 else [names[0]])
+    if (root / "seg").is_dir():  # masks are all or nothing: a scene with masks has one per frame
+        src.masks = [[(root / "seg" / f).with_suffix(".png") for f in files[n]] for n in names]
+        _require_files(src.masks, "; seg/ needs a mask for every image (or remove seg/ to prepare without masks)")
+    return src
+
+
+def _require_files(per_camera: list[list[Path]], fix: str) -> None:
+    for paths in per_camera:
+        missing = next((p for p in paths if not p.is_file()), None)
+        if missing is not None:
+            raise DataError(f"{missing}: not found{fix}")

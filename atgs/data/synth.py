@@ -3,7 +3,8 @@
 ``synthesize`` renders a :class:`SynthScene` with the mesh renderer and writes the N3DV layout
 (``camXX.mp4`` + ``poses_bounds.npy``) so that synthetic data goes through the same
 ``atgs-prepare`` path as real captures, plus ``synth.json``: the config that rebuilds the exact
-ground-truth geometry (see :func:`load_ground_truth`).
+ground-truth geometry (see :func:`load_ground_truth`) and the true near/far of every camera
+(``true_near_far``; ``cfg.bounds`` chooses what poses_bounds.npy states, see :func:`stated_bounds`).
 """
 
 from __future__ import annotations
@@ -72,10 +73,12 @@ def synthesize(out: str | Path, cfg: SynthConfig = SynthConfig(), enc: EncodeCon
             for w in writers:
                 w.close()
             renderer.release()
-        np.save(tmp / "poses_bounds.npy", cameras_to_poses_bounds(cams, _near_far(scene, cams)))
+        near_far = _near_far(scene, cams)
+        np.save(tmp / "poses_bounds.npy", cameras_to_poses_bounds(cams, stated_bounds(near_far, cfg.bounds)))
         side = scene.describe()
         side.update({"format": "atgs-synth", "version": SYNTH_VERSION, "encoding": enc.__dict__,
-                     "test_cameras": [cams[0].name], "seconds": time.perf_counter() - t0})
+                     "test_cameras": [cams[0].name], "true_near_far": near_far.tolist(),
+                     "seconds": time.perf_counter() - t0})
         (tmp / SIDECAR).write_text(json.dumps(side, indent=1))
     return out
 
@@ -89,6 +92,19 @@ def _near_far(scene: SynthScene, cams) -> np.ndarray:
         zz = z[vis] if vis.any() else z[z > 0]
         nf.append([0.9 * np.percentile(zz, 0.5), 1.1 * np.percentile(zz, 99.5)])
     return np.array(nf)
+
+
+def stated_bounds(near_far: np.ndarray, bounds: str) -> np.ndarray:
+    """The (N,2) near/far that poses_bounds.npy states for the true ones (SynthConfig.bounds), to
+    test readers against wrong dataset bounds: "true" as measured; "loose" near/10 and far*10;
+    "narrow" both pulled 3/4 of the way to their geometric mean m (m - (m - near)/4, m + (far - m)/4:
+    true 2-12 m is stated 4.2-6.7 m, most surfaces fall outside); "none" 0/0, which the readers
+    take as missing (atgs.data.mvs.views.depth_ranges uses a hint only where 0 < near < far)."""
+    near, far = near_far[:, 0], near_far[:, 1]
+    m = np.sqrt(near * far)
+    stated = {"true": (near, far), "loose": (near / 10, far * 10), "narrow": (m - (m - near) / 4, m + (far - m) / 4),
+              "none": (0 * near, 0 * far)}[bounds]
+    return np.stack(stated, 1)
 
 
 def load_ground_truth(src: str | Path) -> SynthScene:

@@ -12,12 +12,16 @@ Objects (their speeds depend on the preset, see ``PRESETS``):
   (enters and leaves the scene);
 - ``blob``: a sphere whose surface deforms with travelling waves;
 - ``orbiter``: a small box circling the center.
+
+Or (``subject="person"``) a person-sized walker (torso, head, swinging arms and legs) on a circle
+of radius 1 m, plus the orbiter. The ``dome`` rig is a capture stage: 1-3 rings of cameras whose
+bodies are drawn, so that the cameras see each other, inside a backdrop just behind them.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from PIL import Image
@@ -25,15 +29,34 @@ from PIL import Image
 from atgs.cameras import Camera, look_at
 
 Preset = Literal["small-motion", "large-motion"]
-Rig = Literal["ring", "front"]
-Layout = Literal["ring12", "ring10-low", "front6", "ring12-flat"]
+Rig = Literal["ring", "front", "dome"]
+Subject = Literal["objects", "person"]
+Bounds = Literal["true", "loose", "narrow", "none"]
+Layout = Literal["ring12", "ring10-low", "front6", "ring12-flat", "dome24", "dome12-low", "ring10", "sparse4"]
 # Named camera layouts of the benchmarks (SynthConfig overrides); "ring12" is the default scene.
 LAYOUTS: dict[str, dict] = {
     "ring12": {"cameras": 12, "width": 256, "height": 192, "rig": "ring", "texture_contrast": 1.0},
     "ring10-low": {"cameras": 10, "width": 200, "height": 150, "rig": "ring", "texture_contrast": 1.0},
     "front6": {"cameras": 6, "width": 256, "height": 192, "rig": "front", "texture_contrast": 1.0},
     "ring12-flat": {"cameras": 12, "width": 256, "height": 192, "rig": "ring", "texture_contrast": 0.0},
+    # capture stages: a person inside a dome of 3.5 m radius; rings of cameras seeing each other
+    "dome24": {"cameras": 24, "width": 320, "height": 240, "rig": "dome", "dome_rings": 3, "ring_radius": 3.5,
+               "subject": "person", "texture_contrast": 1.0},
+    "dome12-low": {"cameras": 12, "width": 200, "height": 150, "rig": "dome", "dome_rings": 2, "ring_radius": 3.5,
+                   "subject": "person", "texture_contrast": 1.0},
+    "ring10": {"cameras": 10, "width": 200, "height": 150, "rig": "dome", "dome_rings": 1, "texture_contrast": 1.0},
+    "sparse4": {"cameras": 4, "width": 200, "height": 150, "rig": "dome", "dome_rings": 1, "texture_contrast": 1.0},
 }
+# rig "dome": (height m, radius as a fraction of ring_radius) of each ring, by the number of rings;
+# every camera looks at DOME_TARGET, so the low ring looks slightly up and the high one down
+DOME_RINGS: dict[int, tuple[tuple[float, float], ...]] = {
+    1: ((1.6, 1.0),),
+    2: ((0.8, 1.0), (2.6, 0.8)),
+    3: ((0.6, 1.0), (1.7, 1.0), (3.2, 0.75)),
+}
+DOME_TARGET = np.array([0.0, 0.0, 1.0])
+CAMERA_BODY = 0.15  # edge of a camera's box (m); its center sits CAMERA_BEHIND behind the optical center,
+CAMERA_BEHIND = 0.1  # so that a camera never sees its own body (the renderer's near plane is 0.05)
 
 
 @dataclass(frozen=True)
@@ -78,6 +101,9 @@ class SynthConfig:
     # (and the cache keys) of existing scenes do not change.
     rig: Rig = "ring"  # "ring": on the ring looking at the center; "front": a planar grid facing +y
     texture_contrast: float = 1.0  # 1 = the textures as made; 0 = flat colors (textureless surfaces)
+    dome_rings: int = 3  # rig "dome": rings of cameras (DOME_RINGS)
+    subject: Subject = "objects"  # "objects": the five objects below; "person": a walker and the orbiter
+    bounds: Bounds = "true"  # near/far written to poses_bounds.npy (atgs.data.synth); never the pixels
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -95,8 +121,13 @@ class SynthConfig:
         """Reference length for error tolerances: the diameter of the camera ring."""
         return 2.0 * self.ring_radius
 
+    @property
+    def backdrop_radius(self) -> float:
+        """A dome's wall stands 0.5 m behind its outermost cameras, as a capture stage's walls do."""
+        return self.ring_radius + 0.5 if self.rig == "dome" else self.wall_radius
 
-_LATE_FIELDS = ("rig", "texture_contrast")
+
+_LATE_FIELDS = ("rig", "texture_contrast", "dome_rings", "subject", "bounds")
 
 
 # --- meshes -----------------------------------------------------------------------------------
@@ -186,6 +217,14 @@ def torus(R: float, r: float, n_major: int, n_minor: int) -> Mesh:
                 uv.astype(np.float32), faces.astype(np.int32))
 
 
+def merge_meshes(meshes: list[Mesh]) -> Mesh:
+    """One mesh of many (one draw call, one object in the ground truth)."""
+    offsets = np.cumsum([0] + [len(m.positions) for m in meshes[:-1]])
+    return Mesh(np.concatenate([m.positions for m in meshes]), np.concatenate([m.normals for m in meshes]),
+                np.concatenate([m.uvs for m in meshes]),
+                np.concatenate([m.faces + o for m, o in zip(meshes, offsets)]).astype(np.int32))
+
+
 def vertex_normals(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
     fn = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
     n = np.zeros_like(p)
@@ -245,6 +284,17 @@ def scale_contrast(tex: np.ndarray, contrast: float) -> np.ndarray:
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
+def camera_body_texture(size: int = 128) -> np.ndarray:
+    """A dark housing with bright lens rings and red tally dots, one in each half of the texture
+    (each face of a box shows one half), so that camera bodies stand out in the other views."""
+    y, x = (np.mgrid[0:size, 0:size] + 0.5) / size
+    r = np.hypot(x % 0.5 - 0.25, y % 0.5 - 0.25)
+    img = np.full((size, size, 3), 36, np.uint8)
+    img[(r > 0.11) & (r < 0.17)] = (235, 235, 220)
+    img[r < 0.04] = (220, 50, 40)
+    return img
+
+
 # --- the scene --------------------------------------------------------------------------------
 
 @dataclass
@@ -269,6 +319,35 @@ def _M(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return M
 
 
+def camera_bodies(cams: list[Camera]) -> Mesh:
+    """A box per camera, turned with it, CAMERA_BEHIND behind its center: a point on a body lies
+    right behind that camera, as on a real stage."""
+    return merge_meshes([box((CAMERA_BODY,) * 3).transformed(_M(c.R.T, c.center - CAMERA_BEHIND * c.forward))
+                         for c in cams])
+
+
+# The walker's parts in its body frame (x forward, y left, z up): box size (or sphere radius),
+# texture, pivot, drop of the part's center below the pivot, swing in units of the gait angle.
+_PERSON_PARTS = (
+    ("torso", (0.24, 0.38, 0.58), 2, (0.0, 0.0, 1.16), 0.0, 0.0),
+    ("head", 0.12, 5, (0.0, 0.0, 1.63), 0.0, 0.0),  # top at 1.75 m
+    ("leg_l", (0.14, 0.14, 0.84), 3, (0.0, 0.1, 0.87), 0.42, 1.0),
+    ("leg_r", (0.14, 0.14, 0.84), 3, (0.0, -0.1, 0.87), 0.42, -1.0),
+    ("arm_l", (0.09, 0.09, 0.6), 4, (0.0, 0.25, 1.42), 0.28, -0.7),  # arms swing against the legs
+    ("arm_r", (0.09, 0.09, 0.6), 4, (0.0, -0.25, 1.42), 0.28, 0.7),
+)
+WALK_SPEED = {"small-motion": 0.4, "large-motion": 1.0}  # m/s along the circle
+WALK_RADIUS = 1.0  # m, around the z axis
+STRIDE = 1.4  # m walked per gait cycle (two steps)
+GAIT_SWING = 0.45  # rad, legs' largest angle from the vertical
+
+
+def person_parts(phase: float) -> list[SceneObject]:
+    return [SceneObject(f"person_{name}", uv_sphere(size, 16, 24) if name == "head" else box(size), tex,
+                        {"phase": phase, "pivot": list(pivot), "drop": drop, "swing": swing})
+            for name, size, tex, pivot, drop, swing in _PERSON_PARTS]
+
+
 class SynthScene:
     """All geometry of one synthetic scene; ``meshes_at(frame)`` gives world-space meshes."""
 
@@ -277,6 +356,11 @@ class SynthScene:
             raise ValueError(f"unknown preset {cfg.preset!r}; choose one of {sorted(PRESETS)}")
         self.cfg = cfg
         self.motion = PRESETS[cfg.preset]
+        # bounds only matter to the writer (atgs.data.synth) but are checked here, before rendering
+        for name, choices in (("subject", get_args(Subject)), ("bounds", get_args(Bounds)),
+                              ("dome_rings", tuple(DOME_RINGS) if cfg.rig == "dome" else None)):
+            if choices is not None and getattr(cfg, name) not in choices:
+                raise ValueError(f"{name} must be one of {list(choices)}, got {getattr(cfg, name)!r}")
         rng = np.random.default_rng(cfg.seed)
         ts = cfg.texture_size
         self.textures = [
@@ -286,15 +370,27 @@ class SynthScene:
         if cfg.texture_contrast != 1.0:  # after all random draws: the rest of the scene is unchanged
             self.textures = [scale_contrast(t, cfg.texture_contrast) for t in self.textures]
         ph = rng.uniform(0, 2 * np.pi, 8)
+        wall = cfg.backdrop_radius
         self.objects = [
-            SceneObject("ground", grid_plane(2 * cfg.wall_radius + 0.5, 8, 1.0), 0, static=True),
-            SceneObject("backdrop", cylinder_wall(cfg.wall_radius, 6.0, 96, (1.0, 1.0)), 1, static=True),
-            SceneObject("crosser", box((0.7, 0.5, 0.6)), 2, {"phase": float(ph[0]), "dir": float(ph[1])}),
-            SceneObject("spinner", torus(0.5, 0.17, 48, 16), 3, {"center": [1.1, -1.0, 0.75], "axis": [0.3, 0.5, 1.0]}),
-            SceneObject("jumper", uv_sphere(0.32, 20, 32), 4, {"phase": float(ph[2])}),
-            SceneObject("blob", uv_sphere(0.45, 24, 40), 5, {"center": [-1.1, 0.9, 0.62], "phase": float(ph[3])}),
-            SceneObject("orbiter", box((0.35, 0.35, 0.35)), 6, {"phase": float(ph[4])}),
+            SceneObject("ground", grid_plane(2 * wall + 0.5, 8, 1.0), 0, static=True),
+            SceneObject("backdrop", cylinder_wall(wall, 6.0, 96, (1.0, 1.0)), 1, static=True),
         ]
+        orbiter = SceneObject("orbiter", box((0.35, 0.35, 0.35)), 6, {"phase": float(ph[4])})
+        if cfg.subject == "person":  # the walker wears the textures of the objects it replaces
+            self.objects += person_parts(float(ph[5])) + [orbiter]
+        else:
+            self.objects += [
+                SceneObject("crosser", box((0.7, 0.5, 0.6)), 2, {"phase": float(ph[0]), "dir": float(ph[1])}),
+                SceneObject("spinner", torus(0.5, 0.17, 48, 16), 3,
+                            {"center": [1.1, -1.0, 0.75], "axis": [0.3, 0.5, 1.0]}),
+                SceneObject("jumper", uv_sphere(0.32, 20, 32), 4, {"phase": float(ph[2])}),
+                SceneObject("blob", uv_sphere(0.45, 24, 40), 5, {"center": [-1.1, 0.9, 0.62], "phase": float(ph[3])}),
+                orbiter,
+            ]
+        if cfg.rig == "dome":  # camera bodies keep their look whatever texture_contrast is
+            self.textures.append(camera_body_texture())
+            self.objects.append(SceneObject("camera_bodies", camera_bodies(self.cameras()), len(self.textures) - 1,
+                                            static=True))
         self.light_dir = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
 
     # --- motion ---------------------------------------------------------------------------
@@ -331,6 +427,12 @@ class SynthScene:
             a = 2 * np.pi * m.orbit_rate * s + p["phase"]
             pos = np.array([m.orbit_radius * np.cos(a), m.orbit_radius * np.sin(a), 1.2 + 0.2 * np.sin(3 * a)])
             return _M(_rot([0.2, 1, 0.3], 2 * a), pos)
+        if obj.name.startswith("person_"):
+            v = WALK_SPEED[self.cfg.preset]
+            a = p["phase"] + v * s / WALK_RADIUS  # counter-clockwise: the body's x (forward) turns with a + 90 deg
+            body = _M(_rot([0, 0, 1], a + np.pi / 2), WALK_RADIUS * np.array([np.cos(a), np.sin(a), 0.0]))
+            R = _rot([0, 1, 0], p["swing"] * GAIT_SWING * np.sin(2 * np.pi * v * s / STRIDE + p["phase"]))
+            return body @ _M(R, np.asarray(p["pivot"], np.float64) - R[:, 2] * p["drop"])
         raise KeyError(obj.name)
 
     def object_space_mesh(self, obj: SceneObject, frame: int) -> Mesh:
@@ -356,6 +458,8 @@ class SynthScene:
         K = np.array([[f, 0, cfg.width / 2], [0, f, cfg.height / 2], [0, 0, 1]])
         if cfg.rig == "front":
             return self._front_cameras(K)
+        if cfg.rig == "dome":
+            return self._dome_cameras(K)
         cams = []
         for i in range(cfg.cameras):
             if cfg.arc_deg >= 360.0:
@@ -381,6 +485,20 @@ class SynthScene:
             eye = np.array([x, -cfg.ring_radius, 1.3 + 0.6 * row])
             target = np.array([0.35 * x, 0.0, 0.8])
             cams.append(Camera(f"cam{i:02d}", cfg.width, cfg.height, K, look_at(eye, target)))
+        return cams
+
+    def _dome_cameras(self, K: np.ndarray) -> list[Camera]:
+        """Capture stage: the cameras split over the rings of DOME_RINGS (the lower rings get the
+        remainder), evenly around each ring, azimuths staggered between rings."""
+        cfg = self.cfg
+        rings = DOME_RINGS[cfg.dome_rings]
+        cams = []
+        for k, (height, radius) in enumerate(rings):
+            n = cfg.cameras // len(rings) + (k < cfg.cameras % len(rings))
+            for j in range(n):
+                a = 2 * np.pi * (j + k / len(rings)) / n
+                eye = np.array([radius * cfg.ring_radius * np.cos(a), radius * cfg.ring_radius * np.sin(a), height])
+                cams.append(Camera(f"cam{len(cams):02d}", cfg.width, cfg.height, K, look_at(eye, DOME_TARGET)))
         return cams
 
     def describe(self) -> dict:
