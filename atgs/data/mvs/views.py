@@ -17,6 +17,10 @@ from atgs.data.errors import DataError
 # Source-camera choice: triangulation angles near PEAK_DEG are best; smaller angles give poor
 # depth resolution, larger ones distort the matching windows (Goesele et al. 2007, MVSNet).
 PEAK_DEG, SIGMA_BELOW_DEG, SIGMA_ABOVE_DEG, MIN_ANGLE_DEG = 12.0, 4.0, 20.0, 1.0
+# Without seed points a source must score at least this (view_scores): measured on synthetic rigs,
+# pairs 36-60 degrees apart score 0.05-0.5 and gave accurate points, pairs 77-90 degrees apart
+# 0.01-0.03 and gave floaters (median error 8 % of the rig's radius).
+NO_SEED_MIN_SCORE = 0.04
 
 
 @dataclass
@@ -76,28 +80,82 @@ def check_camera_layout(cams: Sequence[Camera], where: str = "cameras", held_out
                         "triangulated; the scene needs cameras at different positions")
 
 
-def layout_depth_range(cam: Camera, cams: Sequence[Camera]) -> tuple[float, float]:
-    """Near/far of ``cam`` from the camera layout alone (no points): around the distance at which
-    the optical axes meet (rings, converging rigs), or many baselines (parallel front-facing rigs)."""
+def meeting_depth(cam: Camera, cams: Sequence[Camera]) -> float | None:
+    """Depth along ``cam``'s axis of the point where the optical axes of ``cams`` meet (least
+    squares), where a converging rig (ring, dome, arc) puts its subject; None for parallel
+    front-facing rigs, or when that point is not well in front of ``cam``."""
     c = np.array([x.center for x in cams])
     d = np.array([x.forward for x in cams])
     A = sum(np.eye(3) - np.outer(v, v) for v in d)
     b = sum((np.eye(3) - np.outer(v, v)) @ p for v, p in zip(d, c))
+    w = np.linalg.eigvalsh(A)
+    if w[0] <= 0.05 * w[-1]:
+        return None
+    t = float((np.linalg.solve(A, b) - cam.center) @ cam.forward)
+    return t if t > 0.5 * _median_baseline(cams) else None
+
+
+def layout_depth_range(cam: Camera, cams: Sequence[Camera]) -> tuple[float, float]:
+    """Near/far of ``cam`` from the camera layout alone (no points): around the distance at which
+    the optical axes meet (rings, converging rigs), or many baselines (parallel front-facing rigs)."""
+    t = meeting_depth(cam, cams)
+    if t is not None:
+        return 0.25 * t, 4.0 * t
+    baseline = _median_baseline(cams)
+    return 0.5 * baseline, 200.0 * baseline
+
+
+def triangulable_depth_range(cam: Camera, cams: Sequence[Camera], n_side: int = 16, n_depth: int = 64,
+                             min_share: float = 0.05) -> tuple[float, float] | None:
+    """Near/far of ``cam`` from the camera layout alone: the depths along its rays where stereo can
+    work, i.e. another camera of ``cams`` sees the point (in front, inside its image) at a useful
+    triangulation angle (the source weight of :func:`view_scores`). Mere covisibility is not
+    enough: on a dome the opposite cameras see the space right at this camera's lens, and the
+    neighbours see far beyond the scene. The range spans the depths whose mean weight over the
+    rays reaches ``min_share`` of the best depth's, widened like the seeds' (x0.6, x1.6); depths
+    are searched over 10^-3 to 10^4 median baselines (no units assumed). None when nothing
+    qualifies."""
+    others = [c for c in cams if c is not cam and not np.allclose(c.center, cam.center)]
+    if not others:
+        return None
+    scale = _median_baseline(cams)
+    u = (np.arange(n_side) + 0.5) / n_side * cam.width
+    v = (np.arange(n_side) + 0.5) / n_side * cam.height
+    U, V = np.meshgrid(u, v)
+    rays = np.stack([(U.ravel() - cam.cx) / cam.fx, (V.ravel() - cam.cy) / cam.fy, np.ones(U.size)], 1)
+    depths = np.geomspace(1e-3 * scale, 1e4 * scale, n_depth)
+    X = ((rays[None] * depths[:, None, None]).reshape(-1, 3) - cam.t) @ cam.R  # (depth, ray) world points
+    ri = X - cam.center
+    ri /= np.linalg.norm(ri, axis=1, keepdims=True)
+    best = np.zeros(len(X))
+    for o in others:
+        _, z, inside = project(o, X)
+        rj = X - o.center
+        rj /= np.linalg.norm(rj, axis=1, keepdims=True)
+        deg = np.degrees(np.arccos(np.clip((ri * rj).sum(1), -1, 1)))
+        best = np.maximum(best, (inside & (z > 1e-3 * scale)) * _angle_weight(deg))
+    score = best.reshape(n_depth, -1).mean(1)
+    if score.max() <= 0:
+        return None
+    ok = np.nonzero(score >= min_share * score.max())[0]
+    return 0.6 * float(depths[ok[0]]), 1.6 * float(depths[ok[-1]])
+
+
+def _median_baseline(cams: Sequence[Camera]) -> float:
+    """Median distance between camera centres (1 when they coincide: no scale to take)."""
+    c = np.array([x.center for x in cams])
     base = np.linalg.norm(c[:, None] - c[None], axis=-1)
     apart = base > 1e-9 * max(1.0, float(np.abs(c).max()))
-    baseline = float(np.median(base[apart])) if apart.any() else 1.0  # coincident: no scale, say 1
-    w = np.linalg.eigvalsh(A)
-    if w[0] > 0.05 * w[-1]:  # the axes converge: their least-squares meeting point is the scene
-        t = float((np.linalg.solve(A, b) - cam.center) @ cam.forward)
-        if t > 0.5 * baseline:
-            return 0.25 * t, 4.0 * t
-    return 0.5 * baseline, 200.0 * baseline
+    return float(np.median(base[apart])) if apart.any() else 1.0
 
 
 def depth_ranges(cams: Sequence[Camera], points: np.ndarray | None, min_points: int = 20,
                  hints: Sequence[tuple[float, float]] | None = None) -> list[tuple[float, float]]:
-    """(near, far) per camera: the 1-99% depths of the seed points it sees, widened (x0.6, x1.6),
-    else the dataset's near/far hint, else the camera layout (:func:`layout_depth_range`)."""
+    """(near, far) per camera: the 1-99% depths of the seed points it sees, widened (x0.6, x1.6);
+    without enough seeds, the depths where another camera can triangulate (:func:`triangulable_depth_range`),
+    narrowed to within 10x of the dataset's near/far hint where there is one (a hint can be wrong
+    by that much either way: loose LLFF bounds, hand-written files); else the layout's guess
+    (:func:`layout_depth_range`)."""
     pts = np.zeros((0, 3)) if points is None else np.asarray(points, np.float64).reshape(-1, 3)
     out = []
     for i, cam in enumerate(cams):
@@ -107,12 +165,22 @@ def depth_ranges(cams: Sequence[Camera], points: np.ndarray | None, min_points: 
             z = z[inside]
         if len(z) >= min_points:
             near, far = 0.6 * float(np.percentile(z, 1)), 1.6 * float(np.percentile(z, 99))
-        elif hints is not None and hints[i] is not None and 0 < hints[i][0] < hints[i][1]:
-            near, far = float(hints[i][0]), float(hints[i][1])
         else:
             near, far = layout_depth_range(cam, cams)
+            seen = triangulable_depth_range(cam, cams)
+            if seen is not None:  # where stereo can work, within the layout's guess where they overlap
+                lo, hi = max(near, seen[0]), min(far, seen[1])
+                near, far = (lo, hi) if lo < hi else seen
+            hint = hints[i] if hints is not None else None
+            if hint is not None and 0 < hint[0] < hint[1]:
+                lo, hi = max(near, hint[0] / HINT_SLACK), min(far, hint[1] * HINT_SLACK)
+                if lo < hi:  # a hint the layout contradicts altogether is ignored
+                    near, far = lo, hi
         out.append((near, max(far, 1.5 * near)))
     return out
+
+
+HINT_SLACK = 10.0  # a dataset's near/far is trusted to within this factor
 
 
 # --- source camera choice --------------------------------------------------------------------
@@ -123,13 +191,13 @@ def _angle_weight(deg: np.ndarray) -> np.ndarray:
     return np.where(deg < MIN_ANGLE_DEG, 0.0, w)
 
 
-def sample_view_points(cam: Camera, near: float, far: float, n_side: int = 12) -> np.ndarray:
-    """World points on a grid of pixels at three depths spread in inverse depth over [near, far]."""
+def sample_view_points(cam: Camera, near: float, far: float, n_side: int = 12, depths: int = 3) -> np.ndarray:
+    """World points on a grid of pixels at ``depths`` depths spread in inverse depth over [near, far]."""
     u = (np.arange(n_side) + 0.5) / n_side * cam.width
     v = (np.arange(n_side) + 0.5) / n_side * cam.height
     U, V = np.meshgrid(u, v)
     rays = np.stack([(U.ravel() - cam.cx) / cam.fx, (V.ravel() - cam.cy) / cam.fy, np.ones(U.size)], 1)
-    inv = np.linspace(1 / near, 1 / far, 5)[1:-1]
+    inv = np.linspace(1 / near, 1 / far, depths + 2)[1:-1]
     pc = np.concatenate([rays / i for i in inv])
     return (pc - cam.t) @ cam.R
 
@@ -137,20 +205,28 @@ def sample_view_points(cam: Camera, near: float, far: float, n_side: int = 12) -
 def view_scores(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]],
                 points: np.ndarray | None = None, min_points: int = 20) -> tuple[np.ndarray, np.ndarray]:
     """(N,N) score of camera j as a source for reference i: the mean, over points the reference
-    sees (seed points, else a grid of its rays at three depths), of ``j sees it`` x a weight of
-    the triangulation angle that peaks at PEAK_DEG and is 0 below MIN_ANGLE_DEG; and (N,N) the
-    overlap: the fraction of those points j sees at all."""
+    sees (seed points, else a grid of its rays at eight depths about where a converging rig's
+    axes meet, or over its range), of ``j sees it`` x a weight of the triangulation angle that
+    peaks at PEAK_DEG and is 0 below MIN_ANGLE_DEG; and (N,N) the overlap: the fraction of those
+    points j sees at all. Without seeds nothing confirms the geometry, so a source scoring below
+    NO_SEED_MIN_SCORE (a pair about 70 degrees apart) scores 0: such wide pairs gave floaters."""
     n = len(cams)
     pts = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
     S, O = np.zeros((n, n)), np.zeros((n, n))
+    unseeded: list[int] = []
     for i, ref in enumerate(cams):
         X = None
         if pts is not None and len(pts):
             _, _, inside = project(ref, pts)
             if inside.sum() >= min_points:
                 X = pts[inside]
-        if X is None:
-            X = sample_view_points(ref, *ranges[i])
+        if X is None:  # no seeds: around where a converging rig puts its subject, else the whole range
+            near, far = ranges[i]
+            t = meeting_depth(ref, cams)
+            if t is not None and max(near, 0.8 * t) < min(far, 1.25 * t):
+                near, far = max(near, 0.8 * t), min(far, 1.25 * t)
+            X = sample_view_points(ref, near, far, depths=8)
+            unseeded.append(i)
         ri = X - ref.center
         ri /= np.linalg.norm(ri, axis=1, keepdims=True)
         for j, src in enumerate(cams):
@@ -162,6 +238,7 @@ def view_scores(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]],
             deg = np.degrees(np.arccos(np.clip((ri * rj).sum(1), -1, 1)))
             S[i, j] = float(np.mean(inside * _angle_weight(deg)))
             O[i, j] = float(np.mean(inside))
+    S[unseeded] = np.where(S[unseeded] < NO_SEED_MIN_SCORE, 0.0, S[unseeded])
     return S, O
 
 
