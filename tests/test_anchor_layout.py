@@ -141,6 +141,7 @@ def test_training_prunes_anchors_outside_every_view(tmp_path):
 
     for name in ANCHOR_TABLES:
         tr.sparse_opt.append_rows(name, 4)
+    tr.model.refresh_reach()  # as the trainer does for anchors it adds: measured before any decode
     n0 = tr.model.num_anchors
     need = 2 * len(tr.train_idx) * tr.model.num_keyframes
     t.iterations = max(60, need)

@@ -4,7 +4,8 @@ import numpy as np
 import torch
 
 from atgs.cameras import Camera
-from atgs.model.random_anchors import carve, nearest_depth_grid, random_anchor_points
+from atgs.free_space import carve, nearest_depth_grid
+from atgs.model.random_anchors import random_anchor_points
 
 
 def _camera() -> Camera:

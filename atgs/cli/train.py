@@ -21,6 +21,7 @@ from atgs.config_dict import to_dict
 from atgs.device import DeviceName, auto_fallback_note, device_description, resolve_device
 from atgs.errors import OutputError, UserError
 from atgs.io.cache import cache_dir
+from atgs.data.rig_check import sparse_rig_warning
 from atgs.io.cli import Interrupted, run_cli, stop_on_sigint
 from atgs.model.config import ModelConfig
 from atgs.train.config import TrainConfig, preset
@@ -172,6 +173,10 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
           f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras, "
           f"on {device_description(device)}; "
           + (f"{args.train.minutes:g} min time budget" if args.train.minutes > 0 else f"{args.train.iterations} steps"))
+    sparse = sparse_rig_warning([scene.cameras[i] for i in trainer.train_idx],
+                                ((getattr(scene, "coverage", None) or {}).get("views_per_pixel") or {}).get("mean"))
+    if sparse is not None:  # with the start-up summary (stdout); atgs-prepare said it on stderr
+        print(f"{PROG}: {sparse}", flush=True)
     if trainer.measured_exposure is not None:
         g = trainer.measured_exposure.mean(1)
         print(f"{PROG}: camera exposure {trainer.cfg.camera_exposure}: the training cameras' brightness measured "

@@ -5,7 +5,8 @@ At each keyframe, from the training cameras (test cameras are held out):
    camera's depth range and guide the choice of stereo sources;
 2. PatchMatch stereo + cross-view fusion (:mod:`atgs.data.mvs`), when enabled;
 3. where the points of 1 and 2 cover less than ``fill.below`` of a training camera's pixels, fill
-   points in the space seen by at least two cameras through that camera's uncovered pixels;
+   points in the space seen by at least two cameras through that camera's uncovered pixels, but
+   not in the space the measured points prove empty (:mod:`atgs.free_space`);
 4. the measured surfaces extended into the uncovered pixels near covered ones, at the depth of
    their neighbours (:mod:`atgs.data.mvs.extend`, ``fill.extend_reach``).
 Coverage (:mod:`atgs.data.coverage`) of every camera by the measured points (1 + 2) is returned
@@ -25,12 +26,14 @@ from atgs.cameras import Camera
 from atgs.data.colmap_ops import ColmapOptions, triangulate_known_poses
 from atgs.data.coverage import coverage_mask, point_spacing, scene_coverage, working_camera
 from atgs.data.errors import DataError
-from atgs.data.scene import read_rgb
 from atgs.data.mvs import FillConfig, StereoConfig, stereo_points
-from atgs.data.mvs.stereo import stereo_steps
 from atgs.data.mvs.extend import extend_surfaces
 from atgs.data.mvs.fill import frustum_fill
+from atgs.data.mvs.stereo import stereo_steps
 from atgs.data.mvs.views import check_camera_layout, depth_ranges
+from atgs.data.rig_check import sparse_rig_warning
+from atgs.data.scene import read_rgb
+from atgs.free_space import carve
 
 LOW_COVERAGE = 0.5  # warn below this mean coverage of the training cameras
 
@@ -101,7 +104,7 @@ def keyframe_points(root: Path, cams: Sequence[Camera], test: Sequence[str], kfs
             counts["extend"].append(int(len(epts)))
     pts, cols, kf, is_fill = (np.concatenate(x) for x in (P, C, K, fill_mask))
     cov = scene_coverage(cams, pts[~is_fill], kf[~is_fill], len(kfs), test, stereo.long_side)
-    _report(counts, cov, test, progress)
+    _report(counts, cov, test, progress, use)
     return KeyframePoints(pts, cols, kf, counts, cov)
 
 
@@ -122,16 +125,25 @@ def _fill(cams: Sequence[Camera], images: Sequence[np.ndarray], measured: np.nda
     if all(m is None for m in masks):
         return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
     ranges = depth_ranges(cams, measured if len(measured) else None, hints=hints)
-    return frustum_fill(cams, ranges, fill, images=images, masks=masks, seed=seed)
+    pts, cols = frustum_fill(cams, ranges, fill, images=images, masks=masks, seed=seed)
+    if len(measured) and len(pts):  # never where a camera sees a measured surface behind: floaters in new views
+        keep = carve(pts, measured, cams)
+        pts, cols = pts[keep], cols[keep]
+    return pts, cols
 
 
-def _report(counts: dict, cov: dict, test: Sequence[str], progress: bool) -> None:
+def _report(counts: dict, cov: dict, test: Sequence[str], progress: bool, cams: Sequence[Camera]) -> None:
+    """The keyframe points' one-line summary and its warnings (``cams``: the training cameras)."""
     k = len(counts["sift"])
     line = (f"keyframe points (mean of {k}): {np.mean(counts['sift']):.0f} SIFT + {np.mean(counts['stereo']):.0f} "
             f"stereo + {np.mean(counts['fill']):.0f} fill + {np.mean(counts['extend']):.0f} "
             f"extension; coverage of the training cameras by SIFT + stereo {cov['mean']:.0%}")
+    views = cov["views_per_pixel"]
+    if views["mean"]:  # 0: no measured pixel, nothing to count
+        line += f", seen by {views['mean']:.1f} training cameras per measured pixel"
     if cov["test_cameras"]:
-        line += ", test " + ", ".join(f"{n} {c:.0%}" for n, c in cov["test_cameras"].items())
+        line += "; test " + ", ".join(f"{n} {c:.0%} seen by {views['test_cameras'][n]:.1f}"
+                                      for n, c in cov["test_cameras"].items())
     if progress:
         print(line, file=sys.stderr)
     if sum(counts["fill"]):
@@ -142,6 +154,9 @@ def _report(counts: dict, cov: dict, test: Sequence[str], progress: bool) -> Non
         print(f"warning: the keyframe points cover only {cov['mean']:.0%} of the training cameras' pixels "
               "(textureless surfaces, wide baselines or few cameras); expect a slower, rougher start",
               file=sys.stderr)
+    sparse = sparse_rig_warning(cams, views["mean"])
+    if sparse is not None:
+        print(sparse, file=sys.stderr)
 
 
 def gross_outlier_mask(pts: np.ndarray, margin: float = 0.5) -> np.ndarray:

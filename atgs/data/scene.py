@@ -69,6 +69,9 @@ class PreparedScene:
     motion_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     motion_point_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     has_masks: bool = False  # masks/<camera>/<frame>.png: foreground masks from the source
+    # per keyframe, how many of its points came from each step of atgs-prepare (scene.json)
+    point_counts: dict = field(default_factory=dict)
+    coverage: dict = field(default_factory=dict)  # atgs-prepare's coverage report (scene.json)
 
     # --- loading ------------------------------------------------------------------------
     @classmethod
@@ -122,7 +125,29 @@ class PreparedScene:
             cameras=cameras, test_cameras=test_cameras, keyframes=keyframes, bounds=bounds,
             points=pts, point_colors=cols, point_keyframes=kfs, source=dict(meta.get("source", {})),
             image_ext=ext, motion_keyframes=mkfs, motion_points=mpts, motion_point_keyframes=mk, has_masks=has_masks,
+            point_counts=dict(meta.get("keyframe_points") or {}), coverage=dict(meta.get("coverage") or {}),
         )
+
+    @property
+    def measured_points(self) -> np.ndarray:
+        """(P,) bool: the points measured by SIFT or stereo, not filled in (keyframe_points writes
+        each keyframe's measured points first, then its fill and extension; ``point_counts`` says
+        how many). All True where the counts are missing or disagree with points.ply: treating a
+        fill point as measured only ever makes less space look empty (atgs.free_space)."""
+        c = self.point_counts
+        kf = np.asarray(self.point_keyframes)
+        keep = np.ones(len(kf), bool)
+        try:
+            steps = [[int(x) for x in c[k]] for k in ("sift", "stereo", "fill", "extend")]
+        except (KeyError, TypeError, ValueError):
+            return keep
+        for j in range(len(self.keyframes)):
+            idx = np.nonzero(kf == j)[0]
+            if j >= len(steps[0]) or any(len(s) != len(steps[0]) for s in steps) or \
+                    len(idx) != sum(s[j] for s in steps):
+                return np.ones(len(kf), bool)
+            keep[idx[steps[0][j] + steps[1][j]:]] = False
+        return keep
 
     # --- camera splits ------------------------------------------------------------------
     @property

@@ -96,6 +96,11 @@ class TrainConfig:
     # the depth of its neighbours. 0 = off. Measured in docs/training.md ("Depth smoothness").
     lambda_depth_smooth: float = 0.0
     depth_smooth_edge: float = 10.0  # the image-edge weight's sharpness: exp(-edge * colour change)
+    # Not in the paper: the mean opacity of the Gaussians standing in space the measured keyframe
+    # points prove empty (atgs.train.losses.free_space_loss, atgs.free_space); keeps floaters off
+    # the space between the cameras and the surfaces. 0 = off. Measured in docs/training.md
+    # ("Free space").
+    lambda_free_space: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Background colour the Gaussians are composited over (RGB in [0, 1]), unless
     --train.background-from-images replaces it."""

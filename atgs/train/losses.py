@@ -1,5 +1,5 @@
 """Training losses: (1 - l) L1 + l (1 - SSIM) + lambda_v volume regulariser (+ the optional
-offset regulariser and depth distortion, not in the paper).
+offset regulariser, depth distortion, depth smoothness and free-space opacity, not in the paper).
 
 SSIM is :func:`atgs.eval.metrics.ssim` (11x11 Gaussian window, 'same' padding as 3DGS), so
 training and evaluation share one implementation and one Gaussian-window helper.
@@ -7,11 +7,16 @@ training and evaluation share one implementation and one Gaussian-window helper.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from atgs.eval.metrics import psnr as _psnr
 from atgs.eval.metrics import ssim
 
+
+if TYPE_CHECKING:
+    from atgs.free_space import FreeSpace
 
 VOLUME_REDUCTIONS = ("sum", "mean", "mean-voxel")
 
@@ -93,6 +98,18 @@ def depth_smoothness(alpha: torch.Tensor, depth: torch.Tensor, image: torch.Tens
     lx = ((inv[:, 2:] - 2 * inv[:, 1:-1] + inv[:, :-2]).abs() * ex * mx).sum() / mx.sum().clamp_min(1)
     ly = ((inv[2:] - 2 * inv[1:-1] + inv[:-2]).abs() * ey * my).sum() / my.sum().clamp_min(1)
     return lx + ly
+
+
+def free_space_loss(opacities: torch.Tensor, means: torch.Tensor, free: "FreeSpace") -> torch.Tensor:
+    """Mean over the Gaussians of the opacity of those standing in space the measured points prove
+    empty (atgs.free_space): pushes them transparent, and pruning then removes them. A Gaussian
+    there explains some training camera's pixels with something another camera sees through; a
+    held-out camera sees it as a floater. Only the opacity is pushed (the test is on detached
+    means): moving a Gaussian out of empty space is the image loss's job."""
+    if opacities.numel() == 0:
+        return opacities.sum()
+    empty, _ = free.test(means.detach())
+    return (opacities * empty.to(opacities.dtype)).mean()
 
 
 def image_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float) -> torch.Tensor:

@@ -25,6 +25,7 @@ from atgs.config_dict import from_dict, to_dict
 from atgs.data.scene import resize_frame
 from atgs.device import DeviceError
 from atgs.errors import UserError
+from atgs.free_space import FreeSpace
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
 from atgs.model.config import ModelConfig
@@ -42,8 +43,8 @@ from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.generalisation import evaluation_gap_warning
 from atgs.train.scene_flow import grey_of, initial_velocities
-from atgs.train.losses import (VOLUME_REDUCTIONS, depth_distortion, depth_smoothness, image_loss, offset_loss, psnr,
-                               volume_loss)
+from atgs.train.losses import (VOLUME_REDUCTIONS, depth_distortion, depth_smoothness, free_space_loss, image_loss,
+                               offset_loss, psnr, volume_loss)
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
@@ -90,6 +91,18 @@ class StepResult:
     skipped: bool
 
 
+def free_space_of(scene: SceneData, cams: list[Camera], device: torch.device) -> FreeSpace:
+    """The space ``cams`` prove empty: in front of the scene's measured keyframe points (not its
+    fill; all keyframes at once, so anything a moving object occupies at one keyframe stays
+    non-empty) and its motion points."""
+    pts = np.asarray(scene.points, np.float64)
+    measured = getattr(scene, "measured_points", None)  # a MemoryScene has only measured points
+    if measured is not None:
+        pts = pts[np.asarray(measured, bool)]
+    motion = np.asarray(getattr(scene, "motion_points", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    return FreeSpace.of(cams, np.concatenate([pts, motion]), device=device)
+
+
 def check_backend(device: torch.device, backend: str) -> None:
     """Refuse a ``--train.render-backend`` that cannot rasterize tensors on ``device``."""
     if backend == "cpu" and device.type != "cpu":
@@ -112,7 +125,8 @@ class Trainer:
                             f"{cfg.cameras_per_frame}: both must be >= 1")
         if cfg.volume_reduction not in VOLUME_REDUCTIONS:
             raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
-        for flag, weight in (("lambda-distortion", cfg.lambda_distortion), ("lambda-depth-smooth", cfg.lambda_depth_smooth)):
+        for flag, weight in (("lambda-distortion", cfg.lambda_distortion), ("lambda-depth-smooth", cfg.lambda_depth_smooth),
+                             ("lambda-free-space", cfg.lambda_free_space)):
             if weight < 0:
                 raise UserError(f"--train.{flag} {weight}: a loss weight, use >= 0 (0 = off)")
         if not cfg.lr.moving_anchors > 0:
@@ -177,6 +191,9 @@ class Trainer:
                 self.measured_exposure = measure_scene_exposure(scene)
             self.exposure.start_from(self.measured_exposure)
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
+        # what the training cameras prove empty, from the measured keyframe and motion points
+        self.free_space = free_space_of(scene, [self.cams[i] for i in self.train_idx], self.device) \
+            if cfg.lambda_free_space > 0 else None
         self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         # compile the rasterizer now (gsplat's CUDA kernels take minutes on first use), and the
         # grids' CPU kernels (the sparse optimizer built its own above), not in the first step,
@@ -288,6 +305,9 @@ class Trainer:
                                                                    self.model.voxel_size)
         if cfg.lambda_depth_smooth > 0:
             loss = loss + cfg.lambda_depth_smooth * depth_smoothness(out.alpha, out.depth, gt, cfg.depth_smooth_edge)
+        if cfg.lambda_free_space > 0 and self.free_space is not None:
+            loss = loss + cfg.lambda_free_space * free_space_loss(dec.gaussians.opacities, dec.gaussians.means,
+                                                                  self.free_space)
         return loss
 
     def train_step(self) -> StepResult:
@@ -396,6 +416,7 @@ class Trainer:
             return
         grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
         prune_anchors(self.model, self.stats, d, self.sparse_opt)
+        self.model.refresh_reach()  # the new anchors' reach, before a decode counts them as in view
 
     def _final_prune(self, stop: int) -> None:
         d = self.cfg.densify

@@ -1,0 +1,87 @@
+"""Space the images prove empty: in front of the measured points each camera sees.
+
+A point measured on a surface and seen by a camera shows that the segment between the camera
+and the point is empty. Each camera keeps, per cell of a coarse grid over its image, the depth of
+the nearest point in the cell; a position lying in front of that depth (closer than ``margin``
+times it) in any camera is in empty space. Cells without points say nothing, so unseen and
+unmeasured space is never called empty. The grid is coarse (GRID_CELLS along the long side) so
+that the gaps between measured points do not read as holes through a surface.
+
+One owner for three users: the random static anchors (atgs.model.random_anchors) and the fill of
+atgs-prepare (atgs.data.keyframe_points) are kept out of it, and training's free-space loss
+(atgs.train.losses.free_space_loss) makes the Gaussians that stand in it transparent.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from atgs.cameras import Camera
+
+GRID_CELLS = 32  # cells along each image's long side
+MARGIN = 0.8  # a position at depth < MARGIN x the cell's nearest point depth is in empty space
+
+
+def nearest_depth_grid(cam: Camera, points: np.ndarray, cells: int = GRID_CELLS) -> tuple[np.ndarray, float]:
+    """(rows, cols) grid of the nearest point depth per image cell of ``cam`` (inf: no point),
+    and the cell size in pixels."""
+    cell = max(cam.width, cam.height) / cells
+    rows, cols = int(np.ceil(cam.height / cell)), int(np.ceil(cam.width / cell))
+    grid = np.full(rows * cols, np.inf)
+    if len(points):
+        uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
+        with np.errstate(invalid="ignore"):
+            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        idx = (uv[ok, 1] // cell).astype(np.int64) * cols + (uv[ok, 0] // cell).astype(np.int64)
+        np.minimum.at(grid, idx, z[ok])
+    return grid.reshape(rows, cols), cell
+
+
+@dataclass
+class FreeSpace:
+    """The nearest-depth grids of a set of cameras, as tensors, for testing many positions."""
+
+    cameras: list[Camera]
+    grids: list[torch.Tensor]  # (rows, cols) float32, inf where no point
+    cells: list[float]  # cell size in pixels, per camera
+    margin: float = MARGIN
+
+    @classmethod
+    def of(cls, cameras: Sequence[Camera], points: np.ndarray, margin: float = MARGIN, cells: int = GRID_CELLS,
+           device: torch.device | str = "cpu") -> "FreeSpace":
+        made = [nearest_depth_grid(c, points, cells) for c in cameras]
+        return cls(list(cameras), [torch.as_tensor(g, dtype=torch.float32, device=device) for g, _ in made],
+                   [c for _, c in made], margin)
+
+    def test(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(empty, seen): (N,) bool masks of the positions X (N, 3) in empty space, and of those
+        inside at least one camera's image in front of it."""
+        empty = torch.zeros(X.shape[0], dtype=torch.bool, device=X.device)
+        seen = torch.zeros_like(empty)
+        for cam, grid, cell in zip(self.cameras, self.grids, self.cells):
+            R = torch.as_tensor(cam.R, dtype=X.dtype, device=X.device)
+            t = torch.as_tensor(cam.t, dtype=X.dtype, device=X.device)
+            p = X @ R.T + t
+            z = p[:, 2]
+            zs = z.clamp_min(1e-9)
+            u, v = cam.fx * p[:, 0] / zs + cam.cx, cam.fy * p[:, 1] / zs + cam.cy
+            inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+            r = (v / cell).long().clamp(0, grid.shape[0] - 1)
+            c = (u / cell).long().clamp(0, grid.shape[1] - 1)
+            nearest = grid[r, c].to(X.dtype)
+            empty |= inside & torch.isfinite(nearest) & (z < self.margin * nearest)  # no point: nothing carved
+            seen |= inside
+        return empty, seen
+
+
+def carve(samples: np.ndarray, points: np.ndarray, cameras: Sequence[Camera], margin: float = MARGIN,
+          cells: int = GRID_CELLS) -> np.ndarray:
+    """(N,) bool: the samples seen by at least one camera and in front of no camera's points."""
+    if len(samples) == 0:
+        return np.zeros(0, bool)
+    empty, seen = FreeSpace.of(cameras, points, margin, cells).test(torch.as_tensor(np.asarray(samples, np.float64)))
+    return (seen & ~empty).numpy()
