@@ -94,7 +94,9 @@ def run(cmd: list[str], log: Path) -> str:
 
 
 def warnings_in(text: str) -> list[str]:
+    """The warning and note lines a command printed (``atgs-train: warning: ...`` as ``warning: ...``)."""
     lines = (line.split("\r")[-1].strip() for line in text.splitlines())
+    lines = (line.split(": ", 1)[1] if line.startswith("atgs-") and ": warning:" in line else line for line in lines)
     return [line for line in lines if line.startswith("warning:") or line.startswith("note:")]
 
 
@@ -166,7 +168,8 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         kp = r.get("keyframe_points") or {}
         mean = {k: round(sum(v) / len(v)) if v else 0 for k, v in kp.items()}
-        said = "; ".join(w[:110] + ("..." if len(w) > 110 else "") for w in r["prepare_warnings"] + r["train_warnings"])
+        said = "; ".join(w[:110] + ("..." if len(w) > 110 else "")
+                         for w in dict.fromkeys(r["prepare_warnings"] + r["train_warnings"]))  # each once
         vpp = r.get("views_per_pixel")
         out.append(f"| {r['case']}: {r['what']} | {r['cameras']} | {mean.get('sift', 0)} + {mean.get('stereo', 0)} + "
                    f"{mean.get('fill', 0)} | {100 * (r['coverage_mean'] or 0):.0f} % | "

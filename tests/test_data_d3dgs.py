@@ -18,7 +18,7 @@ from atgs.cameras import Camera, look_at
 from atgs.cli.prepare import main as prepare_main
 from atgs.data.camera_formats import cameras_from_d3dgs, read_d3dgs_meta, write_d3dgs
 from atgs.data.errors import DataError
-from atgs.data.motion_points import MotionPointsConfig
+from atgs.data.motion_points import MotionPointsConfig, motion_keyframes
 from atgs.data.mvs import StereoConfig
 from atgs.data.prepare import PrepareConfig, prepare
 from atgs.data.scene import PreparedScene, read_mask, write_prepared_scene
@@ -92,6 +92,19 @@ def test_prepared_scene_has_cameras_frames_and_resized_masks(capture) -> None:
             assert np.array_equal(s.image_uint8(ci, f), frame)
     on_disk = np.asarray(Image.open(capture["prepared"] / "masks" / "10" / "000002.png"))
     assert on_disk.dtype == np.uint8 and set(np.unique(on_disk)) <= {0, 255}
+
+
+def test_motion_points_take_the_captures_foreground_masks(capture, tmp_path) -> None:
+    """With masks, the motion points' masks are the capture's (box-averaged to their working
+    resolution), not the frames' difference: the moving share they report is the masks' share."""
+    fast = {**FAST, "motion": MotionPointsConfig(per_interval=2, long_side=24, min_views=2, min_points=1)}
+    s = PreparedScene.load(prepare(PrepareConfig(src=capture["src"], out=tmp_path / "p", downscale=2.0, **fast)))
+    stats = json.loads((tmp_path / "p" / "scene.json").read_text())["motion_points"]
+    train = [i for i, c in enumerate(s.cameras) if c.name not in TEST]
+    frames = motion_keyframes(FRAMES, 1, 2)  # prepared at 48x36, masks at 24x18: 2x2 blocks
+    share = np.mean([[(s.mask(i, f).reshape(H // 4, 2, W // 4, 2).mean(axis=(1, 3)) >= 0.5).mean()
+                      for i in train] for f in frames])
+    assert stats["moving_fraction"] == pytest.approx(share, abs=1e-4) and sum(stats["points"]) > 0
 
 
 def test_prepared_mask_errors_name_the_file(capture, tmp_path) -> None:

@@ -12,8 +12,8 @@ import torch
 
 from atgs.data.errors import DataError
 from atgs.data.motion import box_downsample
-from atgs.data.motion_points import (MotionPointsConfig, background, hull_votes, motion_keyframes, motion_mask,
-                                     motion_points, visual_hull)
+from atgs.data.motion_points import (MotionPointsConfig, background, foreground_mask, hull_votes, motion_keyframes,
+                                     motion_mask, motion_points, visual_hull)
 from atgs.data.scene import PreparedScene, write_prepared_scene
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ATGSModel
@@ -218,3 +218,26 @@ def test_photo_selection_finds_depth_where_the_hull_is_deep() -> None:
                            progress=False)
         res[select] = np.median(np.abs(np.linalg.norm(mp.points - centers[2], axis=1) - 0.4))
     assert res["photo"] < 0.1 < res["surface"], res
+
+
+def test_foreground_masks_replace_the_frame_difference() -> None:
+    """A capture with foreground masks (a standing performer: the frames do not change) gets its
+    motion points from the masks; without them, nothing moves and there are none."""
+    cams, F = _ring(), 9
+    rng = np.random.default_rng(5)
+    frames = [rng.integers(0, 255, (c.height, c.width, 3)).astype(np.uint8) for c in cams]
+    center = np.array([0.2, -0.1, 0.0])
+    masks = [_sphere_mask(c, center, 0.4) for c in cams]
+    kfs = motion_keyframes(F, 2, 2)
+    box = np.array([[-2.0] * 3, [2.0] * 3])
+    cfg = MotionPointsConfig(resolution=32, long_side=96, select="surface")
+    none = motion_points(lambda ci, f: frames[ci], cams, F, kfs, box, cfg, progress=False)
+    assert len(none.points) == 0
+    mp = motion_points(lambda ci, f: frames[ci], cams, F, kfs, box, cfg, progress=False, mask_of=lambda ci, f: masks[ci])
+    assert mp.keyframes == kfs and len(mp.points) > 50 * len(kfs)
+    d = np.linalg.norm(mp.points - center, axis=1) - 0.4
+    assert np.median(np.abs(d)) < 0.1
+    # the mask at the working resolution is the box average of the full one, foreground from one half
+    small = foreground_mask(masks[0], 48)
+    ref = masks[0].reshape(36, 2, 48, 2).mean(axis=(1, 3)) >= 0.5  # 2x2 blocks
+    assert small.shape == (36, 48) and np.array_equal(small, ref) and small.any()

@@ -126,6 +126,12 @@ def motion_mask(frame: np.ndarray, bg: np.ndarray, cfg: MotionPointsConfig) -> n
     return m[0, 0].numpy() > 0.5
 
 
+def foreground_mask(mask: np.ndarray, long_side: int) -> np.ndarray:
+    """A capture's foreground mask (H,W bool) at the masks' working resolution: the frames' box
+    downsampling (:func:`box_downsample`), foreground where at least half the block is."""
+    return box_downsample(np.asarray(mask, bool).astype(np.uint8)[..., None] * 255, long_side)[0] >= 0.5
+
+
 def _dilations(mask: np.ndarray, max_radius: int) -> list[torch.Tensor]:
     """Masks dilated by 0, 1, 2, 4, ... pixels (square windows), up to ``max_radius``."""
     m = torch.from_numpy(mask.astype(np.float32))[None, None]
@@ -289,9 +295,12 @@ def point_colors(points: np.ndarray, cams: Sequence[Camera], masks: Sequence[np.
 # --- the whole job ------------------------------------------------------------------------------
 
 def motion_points(frame_of: Callable[[int, int], np.ndarray], cams: Sequence[Camera], num_frames: int, keyframes: Sequence[int],
-                  box: np.ndarray, cfg: MotionPointsConfig, progress: bool = True) -> MotionPoints:
+                  box: np.ndarray, cfg: MotionPointsConfig, progress: bool = True,
+                  mask_of: Callable[[int, int], np.ndarray] | None = None) -> MotionPoints:
     """Hull points of the moving content at ``keyframes``; ``frame_of(cam_index, frame)`` reads an
-    (H,W,3) uint8 frame of ``cams[cam_index]`` (the training cameras)."""
+    (H,W,3) uint8 frame of ``cams[cam_index]`` (the training cameras). ``mask_of(cam_index,
+    frame)``, when the capture has foreground masks (H,W bool), gives the masks instead of the
+    frames' difference from their background (:func:`foreground_mask`)."""
     from tqdm import tqdm
 
     cfg.validate()
@@ -299,12 +308,12 @@ def motion_points(frame_of: Callable[[int, int], np.ndarray], cams: Sequence[Cam
                          {"keyframes": 0, "points": [], "moving_fraction": 0.0})
     if num_frames < 2 or len(cams) < cfg.min_views or not len(keyframes):
         return empty
-    sample = evenly_spaced(num_frames, cfg.background_frames)
+    sample = evenly_spaced(num_frames, cfg.background_frames) if mask_of is None else []
     with tqdm(total=len(cams) * (len(sample) + len(keyframes)), desc="motion points", unit="img",
               disable=not progress) as bar:
         small = lambda ci, f: box_downsample(frame_of(ci, f), cfg.long_side)  # noqa: E731
         bgs = []
-        for ci in range(len(cams)):
+        for ci in range(len(cams) if mask_of is None else 0):
             frames = []
             for f in sample:
                 frames.append(small(ci, f))
@@ -317,7 +326,8 @@ def motion_points(frame_of: Callable[[int, int], np.ndarray], cams: Sequence[Cam
             for ci in range(len(cams)):
                 img = small(ci, f)
                 imgs.append(img)
-                masks.append(motion_mask(img, bgs[ci], cfg))
+                masks.append(motion_mask(img, bgs[ci], cfg) if mask_of is None
+                             else foreground_mask(mask_of(ci, f), cfg.long_side))
                 bar.update(1)
             fractions.append(float(np.mean([m.mean() for m in masks])))
             hull, on_surface, _ = visual_hull(cams, masks, box, cfg)

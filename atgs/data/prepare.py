@@ -33,7 +33,8 @@ from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
 from atgs.data.motion_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
 from atgs.data.mvs import FillConfig, StereoConfig
-from atgs.data.scene import compute_bounds, frame_path, read_rgb, save_frame, save_mask, write_scene_metadata
+from atgs.data.scene import (compute_bounds, frame_path, mask_path, read_mask, read_rgb, save_frame, save_mask,
+                             write_scene_metadata)
 from atgs.data.sources import Source, SourceFormat, open_source
 from atgs.data.undistort import apply_undistort_map, build_undistort_map
 from atgs.timeline import evenly_spaced
@@ -281,8 +282,11 @@ def _motion_points(root: Path, cams: list[Camera], test: list[str], num_frames: 
     train = [c for c in cams if c.name not in test]  # two or more: keyframe_points checked
     kfs = motion_keyframes(num_frames, cfg.keyframes, cfg.motion.per_interval)
     box = compute_bounds(kp.points, cams)
+    # a capture's foreground masks, where it has them, are the moving content (stage captures:
+    # the performers); else the frames' difference from their background
+    masks = (lambda ci, f: read_mask(mask_path(root, train[ci].name, f))) if (root / "masks").is_dir() else None
     mp = motion_points(lambda ci, f: read_rgb(frame_path(root, train[ci].name, f, ext)), train, num_frames, kfs, box,
-                       cfg.motion, progress=cfg.progress)
+                       cfg.motion, progress=cfg.progress, mask_of=masks)
     if cfg.progress:
         n = mp.stats["points"]
         print(f"motion points: {sum(n)} at {mp.stats['keyframes']} keyframes (mean {np.mean(n) if n else 0:.0f}); "
