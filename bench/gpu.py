@@ -12,7 +12,12 @@ Rows, one function each (``PARTS``; each returns a list of row dicts with a ``de
   new video frame (pack + upload + sort + draw, the Gaussians starting on the device) and for a
   camera move (sort + draw), with the stages' times;
 - decode: ms per frame of an untrained ATGS model of the ``paper`` and ``cpu`` presets
-  (``model.gaussians_at_frame`` + packing, i.e. what the player's decode thread does).
+  (``model.gaussians_at_frame`` + packing, i.e. what the player's decode thread does);
+- content: the player on trained checkpoints (``--checkpoints``), seen from their first held-out
+  camera at 1920x1080: a new video frame (decode + pack, upload, sort, draw) and a camera move,
+  with what sets the draw's cost: the Gaussians drawn, the fragments each one writes and the
+  overdraw (fragments per pixel), counted by the GL (a samples-passed query), and the draw time
+  with each blend-target precision (8-bit, half and float RGBA).
 Each part runs on CUDA when torch sees a CUDA device (training: and gsplat imports) and on the
 CPU; a CUDA row without them is written as ``"not measured"`` with the reason. The OpenGL draw
 runs wherever the headless context lives (its renderer string is in the part's ``machine.gl``:
@@ -81,6 +86,11 @@ class GpuBenchConfig:
     out: Path = Path("bench/results/gpu.json")
     docs: Path | None = Path("docs/gpu.md")
     """Replace the table between the bench:gpu markers in this file (None: leave the docs alone)."""
+    checkpoints: tuple[Path, ...] = ()
+    """Trained checkpoints of the ``content`` part (the optimizer state may be stripped: only
+    the model is read)."""
+    content_frames: int = 6
+    """New video frames timed per checkpoint (spread over the video), after one untimed frame."""
     merge: Path | None = None
     """Measure nothing: take every part/device of this results file (written by this script on
     another machine, e.g. a GPU one with ``--docs None``) into ``out``, replacing those rows."""
@@ -204,11 +214,109 @@ def decode_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> li
     return rows
 
 
+def content_camera(ckpt_camera, size: tuple[int, int], yaw_deg: float = 0.0):
+    """``ckpt_camera`` at ``size``: the same vertical field of view and centre (a wider image
+    shows more to the sides), turned by ``yaw_deg`` about its own vertical axis."""
+    import math
+
+    import numpy as np
+
+    from atgs.cameras import Camera
+
+    W, H = size
+    s = H / ckpt_camera.height
+    K = ckpt_camera.K.copy()
+    K[:2, :2] *= s
+    K[0, 2] = W / 2 + (ckpt_camera.cx - ckpt_camera.width / 2) * s
+    K[1, 2] = H / 2 + (ckpt_camera.cy - ckpt_camera.height / 2) * s
+    a = math.radians(yaw_deg)
+    turn = np.eye(4)
+    turn[[0, 0, 2, 2], [0, 2, 0, 2]] = [math.cos(a), math.sin(a), -math.sin(a), math.cos(a)]
+    return Camera(f"{ckpt_camera.name}@{W}x{H}", W, H, K, turn @ ckpt_camera.w2c)
+
+
+def draw_counts(renderer: SplatRenderer, camera) -> tuple[int, int, float]:
+    """(Gaussians drawn, fragments written, GPU draw ms) of one draw, read from GL queries: the
+    fragments are those that pass the fragment shader (its alpha and 3-sigma cuts discard the
+    rest), so fragments / pixels is the overdraw the blend pays for."""
+    query = renderer.ctx.query(samples=True, time=True)
+    with query:
+        renderer.render(camera, sync=True)
+    return renderer.timings.drawn, int(query.samples), query.elapsed / 1e6
+
+
+def content_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> list[dict]:
+    """The player on each trained checkpoint: decode + pack on ``device`` (the model moved
+    there), upload, sort and draw at cfg.size from the first held-out camera (or the first
+    camera), for ``content_frames`` frames spread over the video; a camera move (a 1 degree
+    turn) re-sorts and draws the same frame."""
+    import atgs
+    from atgs.viewer.device import place_source
+
+    W, H = cfg.size
+    rows = []
+    for path in cfg.checkpoints:
+        model = atgs.load(path, device="cpu")
+        source = place_source(model, torch.device(device))
+        by_name = {c.name: c for c in model.cameras}
+        held = [by_name[n] for n in getattr(model, "test_camera_names", []) if n in by_name]
+        base = (held or model.cameras)[0]
+        cam = content_camera(base, (W, H))
+        frames = [round(i * (model.num_frames - 1) / max(cfg.content_frames - 1, 1)) for i in range(cfg.content_frames)]
+        renderer.target_dtype = "f1"  # the window's RGBA8 target
+        renderer.set_gaussians(decode_frame(source, frames[-1], device))  # untimed: caches, first-use costs
+        renderer.render(content_camera(base, (W, H), 0.5), sync=True)
+        t = {k: [] for k in ("decode_pack_ms", "upload_ms", "sort_ms", "draw_ms", "move_sort_ms", "move_draw_ms")}
+        drawn, frags, gpu_draw = [], [], []
+        for f in frames:
+            _sync(device)
+            packed = decode_frame(source, f, device)
+            t["decode_pack_ms"].append(packed.decode_ms)
+            t["upload_ms"].append(renderer.set_gaussians(packed))
+            renderer.render(cam, sync=True)
+            t["sort_ms"].append(renderer.timings.sort_ms)
+            t["draw_ms"].append(renderer.timings.draw_ms)
+            renderer.render(content_camera(base, (W, H), 1.0), sync=True)
+            t["move_sort_ms"].append(renderer.timings.sort_ms)
+            t["move_draw_ms"].append(renderer.timings.draw_ms)
+            renderer._sort_key = type(renderer._sort_key)()  # force the sort: the counts below are of ``cam``
+            n, k, g_ms = draw_counts(renderer, cam)
+            drawn.append(n), frags.append(k), gpu_draw.append(g_ms)
+        precision, precision_gpu = {}, {}
+        for dtype in ("f1", "f2", "f4"):
+            renderer.target_dtype = dtype
+            renderer.render(cam, sync=True)  # target made, sorted
+            wall = []
+            for _ in range(3):
+                renderer.render(cam, sync=True)
+                wall.append(renderer.timings.draw_ms)
+            precision[dtype] = _median(wall)
+            precision_gpu[dtype] = _median([draw_counts(renderer, cam)[2] for _ in range(3)])
+        renderer.target_dtype = "f1"
+        m = {k: _median(v) for k, v in t.items()}
+        new_frame = m["decode_pack_ms"] + m["upload_ms"] + m["sort_ms"] + m["draw_ms"]
+        move = m["move_sort_ms"] + m["move_draw_ms"]
+        row = {"part": "content", "device": device, "device_name": device_name(device),
+               "checkpoint": f"{path.parent.name or path}, {W}x{H}", "camera": base.name, "size": f"{W}x{H}",
+               "frames": len(frames), "anchors": model.num_anchors,
+               "gaussians": int(_median([len(decode_frame(source, frames[0], device))])),
+               "drawn": int(_median(drawn)), "fragments": int(_median(frags)),
+               "fragments_per_splat": _median([k / max(n, 1) for n, k in zip(drawn, frags)]),
+               "overdraw": _median(frags) / (W * H), "gpu_draw_ms": _median(gpu_draw),
+               "draw_ms_by_target": precision, "gpu_draw_ms_by_target": precision_gpu, **m,
+               "fps_new_frame": 1000.0 / new_frame, "fps_camera_move": 1000.0 / move,
+               "loadavg": os.getloadavg()}
+        rows.append(row)
+        print(json.dumps(row))
+    return rows
+
+
 # Each part: name -> function(cfg, device, renderer) -> rows.
 PARTS: dict[str, Callable[[GpuBenchConfig, str, SplatRenderer], list[dict]]] = {
     "train": train_rows,
     "viewer": viewer_rows,
     "decode": decode_rows,
+    "content": content_rows,
 }
 
 
@@ -251,6 +359,14 @@ def markdown_table(result: dict) -> str:
                     "first frame ms", "ms per frame"], "preset",
                    lambda r: [r["decoded_on"], f"{r['anchors']:,}", f"{r['gaussians']:,}",
                               f"{r['first_frame_ms']:.0f}", f"**{r['decode_ms']:.1f}**"]),
+        "content": (["player on a trained checkpoint: device", "name", "checkpoint, size", "Gaussians drawn",
+                     "fragments per splat", "overdraw", "decode + pack ms", "upload ms", "sort ms", "draw ms",
+                     "draw ms, RGBA8 / half / float target", "new frame FPS", "camera move FPS"], "checkpoint",
+                    lambda r: [f"{r['drawn']:,}", f"{r['fragments_per_splat']:.0f}", f"{r['overdraw']:.1f}",
+                               f"{r['decode_pack_ms']:.1f}", f"{r['upload_ms']:.1f}", f"{r['sort_ms']:.1f}",
+                               f"{r['draw_ms']:.1f}",
+                               " / ".join(f"{r['draw_ms_by_target'][d]:.1f}" for d in ("f1", "f2", "f4")),
+                               f"**{r['fps_new_frame']:.1f}**", f"**{r['fps_camera_move']:.1f}**"]),
     }
     for part, (head, key, cells) in tables.items():
         for device in ("cuda", "cpu"):
@@ -301,7 +417,8 @@ def main(cfg: GpuBenchConfig) -> None:
     ctx, renderer = warm_renderer(cfg.gl)
     # what an unmeasured part's rows would have covered (one "not measured" row each)
     row_keys = {"train": ("preset", cfg.train_presets), "viewer": ("gaussians", cfg.counts),
-                "decode": ("preset", cfg.presets)}
+                "decode": ("preset", cfg.presets),
+                "content": ("checkpoint", tuple(p.parent.name or str(p) for p in cfg.checkpoints))}
     jobs = [(part, device) for part in cfg.parts for device in cfg.devices]
     with progress_bar(len(jobs), "gpu bench", unit="part") as bar:
         for part, device in jobs:
