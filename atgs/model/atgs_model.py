@@ -20,6 +20,7 @@ import torch
 from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
 from atgs.model.anchors import STATIC, AnchorInit, anchor_voxel_size, init_anchors, split_static
+from atgs.model.clearance import CameraClearance, clearance_radius
 from atgs.model.config import ModelConfig
 from atgs.model.culling import AnchorReach, gaussian_reach, visible_anchors
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
@@ -108,7 +109,7 @@ def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Te
 class ATGSModel:
     def __init__(self, cfg: ModelConfig, timeline: Timeline, cameras: list[Camera], fps: float,
                  anchors: AnchorInit, bbox_min: torch.Tensor, bbox_max: torch.Tensor, extent: float,
-                 seed: int = 0) -> None:
+                 seed: int = 0, clearance: float = 0.0) -> None:
         self.cfg, self.timeline = cfg, timeline
         self.cameras, self.fps, self.extent = list(cameras), float(fps), float(extent)
         self.voxel_size = anchors.voxel_size
@@ -129,6 +130,8 @@ class ATGSModel:
         self.anchor_fade = torch.full((self.num_anchors, 1), self.initial_fade(), device=self.anchor_mu.device)
         # how far each anchor's Gaussians reach (atgs.model.culling): measured by the decodes
         self.reach = AnchorReach(self.num_anchors, self.anchor_mu.device)
+        # no Gaussian inside any rig camera's own housing (atgs.model.clearance)
+        self.clearance = CameraClearance.of_cameras(self.cameras, clearance, self.anchor_mu.device)
         self.spatial = SpatialGrid(cfg.spatial_resolution if cfg.use_spatial_grid else 2, d)
         h = cfg.hash
         M = timeline.num_segments
@@ -203,7 +206,8 @@ class ATGSModel:
         pad = cfg.bbox_padding * size
         centers = np.stack([c.center for c in (train_cameras or cameras)])
         radius = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 1.0
-        return cls(cfg, tl, cameras, fps, anchors, lo - pad, hi + pad, 1.1 * max(radius, 1e-3), seed)
+        clear = clearance_radius(cameras, anchors.mu.median(0).values.cpu().numpy(), cfg.camera_clearance)
+        return cls(cfg, tl, cameras, fps, anchors, lo - pad, hi + pad, 1.1 * max(radius, 1e-3), seed, clear)
 
     # --- public API (docs/ARCHITECTURE.md) ----------------------------------------------------
     @property
@@ -240,6 +244,7 @@ class ATGSModel:
             self.set_sparse_tensor(name, table.to(device))
         self.decoder.to(device)
         self.reach.to(device)
+        self.clearance = self.clearance.to(device)
         self.inference_cache.clear()
         return self
 
@@ -412,9 +417,7 @@ class ATGSModel:
                 means = means + shift
                 shift = shift.reshape(-1, 3)
         opac = opac.reshape(-1)
-        keep = None
-        if self.cfg.opacity_threshold > 0:
-            keep = (opac.detach() > self.cfg.opacity_threshold).nonzero().squeeze(1)
+        keep = self.kept_gaussians(means.detach().reshape(-1, 3), opac.detach())
         parts = [means.reshape(-1, 3), raw.quats.reshape(-1, 4), raw.scales.reshape(-1, 3), opac,
                  raw.colors.reshape(-1, 3)]
         if keep is not None:
@@ -424,6 +427,18 @@ class ATGSModel:
             anchor_ids, slot_ids = anchor_ids.index_select(0, keep), slot_ids.index_select(0, keep)
             shift = None if shift is None else shift.index_select(0, keep)
         return Decoded(Gaussians(*parts), anchor_ids, slot_ids, active, raw, m, sparse, shift)
+
+    def kept_gaussians(self, means: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor | None:
+        """Indices of the decoded Gaussians that are drawn (None: all of them): above the opacity
+        threshold and outside the rig cameras' clearance. Both decodes (this one and
+        atgs.model.fast_decode) cut with it."""
+        mask = None
+        if self.cfg.opacity_threshold > 0:
+            mask = opacities > self.cfg.opacity_threshold
+        if self.clearance.active:
+            outside = self.clearance.outside(means)
+            mask = outside if mask is None else mask & outside
+        return None if mask is None else mask.nonzero().squeeze(1)
 
     # --- anchor set edits (growing / pruning) ------------------------------------------------------
     def add_anchors(self, mu: torch.Tensor, feature: torch.Tensor, log_scale: torch.Tensor,
@@ -468,7 +483,7 @@ class ATGSModel:
             "anchor_mu": self.anchor_mu, "anchor_keyframe": self.anchor_keyframe,
             **self.sparse_tensors(),
             "bbox_min": self.bbox_min, "bbox_max": self.bbox_max,
-            "extent": self.extent, "voxel_size": self.voxel_size,
+            "extent": self.extent, "voxel_size": self.voxel_size, "camera_clearance": self.clearance.radius,
             "num_keyframes": self.timeline.num_keyframes, "num_segments": self.timeline.num_segments,
             "decoder": {k: v.detach().clone() for k, v in self.decoder.state_dict().items()},
         }
@@ -482,7 +497,9 @@ class ATGSModel:
         if any(n not in state for n in MOTION_TABLES):
             # a checkpoint from before anchor motion: decode it as it was trained
             cfg = replace(cfg, temporal_fade=False, anchor_velocity=False)
-        model = cls(cfg, tl, cameras, fps, a, state["bbox_min"], state["bbox_max"], float(state["extent"]))
+        # checkpoints from before the clearance decode as they were trained: without one
+        model = cls(cfg, tl, cameras, fps, a, state["bbox_min"], state["bbox_max"], float(state["extent"]),
+                    clearance=float(state.get("camera_clearance", 0.0)))
         for name, ref in model.sparse_tensors().items():
             if name in MOTION_TABLES and name not in state:
                 continue

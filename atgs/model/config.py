@@ -62,6 +62,9 @@ class ModelConfig:
     carve_random_anchors: bool = True
     opacity_threshold: float = 0.0  # Gaussians below are dropped (Scaffold-GS); code used 0
     frustum_cull: bool = True  # decode only anchors that project near the image
+    camera_clearance: float = 0.02
+    """No Gaussian within this fraction of the median camera-to-scene distance of any rig camera
+    (its own housing, which it never sees; atgs.model.clearance). 0: off."""
     # Anchor motion (atgs.model.motion) and the 3D smoothing filter (atgs.model.smoothing): not in
     # the paper; docs/model.md. Checkpoints from before the motion tables load with motion off.
     temporal_fade: bool = False

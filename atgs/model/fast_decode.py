@@ -245,7 +245,7 @@ class InferenceCache:
                     means = means + (model.anchor_velocity.index_select(0, active) * dist[:, None])[:, None, :]
             out = [means.reshape(-1, 3), quats.reshape(-1, 4), scales.reshape(-1, 3), opac.reshape(-1),
                    colors.reshape(-1, 3)]
-            if model.cfg.opacity_threshold > 0:
-                keep = (out[3] > model.cfg.opacity_threshold).nonzero().squeeze(1)
+            keep = model.kept_gaussians(out[0], out[3])
+            if keep is not None:
                 out = [p.index_select(0, keep) for p in out]
             return Gaussians(*out)
