@@ -7,7 +7,7 @@ The basis functions are the orthonormal real SH with the sign ``(-1)**m`` of the
 phase kept (so band 1 is ``-C1 y, C1 z, -C1 x``), which is the convention 3DGS files are written
 in. A Gaussian's colour is ``max(0.5 + sum_k coeffs_k Y_k(d), 0)`` with ``d`` the unit direction
 from the camera centre to its mean (:func:`sh_colors`); the viewer's vertex shader
-(shaders/splat.vert) evaluates the same polynomials.
+(atgs/shaders/splat.vert) evaluates the same polynomials.
 """
 
 from __future__ import annotations

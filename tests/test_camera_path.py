@@ -1,4 +1,4 @@
-"""Camera path interpolation (viewer/camera_path.py) against analytic motions, finite
+"""Camera path interpolation (atgs/viewer/camera_path.py) against analytic motions, finite
 differences and scipy; the keyframe editor of the player's path panel."""
 
 from __future__ import annotations

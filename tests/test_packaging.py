@@ -1,6 +1,6 @@
 """Package boundaries: no import cycle anywhere in atgs (atgs.viewer and atgs.shaders included),
-nothing imports the repository folders viewer/ or shaders/ under their bare names, and
-pyproject.toml installs every package (viewer/ and shaders/ under the atgs namespace)."""
+nothing imports a bare ``viewer`` or ``shaders``, every package lives under atgs/ with no
+package-dir mapping or search-path hack, and pyproject.toml installs every package."""
 
 from __future__ import annotations
 
@@ -12,8 +12,7 @@ except ImportError:  # Python 3.10: the same parser from PyPI (a test extra)
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-# package name -> folder, as pyproject.toml maps them
-ROOTS = {"atgs": REPO / "atgs", "atgs.viewer": REPO / "viewer", "atgs.shaders": REPO / "shaders"}
+ROOTS = {"atgs": REPO / "atgs"}  # package name -> folder: everything lives under atgs/
 
 
 def _modules() -> dict[str, Path]:
@@ -104,10 +103,10 @@ def test_the_package_import_graph_has_no_cycle() -> None:
 
 
 def test_nothing_imports_the_bare_viewer_or_shaders_folders() -> None:
-    """They install as atgs.viewer / atgs.shaders; a bare ``import viewer`` works only from the
-    repository root and would load a second copy of each module."""
+    """The player is atgs.viewer; no folder of the repository root is a package of its own."""
+    assert not (REPO / "viewer").exists() and not (REPO / "shaders").exists()
     offenders = []
-    for folder in (REPO / "atgs", REPO / "viewer", REPO / "shaders", REPO / "bench", REPO / "tests"):
+    for folder in (REPO / "atgs", REPO / "bench", REPO / "tests"):
         for path in folder.rglob("*.py"):
             for module, _, level in _runtime_imports(ast.parse(path.read_text(), str(path))):
                 if level == 0 and module.split(".")[0] in ("viewer", "shaders"):
@@ -117,8 +116,8 @@ def test_nothing_imports_the_bare_viewer_or_shaders_folders() -> None:
 
 def test_pyproject_installs_every_package_under_atgs() -> None:
     cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    dirs = cfg["package-dir"]
-    assert dirs == {"atgs": "atgs", "atgs.viewer": "viewer", "atgs.shaders": "shaders"}
+    assert "package-dir" not in cfg  # every package sits where its name says
+    assert "__path__" not in (REPO / "atgs" / "__init__.py").read_text()
     on_disk = {name for name, path in _modules().items() if path.name == "__init__.py"}
     assert set(cfg["packages"]) == on_disk
     assert all(p == "atgs" or p.startswith("atgs.") for p in cfg["packages"])
@@ -132,5 +131,5 @@ def test_shaders_are_found_through_the_atgs_namespace() -> None:
     import atgs.viewer.splat_renderer as sr
 
     names = sorted(p.name for p in files("atgs.shaders").iterdir() if p.name.endswith((".vert", ".frag", ".geom")))
-    assert names == sorted(p.name for p in (REPO / "shaders").glob("*.*") if p.suffix in (".vert", ".frag", ".geom"))
-    assert Path(sr.__file__).resolve().parent == REPO / "viewer"
+    assert names == sorted(p.name for p in (REPO / "atgs" / "shaders").glob("*.*") if p.suffix in (".vert", ".frag", ".geom"))
+    assert Path(sr.__file__).resolve().parent == REPO / "atgs" / "viewer"

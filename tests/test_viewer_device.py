@@ -1,4 +1,4 @@
-"""--device auto|cpu|cuda: resolution and moving a source (viewer/device.py)."""
+"""--device auto|cpu|cuda: resolution and moving a source (atgs/viewer/device.py)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The vertex columns (viewer/packing.py, layout in docs/viewer.md): decoded here with numpy,
+"""The vertex columns (atgs/viewer/packing.py, layout in docs/viewer.md): decoded here with numpy,
 independently of the shader, against the Gaussians they came from; non-finite Gaussians are
 dropped (and only those); CPU and CUDA pack the same bytes."""
 

@@ -1,4 +1,4 @@
-"""The depth sort and cull (viewer/sorting.py): the plane form of the screen-space cull against
+"""The depth sort and cull (atgs/viewer/sorting.py): the plane form of the screen-space cull against
 the pixel-space bound written out in numpy, and the same order on CPU and CUDA."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The player's default window size (viewer/window_size.py)."""
+"""The player's default window size (atgs/viewer/window_size.py)."""
 
 from __future__ import annotations
 

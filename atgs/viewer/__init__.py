@@ -1,2 +1,2 @@
 """The ATGS player (``atgs-view``, ``atgs-render``): installed as ``atgs.viewer`` from the folder
-viewer/ (see docs/ARCHITECTURE.md); always import it as ``atgs.viewer``."""
+atgs/viewer/ (see docs/ARCHITECTURE.md); always import it as ``atgs.viewer``."""

@@ -17,7 +17,7 @@ from atgs.viewer.errors import ViewerError
 
 
 def colormap(x: np.ndarray) -> np.ndarray:
-    """The same blue -> cyan -> yellow -> red ramp as shaders/present.frag (x in [0, 1])."""
+    """The same blue -> cyan -> yellow -> red ramp as atgs/shaders/present.frag (x in [0, 1])."""
     x = np.clip(x, 0.0, 1.0)[..., None]
     centers = np.array([3.0, 2.0, 1.0])
     return np.clip(1.5 - np.abs(4.0 * x - centers), 0.0, 1.0)
