@@ -1,6 +1,6 @@
 """``--auto``: model sizes chosen from what a scene needs (issue 6, "model only what a scene requires").
 
-:func:`choose_config` turns a :class:`atgs.data.motion.MotionStats` into overrides of
+:func:`choose_config` turns a :class:`atgs.data.motion_measure.MotionStats` into overrides of
 :class:`atgs.model.config.ModelConfig` fields, each with the reason it was chosen. The rules are
 deliberately simple, monotone and bounded (docs/auto.md):
 
@@ -28,7 +28,7 @@ import math
 from dataclasses import dataclass, field
 
 from atgs.config_dict import from_dict
-from atgs.data.motion import MotionStats, format_stats
+from atgs.data.motion_measure import MotionStats, format_stats
 from atgs.model.config import ModelConfig
 
 _BYTES = 4  # float32

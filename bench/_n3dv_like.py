@@ -2,8 +2,8 @@
 
 N3DV (Neural 3D Video) captures: ~20 cameras of a forward-facing rig, 2704x2028 videos trained
 at half size, 1352x1014. This builds that camera set over the built-in synthetic scene
-(``atgs.data.synth_scene``, ``small-motion``: N3DV-like slow, local motion): 20 cameras on a
-front-facing arc, rendered with its mesh renderer (``atgs.data.synth_render``) at any size, a
+(``atgs.data.synth.scene``, ``small-motion``: N3DV-like slow, local motion): 20 cameras on a
+front-facing arc, rendered with its mesh renderer (``atgs.data.synth.mesh_renderer``) at any size, a
 few frames, and keyframe points sampled from the true surfaces (a speed benchmark needs the
 anchor counts of a real scene, not triangulation). Nothing is written to disk: the trainer's
 image cache holds every image, so steps/s measures training, not PNG decoding.
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from atgs.data.scene import MemoryScene
-from atgs.data.synth_scene import SynthConfig, SynthScene, sample_surface
+from atgs.data.synth.scene import SynthConfig, SynthScene, sample_surface
 from atgs.progress import progress_bar
 from atgs.timeline import evenly_spaced
 
@@ -26,7 +26,7 @@ def n3dv_like_scene(size: tuple[int, int] = N3DV_SIZE, cameras: int = 20, frames
                     progress: bool = True) -> MemoryScene:
     """``cameras`` cameras on a front-facing ``arc_deg`` arc (N3DV's horizontal field of view is
     about 50 degrees), ``frames`` frames of ``size``, ``keyframes`` keyframes of points."""
-    from atgs.data.synth_render import MeshRenderer
+    from atgs.data.synth.mesh_renderer import MeshRenderer
 
     W, H = size
     cfg = SynthConfig(frames=frames, cameras=cameras, width=W, height=H, preset="small-motion",

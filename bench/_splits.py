@@ -1,7 +1,7 @@
 """Held-out PSNR split by what the pixels show, for the benches of the built-in scene.
 
 - moving / static: a pixel moves at a frame when it differs from its camera's background
-  (atgs.data.motion_points.motion_mask at full size);
+  (atgs.data.moving_points.motion_mask at full size);
 - seen / unseen: a pixel is *seen* when the surface it shows (the synthetic scene's true depth)
   is visible (in the image, not occluded) in at least one training camera. Nothing can recover
   the colour of an unseen pixel, so its error is not the model's. ``by_views`` splits the pixels
@@ -23,7 +23,7 @@ VIEW_BINS = 7  # the per-view-count split: 0, 1, ..., 5 and 6 or more training c
 
 def _visible_count(gt, scene, ci: int, frame: int, renderers: dict) -> np.ndarray:
     """(H, W) number of training cameras that see the surface of test camera ``ci``'s pixels."""
-    from atgs.data.synth_render import MeshRenderer
+    from atgs.data.synth.mesh_renderer import MeshRenderer
 
     def depth(cam):
         key = (cam.width, cam.height)
@@ -61,8 +61,8 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
 
     import atgs
     from atgs.checkpoint import read_checkpoint
-    from atgs.data.motion import box_downsample
-    from atgs.data.motion_points import MotionPointsConfig, background, motion_mask
+    from atgs.data.motion_measure import box_downsample
+    from atgs.data.moving_points import MotionPointsConfig, background, motion_mask
     from atgs.data.scene import PreparedScene
     from atgs.render import rasterize_gaussians
     from atgs.timeline import evenly_spaced
@@ -73,7 +73,7 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
     bg_t = model.environment or torch.tensor(bg_rgb, dtype=torch.float32)
     gt_scene = None
     if (Path(scene_dir) / "synth.json").is_file():
-        from atgs.data.synth import load_ground_truth
+        from atgs.data.synth.videos import load_ground_truth
 
         gt_scene = load_ground_truth(Path(scene_dir) / "synth.json")
     se: dict[str, float] = {}

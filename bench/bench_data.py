@@ -19,9 +19,9 @@ import numpy as np
 from atgs.data.align import pose_errors
 from atgs.data.prepare import PrepareConfig, prepare
 from atgs.data.scene import PreparedScene
-from atgs.data.synth import EncodeConfig, synthesize
-from atgs.data.synth_render import MeshRenderer
-from atgs.data.synth_scene import SynthConfig, SynthScene, distance_to_surfaces
+from atgs.data.synth.videos import EncodeConfig, synthesize
+from atgs.data.synth.mesh_renderer import MeshRenderer
+from atgs.data.synth.scene import SynthConfig, SynthScene, distance_to_surfaces
 from atgs.data.video import iter_frames
 from atgs.io.atomic import write_json_atomic
 

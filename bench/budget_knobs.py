@@ -175,7 +175,7 @@ class BudgetKnobs:
 
 
 def built_in_scene() -> Path:
-    from atgs.data.synth import ensure_default_scene
+    from atgs.data.synth.videos import ensure_default_scene
     from atgs.io.cache import cache_dir
 
     return ensure_default_scene(cache_dir(), progress=True)
@@ -187,7 +187,7 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
     `atgs-prepare --motion.per-interval` makes them; cached in ``work_dir``."""
     import numpy as np
 
-    from atgs.data.motion_points import MotionPointsConfig, motion_keyframes, motion_points
+    from atgs.data.moving_points import MotionPointsConfig, motion_keyframes, motion_points
     from atgs.data.scene import PreparedScene, compute_bounds, write_scene_metadata
     from atgs.io.atomic import atomic_dir, link_or_copy
 

@@ -1,6 +1,6 @@
-"""Moving-content points (atgs.data.motion_points) on every synthetic layout: accuracy and time.
+"""Moving-content points (atgs.data.moving_points) on every synthetic layout: accuracy and time.
 
-For each layout of atgs.data.synth_scene.LAYOUTS (large motion, plus the small-motion front rig)
+For each layout of atgs.data.synth.scene.LAYOUTS (large motion, plus the small-motion front rig)
 a 30-frame scene is synthesized and prepared without stereo (SIFT only: the motion points do not
 depend on it) with 3 geometry keyframes, so 9 motion keyframes. At each motion keyframe the
 motion points are compared with the true moving meshes:
@@ -30,12 +30,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _docs import git_commit, publish  # noqa: E402
 
-from atgs.data.motion_points import MotionPointsConfig  # noqa: E402
+from atgs.data.moving_points import MotionPointsConfig  # noqa: E402
 from atgs.data.mvs import StereoConfig  # noqa: E402
 from atgs.data.prepare import PrepareConfig, prepare  # noqa: E402
 from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth import load_ground_truth, synthesize  # noqa: E402
-from atgs.data.synth_scene import LAYOUTS, SynthConfig, distance_to_surfaces, sample_surface  # noqa: E402
+from atgs.data.synth.videos import load_ground_truth, synthesize  # noqa: E402
+from atgs.data.synth.scene import LAYOUTS, SynthConfig, distance_to_surfaces, sample_surface  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = [("ring12", "large-motion"), ("ring10-low", "large-motion"), ("front6", "large-motion"),

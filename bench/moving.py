@@ -32,8 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _docs import publish  # noqa: E402
 
 from atgs.data.scene import PreparedScene, write_prepared_scene  # noqa: E402
-from atgs.data.synth import ensure_default_scene, load_ground_truth  # noqa: E402
-from atgs.data.synth_scene import sample_surface  # noqa: E402
+from atgs.data.synth.videos import ensure_default_scene, load_ground_truth  # noqa: E402
+from atgs.data.synth.scene import sample_surface  # noqa: E402
 from atgs.io.cache import cache_dir  # noqa: E402
 from atgs.render import rasterize_gaussians  # noqa: E402
 from atgs.timeline import evenly_spaced  # noqa: E402

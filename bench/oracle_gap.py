@@ -1,6 +1,6 @@
 """Oracle gap: training from the stereo points against training from the true geometry.
 
-For each synthetic layout of bench/stereo.py (atgs.data.synth_scene.LAYOUTS x motion preset) a
+For each synthetic layout of bench/stereo.py (atgs.data.synth.scene.LAYOUTS x motion preset) a
 short clip is synthesized and prepared with the default prepare settings (dense stereo and the
 fill on, cam00 held out; only the keyframe count is set), and its oracle copy is built
 (atgs.data.oracle.make_oracle_scene: same frames, cameras, keyframes and bounds, points from the
@@ -33,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from atgs.data.oracle import make_oracle_scene  # noqa: E402
 from atgs.data.prepare import PrepareConfig, prepare  # noqa: E402
-from atgs.data.synth import synthesize  # noqa: E402
-from atgs.data.synth_scene import LAYOUTS, SynthConfig  # noqa: E402
+from atgs.data.synth.videos import synthesize  # noqa: E402
+from atgs.data.synth.scene import LAYOUTS, SynthConfig  # noqa: E402
 from bench._docs import publish  # noqa: E402
 from bench.stereo import CASES, load  # noqa: E402
 

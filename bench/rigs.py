@@ -11,7 +11,7 @@ Each case runs the commands a user would (`atgs-synth`, `atgs-prepare`, `atgs-tr
 as subprocesses, alone on the machine (a time budget measures the machine), and keeps what
 atgs-prepare reported (keyframe points, coverage, cameras per measured pixel, its warnings) and
 what atgs-train reported (steps, held-out PSNR/SSIM: its final evaluation, atgs-eval's default;
-its warnings). Cases (atgs/data/synth_scene.py LAYOUTS):
+its warnings). Cases (atgs/data/synth/scene.py LAYOUTS):
 
 - `ring10-loose`, `ring10-true`: one ring of 10 inward-looking cameras whose poses_bounds.npy
   near/far are 10x too wide (`--bounds loose`), or the true ones;

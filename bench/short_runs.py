@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _docs import git_commit, publish  # noqa: E402
 
 from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth import ensure_default_scene  # noqa: E402
+from atgs.data.synth.videos import ensure_default_scene  # noqa: E402
 from atgs.io.cache import cache_dir  # noqa: E402
 from atgs.train.config import preset  # noqa: E402
 from atgs.train.trainer import Trainer  # noqa: E402

@@ -1,7 +1,7 @@
 """Keyframe geometry benchmark: CPU PatchMatch stereo against SIFT triangulation alone, on every
 synthetic layout and on the real N3DV frame.
 
-For each synthetic layout (atgs.data.synth_scene.LAYOUTS x motion preset) a 2-frame scene is
+For each synthetic layout (atgs.data.synth.scene.LAYOUTS x motion preset) a 2-frame scene is
 synthesized and prepared at one keyframe (frame 0, cam00 held out) twice: with stereo (the
 default) and with ``--no-stereo --no-fill`` (SIFT alone). Reported: points per keyframe, their
 median / 90th-percentile distance to the true surfaces (% of the scene size, the camera ring's
@@ -35,8 +35,8 @@ from atgs.data.mvs import FillConfig, StereoConfig, stereo_points  # noqa: E402
 from atgs.data.oracle import oracle_points  # noqa: E402
 from atgs.data.prepare import PrepareConfig, prepare  # noqa: E402
 from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth import synthesize  # noqa: E402
-from atgs.data.synth_scene import LAYOUTS, SynthConfig, SynthScene, distance_to_surfaces  # noqa: E402
+from atgs.data.synth.videos import synthesize  # noqa: E402
+from atgs.data.synth.scene import LAYOUTS, SynthConfig, SynthScene, distance_to_surfaces  # noqa: E402
 from atgs.data.coverage import scene_coverage  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,7 +90,7 @@ def synthetic_case(tmp: Path, layout: str, preset: str) -> dict:
 
 def stereo_timing(tmp: Path, repeats: int) -> dict:
     """Stereo alone (no SIFT) for one keyframe of the 12 cameras of the default scene at 256x192."""
-    from atgs.data.synth_render import MeshRenderer
+    from atgs.data.synth.mesh_renderer import MeshRenderer
 
     cfg = SynthConfig(frames=1)
     gt = SynthScene(cfg)
@@ -113,7 +113,7 @@ def stereo_timing(tmp: Path, repeats: int) -> dict:
 
 def oracle_seed(gt: SynthScene, cams) -> np.ndarray:
     """~1000 SIFT-like seed points (true surface points seen by the cameras) for the timing run."""
-    from atgs.data.synth_scene import sample_surface
+    from atgs.data.synth.scene import sample_surface
 
     return sample_surface(gt, 0, 1000, max_radius=6.4)
 

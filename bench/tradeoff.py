@@ -141,7 +141,7 @@ def plan(args: TradeoffArgs) -> list[RunSpec]:
 
 def load_scene(spec: RunSpec, cache_dir: Path):
     from atgs.data.scene import PreparedScene
-    from atgs.data.synth import default_config, ensure_default_scene, with_overrides
+    from atgs.data.synth.videos import default_config, ensure_default_scene, with_overrides
 
     cfg = with_overrides(default_config(), preset=spec.scene, frames=spec.frames, cameras=spec.cameras,
                          width=spec.width, height=spec.height)
@@ -207,7 +207,7 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
     chosen = {}
     if spec.auto:
         from atgs.auto_config import choose_config
-        from atgs.data.motion import measure_motion
+        from atgs.data.motion_measure import measure_motion
 
         choice = choose_config(measure_motion(scene), m)
         chosen = dict(choice.overrides)

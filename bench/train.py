@@ -65,7 +65,7 @@ class RunSpec:
 
 def scene_for(spec: RunSpec, cache_dir: Path):
     from atgs.data.scene import PreparedScene
-    from atgs.data.synth import default_config, ensure_default_scene, with_overrides
+    from atgs.data.synth.videos import default_config, ensure_default_scene, with_overrides
 
     cfg = with_overrides(default_config(), frames=spec.scene_frames, cameras=spec.scene_cameras,
                          width=spec.scene_width, height=spec.scene_height)

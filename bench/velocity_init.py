@@ -41,7 +41,7 @@ from _docs import git_commit, publish, run_worker  # noqa: E402
 
 from atgs.data.oracle import source_frame  # noqa: E402
 from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth import ensure_default_scene, load_ground_truth  # noqa: E402
+from atgs.data.synth.videos import ensure_default_scene, load_ground_truth  # noqa: E402
 from atgs.io.cache import cache_dir  # noqa: E402
 from atgs.train.config import preset  # noqa: E402
 from atgs.train.scene_flow import grey_of, initial_velocities  # noqa: E402

@@ -9,7 +9,7 @@ import math
 import pytest
 
 from atgs.auto_config import AutoRules, apply_overrides, choose_config, format_choice
-from atgs.data.motion import MotionStats
+from atgs.data.motion_measure import MotionStats
 from atgs.config_dict import to_dict
 from atgs.model.config import ModelConfig
 from atgs.train.config import preset

@@ -18,13 +18,13 @@ from atgs.cameras import Camera, look_at
 from atgs.cli.prepare import main as prepare_main
 from atgs.data.camera_formats import cameras_from_d3dgs, read_d3dgs_meta, write_d3dgs
 from atgs.data.errors import DataError
-from atgs.data.motion_points import MotionPointsConfig, motion_keyframes
+from atgs.data.moving_points import MotionPointsConfig, motion_keyframes
 from atgs.data.mvs import StereoConfig
 from atgs.data.prepare import PrepareConfig, prepare
 from atgs.data.scene import PreparedScene, read_mask, write_prepared_scene
 from atgs.data.sources import detect_format, open_source
-from atgs.data.synth_render import MeshRenderer
-from atgs.data.synth_scene import SynthConfig, SynthScene
+from atgs.data.synth.mesh_renderer import MeshRenderer
+from atgs.data.synth.scene import SynthConfig, SynthScene
 
 IDS = [25, 4, 10, 1, 12]  # written out of order; as strings "10" < "4": the reader orders by number
 TEST = ["4", "25"]

@@ -16,13 +16,13 @@ from atgs.cli.prepare import main as prepare_main
 from atgs.data.errors import DataError
 from atgs.errors import OutputError
 from layouts import write_colmap_frames_layout, write_easyvolcap_layout
-from atgs.data.motion_points import MotionPointsConfig
+from atgs.data.moving_points import MotionPointsConfig
 from atgs.data.mvs import StereoConfig
 from atgs.data.prepare import PrepareConfig, parse_frame_range, prepare
 from atgs.data.scene import PreparedScene
-from atgs.data.synth import load_ground_truth, synthesize
-from atgs.data.synth_render import MeshRenderer
-from atgs.data.synth_scene import SynthConfig, distance_to_surfaces
+from atgs.data.synth.videos import load_ground_truth, synthesize
+from atgs.data.synth.mesh_renderer import MeshRenderer
+from atgs.data.synth.scene import SynthConfig, distance_to_surfaces
 from atgs.data.video import iter_frames
 from atgs.io.video import VideoWriter
 
@@ -278,7 +278,7 @@ def test_cli_prints_one_line_and_exits_2(tmp_path, capsys) -> None:
 
 
 def test_ensure_default_scene_is_cached(tmp_path) -> None:
-    from atgs.data.synth import ensure_default_scene
+    from atgs.data.synth.videos import ensure_default_scene
 
     cfg = SynthConfig(frames=2, cameras=4, width=96, height=72, texture_size=128)
     p1 = ensure_default_scene(tmp_path, cfg, keyframes=1, progress=False)
@@ -326,7 +326,7 @@ def test_interprocess_lock_makes_another_process_wait(tmp_path) -> None:
 
 
 def _build_default_scene(cache: str, out: str) -> None:
-    from atgs.data.synth import ensure_default_scene
+    from atgs.data.synth.videos import ensure_default_scene
 
     cfg = SynthConfig(frames=2, cameras=4, width=96, height=72, texture_size=128)
     p = ensure_default_scene(Path(cache), cfg, keyframes=1, progress=False)

@@ -13,8 +13,8 @@ from atgs.data.align import pose_errors, umeyama
 from atgs.data.mvs import FillConfig, StereoConfig
 from atgs.data.prepare import PrepareConfig, prepare
 from atgs.data.scene import PreparedScene
-from atgs.data.synth import synthesize
-from atgs.data.synth_scene import SynthConfig, SynthScene, distance_to_surfaces, sample_surface
+from atgs.data.synth.videos import synthesize
+from atgs.data.synth.scene import SynthConfig, SynthScene, distance_to_surfaces, sample_surface
 from atgs.data.video import iter_frames
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from atgs.data.synth_render import MeshRenderer
-from atgs.data.synth_scene import (PRESETS, SynthConfig, SynthScene, distance_to_surfaces, point_triangle_distance,
+from atgs.data.synth.mesh_renderer import MeshRenderer
+from atgs.data.synth.scene import (PRESETS, SynthConfig, SynthScene, distance_to_surfaces, point_triangle_distance,
                                    sample_surface)
 
 CFG = SynthConfig(frames=2, cameras=12, width=256, height=192)
@@ -109,7 +109,7 @@ def test_true_depth_lies_on_the_surfaces() -> None:
 def test_new_layouts_and_the_unchanged_default_config() -> None:
     from dataclasses import replace
 
-    from atgs.data.synth_scene import LAYOUTS
+    from atgs.data.synth.scene import LAYOUTS
 
     d = SynthConfig().to_dict()
     assert "rig" not in d and "texture_contrast" not in d  # cache keys of existing scenes unchanged
@@ -125,7 +125,7 @@ def test_new_layouts_and_the_unchanged_default_config() -> None:
 
 
 def test_synthesize_writes_true_depth(tmp_path) -> None:
-    from atgs.data.synth import synthesize
+    from atgs.data.synth.videos import synthesize
 
     cfg = SynthConfig(frames=2, cameras=3, width=48, height=32, texture_size=64)
     out = synthesize(tmp_path / "raw", cfg, progress=False, depth=True)

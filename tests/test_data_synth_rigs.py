@@ -10,8 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from atgs.data.synth_render import MeshRenderer
-from atgs.data.synth_scene import (CAMERA_BEHIND, DOME_TARGET, LAYOUTS, WALK_SPEED, SynthConfig, SynthScene,
+from atgs.data.synth.mesh_renderer import MeshRenderer
+from atgs.data.synth.scene import (CAMERA_BEHIND, DOME_TARGET, LAYOUTS, WALK_SPEED, SynthConfig, SynthScene,
                                    distance_to_surfaces, sample_surface)
 
 
@@ -21,7 +21,7 @@ def layout(name: str, **kw) -> SynthConfig:
 
 def test_the_default_config_and_its_cache_key_are_unchanged() -> None:
     from atgs.data.scene import SCENE_VERSION
-    from atgs.data.synth import SYNTH_VERSION
+    from atgs.data.synth.videos import SYNTH_VERSION
 
     d = SynthConfig().to_dict()
     assert d == {"frames": 120, "cameras": 12, "width": 256, "height": 192, "seed": 0, "preset": "large-motion",
@@ -119,7 +119,7 @@ def test_the_person_walks_and_its_surfaces_are_the_ground_truth() -> None:
 def test_stated_bounds_are_what_poses_bounds_npy_holds(tmp_path, bounds: str) -> None:
     from atgs.data.camera_formats import cameras_from_poses_bounds
     from atgs.data.mvs.views import depth_ranges
-    from atgs.data.synth import synthesize
+    from atgs.data.synth.videos import synthesize
 
     cfg = layout("sparse4", frames=1, width=32, height=24, bounds=bounds)
     out = synthesize(tmp_path / "raw", cfg, progress=False)

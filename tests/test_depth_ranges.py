@@ -15,7 +15,7 @@ from atgs.cameras import Camera
 from atgs.data.coverage import camera_coverage
 from atgs.data.mvs import StereoConfig, stereo_points
 from atgs.data.mvs.views import depth_ranges, select_sources, view_scores
-from atgs.data.synth_scene import LAYOUTS, SynthConfig, SynthScene, sample_surface
+from atgs.data.synth.scene import LAYOUTS, SynthConfig, SynthScene, sample_surface
 
 RIGS = ("ring10", "dome12-low", "dome24", "front6")
 
@@ -72,7 +72,7 @@ def test_ranges_hold_the_true_depths_and_every_camera_finds_sources(rig: str, si
 
 
 def _frame(scene: SynthScene) -> list[np.ndarray]:
-    from atgs.data.synth_render import MeshRenderer
+    from atgs.data.synth.mesh_renderer import MeshRenderer
 
     r = MeshRenderer(scene, scene.cfg.width, scene.cfg.height)
     r.set_frame(0)

@@ -12,8 +12,8 @@ from typing import Annotated
 
 import tyro
 
-from atgs.data.synth import EncodeConfig, synthesize
-from atgs.data.synth_scene import LAYOUTS, Bounds, Layout, Preset, Rig, Subject, SynthConfig
+from atgs.data.synth.videos import EncodeConfig, synthesize
+from atgs.data.synth.scene import LAYOUTS, Bounds, Layout, Preset, Rig, Subject, SynthConfig
 from atgs.io.cli import run_cli
 
 

@@ -100,7 +100,7 @@ def load_scene(args: TrainArgs):
     from atgs.data.scene import PreparedScene
 
     if args.data is None:
-        from atgs.data.synth import ensure_default_scene
+        from atgs.data.synth.videos import ensure_default_scene
 
         print(f"{PROG}: no --data given; using the built-in synthetic scene (cached in {args.cache_dir})", flush=True)
         path = ensure_default_scene(args.cache_dir, keyframes=args.synth_keyframes, progress=args.progress)
@@ -121,7 +121,7 @@ def explicit_model_flags(argv: list[str]) -> set[str]:
 def apply_auto(args: TrainArgs, scene, explicit: set[str]) -> None:
     """--auto: measure the scene and replace the preset's sizes by what the scene needs."""
     from atgs.auto_config import apply_overrides, choose_config, format_choice
-    from atgs.data.motion import measure_motion
+    from atgs.data.motion_measure import measure_motion
 
     stats = measure_motion(scene)
     choice = choose_config(stats, args.model)

@@ -41,8 +41,8 @@ def source_frame(scene: PreparedScene, frame: int) -> int:
 def oracle_points(scene: PreparedScene, stereo: StereoConfig = StereoConfig(),
                   include_test: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points (P,3) float64, colours (P,3) uint8 and keyframe indices (P,) from the true depth."""
-    from atgs.data.synth import load_ground_truth
-    from atgs.data.synth_render import MeshRenderer
+    from atgs.data.synth.videos import load_ground_truth
+    from atgs.data.synth.mesh_renderer import MeshRenderer
 
     side = scene.root / "synth.json"
     if not side.is_file():

@@ -9,7 +9,7 @@ Steps (each long one shows a progress bar):
    triangulation with fixed poses, CPU PatchMatch stereo fused across views, and a fill of the
    space seen by two cameras where both leave pixels uncovered; coverage per camera;
 5. points on moving content at per_interval times as many keyframes, from motion masks and their
-   visual hull (atgs.data.motion_points), cheap where stereo is not;
+   visual hull (atgs.data.moving_points), cheap where stereo is not;
 6. scene.json + points.ply (+ motion_points.ply); the directory is built as ``OUT.tmp-xxxx`` and renamed at the end.
 """
 
@@ -31,7 +31,7 @@ from atgs.io.atomic import atomic_dir, check_output_dir
 from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras
 from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
-from atgs.data.motion_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
+from atgs.data.moving_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
 from atgs.data.mvs import FillConfig, StereoConfig
 from atgs.data.scene import (compute_bounds, frame_path, mask_path, read_mask, read_rgb, save_frame, save_mask,
                              write_scene_metadata)

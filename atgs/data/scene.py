@@ -12,7 +12,7 @@ Layout (contract, see docs/ARCHITECTURE.md and docs/data.md)::
                    masks, uint8 greyscale, 255 = foreground, the size of the frames
       points.ply   x y z red green blue keyframe   (keyframe = index into "keyframes")
       motion_points.ply   optional, same columns: points on moving content only, keyframe =
-                   index into scene.json's "motion_keyframes" (atgs.data.motion_points)
+                   index into scene.json's "motion_keyframes" (atgs.data.moving_points)
 
 Frames are never held in memory: :meth:`PreparedScene.image` decodes one file per call.
 :class:`MemoryScene` is the same interface over frames held in memory (tests, benchmarks).
@@ -419,7 +419,7 @@ def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int,
                          extra: dict | None = None, motion=None, masks: bool = False) -> None:
     """Write scene.json and points.ply into ``root`` (whose images/ already exist), then validate.
     ``extra`` adds informational keys (e.g. "coverage") that readers may ignore; ``motion`` (an
-    :class:`atgs.data.motion_points.MotionPoints`) adds motion_points.ply and "motion_keyframes";
+    :class:`atgs.data.moving_points.MotionPoints`) adds motion_points.ply and "motion_keyframes";
     ``masks`` records that masks/ holds a mask of every frame (the key is absent otherwise)."""
     root = Path(root)
     pts = np.asarray(points, np.float32).reshape(-1, 3)

@@ -164,7 +164,7 @@ class ATGSModel:
                     motion_point_keyframes: torch.Tensor | None = None,
                     motion_keyframes: list[int] | None = None) -> "ATGSModel":
         """Anchors from the scene's keyframe points. ``motion_points`` (points on moving content
-        only, at ``motion_keyframes``, atgs.data.motion_points) become per-keyframe anchors of the
+        only, at ``motion_keyframes``, atgs.data.moving_points) become per-keyframe anchors of the
         model keyframe nearest their frame; by default the model then has as many keyframes as
         the denser of the two lists."""
         has_motion = motion_points is not None and len(motion_points) > 0 and bool(motion_keyframes)

@@ -1,4 +1,4 @@
-"""Moving-content points (atgs.data.motion_points): masks, visual hull, and their use by the model.
+"""Moving-content points (atgs.data.moving_points): masks, visual hull, and their use by the model.
 
 The hull is checked against an analytic sphere seen by a ring of cameras (exact silhouettes by
 ray-sphere intersection); the masks against painted squares; the model against the keyframes
@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from atgs.data.errors import DataError
-from atgs.data.motion import box_downsample
-from atgs.data.motion_points import (MotionPointsConfig, background, foreground_mask, hull_votes, motion_keyframes,
+from atgs.data.motion_measure import box_downsample
+from atgs.data.moving_points import (MotionPointsConfig, background, foreground_mask, hull_votes, motion_keyframes,
                                      motion_mask, motion_points, visual_hull)
 from atgs.data.scene import PreparedScene, write_prepared_scene
 from atgs.model.anchors import STATIC
@@ -185,7 +185,7 @@ def test_model_puts_motion_points_at_their_keyframes() -> None:
 
 def test_scene_round_trip_and_missing_file(tmp_path) -> None:
     cams, F = ring_cameras(3), 5
-    from atgs.data.motion_points import MotionPoints
+    from atgs.data.moving_points import MotionPoints
     mp = MotionPoints([0, 2, 4], np.array([[0.0, 0, 0], [1, 1, 1], [2, 2, 2]]), np.full((3, 3), 0.5, np.float32),
                       np.array([0, 1, 2]), {"keyframes": 3})
     out = write_prepared_scene(tmp_path / "s", cams, lambda ci, f: np.zeros((24, 32, 3), np.uint8), F,

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from atgs.cameras import Camera
-from atgs.data.synth_scene import Mesh, SynthScene
+from atgs.data.synth.scene import Mesh, SynthScene
 
 _VS = """
 #version 330 core

@@ -1,4 +1,4 @@
-"""Motion measurement (atgs.data.motion) on tiny synthetic prepared scenes with known motion."""
+"""Motion measurement (atgs.data.motion_measure) on tiny synthetic prepared scenes with known motion."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from atgs.auto_config import choose_config
 from atgs.cameras import Camera, look_at
-from atgs.data.motion import (MotionConfig, box_downsample, estimate_noise, frame_difference, lag_steps,
+from atgs.data.motion_measure import (MotionConfig, box_downsample, estimate_noise, frame_difference, lag_steps,
                               measure_motion, point_spacing, turnover_time)
 from atgs.data.scene import PreparedScene, write_prepared_scene
 from atgs.train.config import preset

@@ -103,7 +103,7 @@ class SynthConfig:
     texture_contrast: float = 1.0  # 1 = the textures as made; 0 = flat colors (textureless surfaces)
     dome_rings: int = 3  # rig "dome": rings of cameras (DOME_RINGS)
     subject: Subject = "objects"  # "objects": the five objects below; "person": a walker and the orbiter
-    bounds: Bounds = "true"  # near/far written to poses_bounds.npy (atgs.data.synth); never the pixels
+    bounds: Bounds = "true"  # near/far written to poses_bounds.npy (atgs.data.synth.videos); never the pixels
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -356,7 +356,7 @@ class SynthScene:
             raise ValueError(f"unknown preset {cfg.preset!r}; choose one of {sorted(PRESETS)}")
         self.cfg = cfg
         self.motion = PRESETS[cfg.preset]
-        # bounds only matter to the writer (atgs.data.synth) but are checked here, before rendering
+        # bounds only matter to the writer (atgs.data.synth.videos) but are checked here, before rendering
         for name, choices in (("subject", get_args(Subject)), ("bounds", get_args(Bounds)),
                               ("dome_rings", tuple(DOME_RINGS) if cfg.rig == "dome" else None)):
             if choices is not None and getattr(cfg, name) not in choices:

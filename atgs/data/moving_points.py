@@ -37,7 +37,7 @@ import torch.nn.functional as F
 import tyro
 
 from atgs.cameras import Camera
-from atgs.data.motion import box_downsample, frame_difference
+from atgs.data.motion_measure import box_downsample, frame_difference
 from atgs.timeline import evenly_spaced
 
 

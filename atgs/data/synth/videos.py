@@ -19,7 +19,7 @@ import numpy as np
 
 from atgs.io.atomic import atomic_dir, interprocess_lock
 from atgs.data.camera_formats import cameras_to_poses_bounds
-from atgs.data.synth_scene import SynthConfig, SynthScene, sample_surface
+from atgs.data.synth.scene import SynthConfig, SynthScene, sample_surface
 
 SIDECAR = "synth.json"
 SYNTH_VERSION = 2  # bump when the scene content changes, to invalidate caches
@@ -44,7 +44,7 @@ def synthesize(out: str | Path, cfg: SynthConfig = SynthConfig(), enc: EncodeCon
     camera name, the OpenCV z of the nearest surface at each pixel center (0: none)."""
     from tqdm import tqdm
 
-    from atgs.data.synth_render import MeshRenderer
+    from atgs.data.synth.mesh_renderer import MeshRenderer
     from atgs.io.video import VideoWriter
 
     if cfg.frames < 1 or cfg.cameras < 2 or cfg.width < 16 or cfg.height < 16:
