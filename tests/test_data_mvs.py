@@ -461,3 +461,15 @@ def test_grow_depth_fills_ring_by_ring_and_keeps_known_depths() -> None:
     assert g[4, 6] == 3.0 and g[2, 4] == 3.0 and np.isnan(g[4, 7]), "two rings, 4-neighbour distance"
     assert np.isnan(grow_depth(d, 0)[4, 5])
     assert not np.isnan(grow_depth(d, 20)).any()
+
+
+def test_stereo_thread_count_caps_at_torchs_threads() -> None:
+    from atgs.data.mvs.stereo import idle_cores, stereo_thread_count
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert stereo_thread_count(1) == 1 and stereo_thread_count(8) == 2
+        assert stereo_thread_count(0) == min(2, idle_cores())
+    finally:
+        torch.set_num_threads(before)

@@ -109,3 +109,31 @@ def test_run_cli_exit_codes(capsys) -> None:
     assert capsys.readouterr().err == "cmd: interrupted: checkpoint saved\n"
     with pytest.raises(ValueError):  # a programming error keeps its traceback
         run_cli("cmd", fail(ValueError("bug")))
+
+
+def test_frame_dir_writer_publishes_whole_renders_through_atomic(tmp_path) -> None:
+    """PNG frames appear at close only, with a directory's ordinary permissions, replacing an
+    earlier render whole (no stray frames, no temporary siblings left); abort leaves nothing."""
+    from atgs.viewer.errors import ViewerError
+    from atgs.viewer.output import FrameDirWriter
+
+    out = tmp_path / "frames"
+    with FrameDirWriter(out) as w:
+        for i in range(3):
+            w.write(np.full((4, 6, 3), 40 * i, np.uint8))
+        assert not out.exists(), "nothing visible before close"
+    assert sorted(p.name for p in out.iterdir()) == ["00000.png", "00001.png", "00002.png"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o777 & ~umask
+    with FrameDirWriter(out) as w:
+        w.write(np.zeros((4, 6, 3), np.uint8))
+    assert [p.name for p in out.iterdir()] == ["00000.png"] and [p.name for p in tmp_path.iterdir()] == ["frames"]
+    with pytest.raises(KeyboardInterrupt):
+        with FrameDirWriter(out) as w:
+            w.write(np.full((4, 6, 3), 255, np.uint8))
+            raise KeyboardInterrupt
+    assert [p.name for p in tmp_path.iterdir()] == ["frames"]
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ViewerError, match="other files than rendered frames"):
+        FrameDirWriter(out)

@@ -3,9 +3,10 @@
 Files are written to a temporary sibling, flushed to disk and renamed into place
 (:func:`atomic_file`, :func:`write_bytes_atomic`, :func:`write_text_atomic`,
 :func:`write_json_atomic`); an existing file is replaced only by a complete new one.
-Directories are built in ``DIR.tmp-xxxx`` and renamed on success (:func:`atomic_dir`); an
-existing ``DIR`` is never touched on failure, and with ``overwrite=True`` the old directory is
-moved aside only after the new one is complete, then deleted. :func:`interprocess_lock`
+Directories are built in ``DIR.tmp-xxxx`` and renamed on success (:func:`atomic_dir`, or
+:func:`temp_dir_beside` and :func:`publish_dir` for a writer that decides itself what it may
+replace); an existing ``DIR`` is never touched on failure, and with ``overwrite=True`` the old
+directory is moved aside only after the new one is complete, then deleted. :func:`interprocess_lock`
 serializes processes that would build the same cached output (e.g. two ``atgs-train`` runs
 started at once on the built-in scene).
 """
@@ -92,24 +93,24 @@ def check_output_dir(out: Path, overwrite: bool) -> None:
         raise OutputError(f"{out}: output directory already exists; pass --overwrite to replace it")
 
 
-@contextlib.contextmanager
-def atomic_dir(out: Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temporary sibling directory; on normal exit it replaces ``out``."""
+def temp_dir_beside(out: Path) -> Path:
+    """A new empty directory ``OUT.tmp-xxxx`` beside ``out`` to build it in (same file system:
+    :func:`publish_dir` renames it)."""
     out = Path(out)
-    check_output_dir(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=out.name + ".tmp-", dir=out.parent))
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    return Path(tempfile.mkdtemp(prefix=out.name + ".tmp-", dir=out.parent))
+
+
+def publish_dir(tmp: Path, out: Path) -> None:
+    """Rename the finished directory ``tmp`` to ``out`` with ordinary permissions. An existing
+    ``out`` is moved aside first and deleted only once ``tmp`` is in place (put back if the
+    rename fails). Whether ``out`` may be replaced is the caller's decision."""
+    out = Path(out)
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; a published directory gets what mkdir gives
     old: Path | None = None
     if out.exists():
-        check_output_dir(out, overwrite)  # something may have appeared while we worked
         old = Path(tempfile.mkdtemp(prefix=out.name + ".old-", dir=out.parent))
         os.rmdir(old)
         os.replace(out, old)
@@ -122,6 +123,22 @@ def atomic_dir(out: Path, overwrite: bool = False) -> Iterator[Path]:
         raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_dir(out: Path, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary sibling directory; on normal exit it replaces ``out``."""
+    out = Path(out)
+    check_output_dir(out, overwrite)
+    tmp = temp_dir_beside(out)
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        check_output_dir(out, overwrite)  # something may have appeared while we worked
+    publish_dir(tmp, out)
 
 
 @contextlib.contextmanager

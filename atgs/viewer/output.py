@@ -3,16 +3,14 @@
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from atgs.io.atomic import atomic_file
+from atgs.io.atomic import atomic_file, publish_dir, temp_dir_beside
 from atgs.viewer.errors import ViewerError
 
 
@@ -81,8 +79,7 @@ class FrameDirWriter:
                 raise ViewerError(f"--out {self.path}: exists and is not a directory; give a new directory name for PNG frames")
             if any(not self.FRAME_NAME.fullmatch(p.name) for p in self.path.iterdir()):
                 raise ViewerError(f"--out {self.path}: directory holds other files than rendered frames; choose a new directory")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = Path(tempfile.mkdtemp(prefix=self.path.name + ".tmp-", dir=self.path.parent))
+        self._tmp = temp_dir_beside(self.path)
         self._count = 0
 
     def write(self, rgb8: np.ndarray) -> None:
@@ -90,17 +87,7 @@ class FrameDirWriter:
         self._count += 1
 
     def close(self) -> None:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(self._tmp, 0o777 & ~umask)  # mkdtemp makes 0700
-        old = None
-        if self.path.exists():
-            old = Path(tempfile.mkdtemp(prefix=self.path.name + ".old-", dir=self.path.parent))
-            os.rmdir(old)
-            os.replace(self.path, old)
-        os.replace(self._tmp, self.path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        publish_dir(self._tmp, self.path)
 
     def abort(self) -> None:
         shutil.rmtree(self._tmp, ignore_errors=True)

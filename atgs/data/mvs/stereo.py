@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,6 +15,7 @@ from atgs.data.mvs.config import StereoConfig
 from atgs.data.mvs.fusion import capped_voxel_average, fuse_depth_maps
 from atgs.data.mvs.patchmatch import DepthMap, patchmatch, refine_geometric
 from atgs.data.mvs.views import View, depth_ranges, make_view, select_sources, view_scores
+from atgs.threads import torch_threads
 
 MIN_OVERLAP = 0.05  # a camera may confirm a reference depth if it sees this much of the reference view
 
@@ -44,7 +44,7 @@ def stereo_points(images: Sequence[np.ndarray], cameras: Sequence[Camera], cfg: 
     ``on_camera`` is called after each depth map of each pass (progress bars; see
     :func:`stereo_steps`).
     """
-    with torch_threads(cfg.threads):
+    with torch_threads(stereo_thread_count(cfg.threads)):
         return _stereo_points(images, cameras, cfg, seed_points, depth_hints, on_camera)
 
 
@@ -96,15 +96,10 @@ def idle_cores() -> int:
     return max(1, int(n - load + 0.5))
 
 
-@contextlib.contextmanager
-def torch_threads(threads: int) -> Iterator[None]:
-    """Run the block with ``threads`` torch threads (0: :func:`idle_cores`), then restore."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(max(1, min(old, threads if threads > 0 else idle_cores())))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
+def stereo_thread_count(threads: int) -> int:
+    """Torch threads for the stereo: ``threads`` (0: :func:`idle_cores`), never more than torch
+    uses now and at least 1."""
+    return max(1, min(torch.get_num_threads(), threads if threads > 0 else idle_cores()))
 
 
 def _pixel_footprint(views: Sequence[View], maps: Sequence[DepthMap | None],
