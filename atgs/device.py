@@ -8,14 +8,14 @@ rasterizer); without them it is a one-line error naming the fix. "auto" picks CU
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 
 from atgs.errors import UserError
 
 DeviceName = Literal["auto", "cpu", "cuda"]
-DEVICE_NAMES: tuple[str, ...] = ("auto", "cpu", "cuda")
+DEVICE_NAMES: tuple[str, ...] = get_args(DeviceName)
 
 
 class DeviceError(UserError, ValueError):

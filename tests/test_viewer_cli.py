@@ -274,3 +274,22 @@ def test_orbit_of_one_camera_is_a_revolution_and_of_a_close_pair_a_30_degree_swe
     pair = [ring_cameras(360, (96, 72), height=0.0)[k] for k in (0, 4)]  # 4 degrees apart
     az = _azimuths(orbit_path(pair, 40, np.zeros(3)))
     assert az.max() - az.min() == pytest.approx(30.0, abs=0.2) and az[0] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_shared_flags_mean_the_same_in_both_commands() -> None:
+    """The flags atgs-view and atgs-render share are spelled and parsed alike (one dataclass),
+    and each command keeps its own defaults for the flags it does not share."""
+    import tyro
+
+    from atgs.viewer.cli import RenderConfig, ViewConfig, render_settings
+
+    args = ["run/ckpt.pt", "--gl", "osmesa", "--mode", "depth", "--scale-modifier", "0.5",
+            "--background", "0.1", "0.2", "0.3", "--min-alpha", "0.02", "--device", "cpu"]
+    view, render = tyro.cli(ViewConfig, args=args), tyro.cli(RenderConfig, args=args)
+    for cfg in (view, render):
+        assert (cfg.checkpoint, cfg.gl, cfg.device) == ("run/ckpt.pt", "osmesa", "cpu")
+        s = render_settings(cfg)
+        assert (s.mode, s.scale_modifier, s.background, s.min_alpha) == ("depth", 0.5, (0.1, 0.2, 0.3), 0.02)
+    assert (view.out, render.out) == (Path("frame.png"), Path("video.mp4"))
+    with pytest.raises(SystemExit):
+        tyro.cli(RenderConfig, args=["ckpt.pt", "--mode", "normals"])

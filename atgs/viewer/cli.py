@@ -8,10 +8,12 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import tyro
 
+from atgs.device import DeviceName
+from atgs.headless_gl import GLBackend
 from atgs.io.cli import run_cli
 from atgs.timeline import frame_at
 from atgs.viewer.camera_path import CameraPath
@@ -20,16 +22,35 @@ from atgs.viewer.device import place_source, resolve_device
 from atgs.viewer.errors import ViewerError
 from atgs.viewer.loading import load_source
 from atgs.viewer.scene_utils import cameras_path, orbit_center, orbit_path, parse_size, resized, start_camera
-from atgs.viewer.splat_renderer import RenderSettings
+from atgs.viewer.splat_renderer import RenderMode, RenderSettings
 
 
 @dataclass
-class ViewConfig:
-    """Play a trained ATGS volumetric video or 3D Gaussian splatting PLY files (window), or render one frame headless."""
+class DrawOptions:
+    """What both commands draw and how: the source, the GL route, the render mode and its
+    settings, and the device that prepares frames (the flags atgs-view and atgs-render share)."""
 
     checkpoint: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
     """ckpt.pt written by atgs-train, a 3DGS .ply file (a static scene), a folder of per-frame .ply
     files (a sequence, e.g. written by atgs-export), or 'demo' for the built-in synthetic scene."""
+    gl: GLBackend = "auto"
+    """Headless OpenGL route: auto tries EGL then OSMesa."""
+    mode: RenderMode = "color"
+    scale_modifier: float = 1.0
+    background: tuple[float, float, float] | None = None
+    """R G B in [0, 1]; default: the colour the model was trained over (a checkpoint's
+    train_config.background: black, or the mean image colour with --train.background-from-images), black for PLY input."""
+    min_alpha: float = 1 / 255
+    """Alpha cutoff: 1/255 is the training rasterizer's rule; e.g. 4/255 = 0.0157 culls faint
+    Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
+    device: DeviceName = "auto"
+    """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
+
+
+@dataclass
+class ViewConfig(DrawOptions):
+    """Play a trained ATGS volumetric video or 3D Gaussian splatting PLY files (window), or render one frame headless."""
+
     headless: bool = False
     """Render one frame to --out without a window (OSMesa or EGL)."""
     time: float = 0.0
@@ -40,25 +61,13 @@ class ViewConfig:
     """Training camera index to render from / open on (PLY input without manifest.json: a camera that frames the scene)."""
     out: Path = Path("frame.png")
     """Headless output image (.png or .jpg)."""
-    gl: Literal["auto", "egl", "osmesa"] = "auto"
-    """Headless OpenGL route: auto tries EGL then OSMesa."""
     size: str | None = None
     """WIDTHxHEIGHT of the output (headless) or the window; default: the camera's size (headless), or the
     largest window of the camera's shape within 80% of the screen, at least 960 px wide where it fits."""
-    mode: Literal["color", "depth", "alpha"] = "color"
-    scale_modifier: float = 1.0
-    background: tuple[float, float, float] | None = None
-    """R G B in [0, 1]; default: the colour the model was trained over (a checkpoint's
-    train_config.background: black, or the mean image colour with --train.background-from-images), black for PLY input."""
-    min_alpha: float = 1 / 255
-    """Alpha cutoff: 1/255 is the training rasterizer's rule; e.g. 4/255 = 0.0157 culls faint
-    Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
     demo_gaussians: int = 20000
     """Gaussians of the built-in 'demo' scene."""
     fps: float | None = None
     """Playback frame rate of PLY input (default: the folder's manifest.json's, else 30)."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
     preload: bool = False
     """Decode every frame before opening the window (smooth playback when decoding is slower than the video)."""
     preload_mb: int = 2048
@@ -73,11 +82,9 @@ class ViewConfig:
 
 
 @dataclass
-class RenderConfig:
+class RenderConfig(DrawOptions):
     """Render a video of a trained ATGS model (or 3D Gaussian splatting PLY files) along a camera path."""
 
-    checkpoint: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
-    """ckpt.pt written by atgs-train, a 3DGS .ply file, a folder of per-frame .ply files, or 'demo'."""
     out: Path = Path("video.mp4")
     """Video file (.mp4, .mkv, .mov), or a directory name (no suffix) for lossless PNG frames 00000.png, ..."""
     path: str = "orbit"
@@ -91,19 +98,9 @@ class RenderConfig:
     time is resampled to fit."""
     size: str | None = None
     """WIDTHxHEIGHT (default: a path file's size, else the first training camera's; rounded to even)."""
-    gl: Literal["auto", "egl", "osmesa"] = "auto"
-    mode: Literal["color", "depth", "alpha"] = "color"
-    scale_modifier: float = 1.0
-    background: tuple[float, float, float] | None = None
-    """R G B in [0, 1]; default: the colour the model was trained over (a checkpoint's
-    train_config.background: black, or the mean image colour with --train.background-from-images), black for PLY input."""
-    min_alpha: float = 1 / 255
-    """Alpha cutoff (see atgs-view --help)."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
 
 
-def render_settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
+def render_settings(cfg: DrawOptions) -> RenderSettings:
     if not cfg.scale_modifier > 0:
         raise ViewerError(f"--scale-modifier {cfg.scale_modifier}: must be > 0")
     if not 0.0 < cfg.min_alpha < 0.99:
@@ -113,7 +110,7 @@ def render_settings(cfg: ViewConfig | RenderConfig) -> RenderSettings:
                           min_alpha=cfg.min_alpha)
 
 
-def use_trained_background(settings: RenderSettings, cfg: ViewConfig | RenderConfig, source) -> None:
+def use_trained_background(settings: RenderSettings, cfg: DrawOptions, source) -> None:
     """Without --background, draw over what the model was trained over, its colour or its
     background by direction (what atgs-eval renders over too), so what no camera saw looks as it
     did in the evaluation."""

@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from importlib.resources import files
-from typing import Literal
+from typing import Literal, get_args
 
 import moderngl
 import numpy as np
@@ -27,7 +27,7 @@ from atgs.viewer.packing import COLUMN_FORMATS, COLUMNS, PackedGaussians
 from atgs.viewer.sorting import FrustumCull, back_to_front, view_depths
 
 RenderMode = Literal["color", "depth", "alpha"]
-MODES: tuple[str, ...] = ("color", "depth", "alpha")
+MODES: tuple[str, ...] = get_args(RenderMode)
 
 # Same numbers as atgs.render.constants (kept literal here so the viewer imports no torch code
 # path it does not need; tests check they agree).
