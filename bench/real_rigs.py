@@ -56,7 +56,8 @@ from pathlib import Path
 import numpy as np
 
 from atgs.cameras import Camera, distort_normalized
-from atgs.data.camera_formats import _matrix_from_rodrigues, _rodrigues_from_matrix, write_easyvolcap
+from atgs.data.camera_formats import write_easyvolcap
+from atgs.rotations import matrix_to_rotvec, rotvec_to_matrix
 
 
 # --- reading a fetched repository ----------------------------------------------------------
@@ -281,11 +282,11 @@ def _fit_camera(name: str, size, X: np.ndarray, uv: np.ndarray, like: Camera) ->
 
     def cam_of(p):
         w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = _matrix_from_rodrigues(p[:3]), p[3:6]
+        w2c[:3, :3], w2c[:3, 3] = rotvec_to_matrix(p[:3]), p[3:6]
         K = np.array([[p[6], 0, W / 2], [0, p[6], H / 2], [0, 0, 1]])
         return Camera(name, W, H, K, w2c, np.array([p[7], 0, 0, 0, 0]))
 
-    p0 = np.r_[_rodrigues_from_matrix(U @ Vt), M[:, 3] / S.mean(), like.fx, like.dist[0]]
+    p0 = np.r_[matrix_to_rotvec(U @ Vt), M[:, 3] / S.mean(), like.fx, like.dist[0]]
     fit = least_squares(lambda p: (cam_of(p).project(X)[0] - uv).ravel(), p0, loss="huber", f_scale=2.0)
     cam = cam_of(fit.x)
     return cam, np.linalg.norm(cam.project(X)[0] - uv, axis=1)
@@ -301,7 +302,7 @@ def sleap_anipose(src: Path, out: Path, side: str = "refit", check: bool = False
     for key in sorted(k for k in cal if k.startswith("cam_")):
         e = cal[key]
         w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = _matrix_from_rodrigues(np.array(e["rotation"])), e["translation"]
+        w2c[:3, :3], w2c[:3, 3] = rotvec_to_matrix(np.array(e["rotation"])), e["translation"]
         cams.append(_opencv_camera(e["name"], e["size"], e["matrix"], w2c, e["distortions"]))
     by = {c.name: c for c in cams}
     note = "calibration.toml as it is"

@@ -10,7 +10,6 @@ import pytest
 from scipy.interpolate import PchipInterpolator
 from scipy.spatial.transform import Rotation
 
-from atgs.viewer import quaternions as quat
 from atgs.viewer.camera_path import CameraPath, PathKey, PathSpline, frame_position
 from atgs.viewer.path_editor import PathEditor
 
@@ -34,19 +33,6 @@ def angular_velocity(sp: PathSpline, u0: float, u1: float) -> np.ndarray:
     """Body-frame rotation from the pose at u0 to the pose at u1, per unit time."""
     R0, R1 = sp.pose_at(u0).R.T, sp.pose_at(u1).R.T  # camera-to-world
     return Rotation.from_matrix(R0.T @ R1).as_rotvec() / (u1 - u0)
-
-
-def test_quaternion_round_trips_and_short_way() -> None:
-    for i in range(20):
-        R = Rotation.random(random_state=i).as_matrix()
-        q = quat.from_matrix(R)
-        np.testing.assert_allclose(quat.to_matrix(q), R, atol=1e-12)
-        np.testing.assert_allclose(abs(q @ Rotation.from_matrix(R).as_quat(scalar_first=True)), 1.0, atol=1e-12)
-        v = Rotation.from_matrix(R).as_rotvec()
-        np.testing.assert_allclose(quat.log(quat.exp(v)), v, atol=1e-12)
-    # 350 degrees about z is 10 degrees the other way: log takes the short way
-    q = quat.exp(np.array([0.0, 0.0, math.radians(350.0)]))
-    np.testing.assert_allclose(quat.log(q), [0.0, 0.0, math.radians(-10.0)], atol=1e-12)
 
 
 def test_passes_through_every_keyframe_exactly() -> None:

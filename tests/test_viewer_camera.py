@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from atgs.cameras import Camera, look_at
-from atgs.viewer.camera_control import CameraControl, intrinsics, rotation
+from atgs.viewer.camera_control import CameraControl, intrinsics
 
 
 def _control(eye=(4.0, 0.0, 0.0), target=(0.0, 0.0, 0.0)) -> CameraControl:
@@ -96,8 +96,3 @@ def test_fov_snap_and_reset() -> None:
     c.reset()
     np.testing.assert_allclose(c.camera(200, 100).center, [4, 0, 0], atol=1e-12)
     assert c.camera(200, 100).fov_y() == pytest.approx(math.radians(60))
-
-
-def test_rotation_is_rodrigues() -> None:
-    R = rotation(np.array([0, 0, 2.0]), math.pi / 2)
-    np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-12)

@@ -28,6 +28,7 @@ import numpy as np
 
 from atgs.cameras import CV_TO_GL, Camera
 from atgs.data.errors import DataError
+from atgs.rotations import matrix_to_rotvec, rotvec_to_matrix
 
 # LLFF camera axes (down, right, back) expressed in OpenCV camera axes (right, down, forward):
 # column j of c2w_llff = c2w_cv[:, :3] @ LLFF_IN_CV[:, j].
@@ -247,7 +248,7 @@ def write_easyvolcap(root: Path, cameras: Sequence[Camera]) -> None:
             d[: min(5, len(c.dist))] = c.dist[:5]
         intri += [_fmt_matrix(f"K_{c.name}", c.K), f"H_{c.name}: {c.height}\n", f"W_{c.name}: {c.width}\n",
                   _fmt_matrix(f"dist_{c.name}", d.reshape(1, 5))]
-        extri += [_fmt_matrix(f"R_{c.name}", _rodrigues_from_matrix(c.R).reshape(3, 1)),
+        extri += [_fmt_matrix(f"R_{c.name}", matrix_to_rotvec(c.R).reshape(3, 1)),
                   _fmt_matrix(f"Rot_{c.name}", c.R), _fmt_matrix(f"T_{c.name}", c.t.reshape(3, 1))]
     (root / "intri.yml").write_text("".join(intri))
     (root / "extri.yml").write_text("".join(extri))
@@ -278,7 +279,7 @@ def read_easyvolcap(root: Path, sizes: dict[str, tuple[int, int]] | None = None)
         if f"Rot_{n}" in extri:
             R = extri[f"Rot_{n}"].reshape(3, 3)
         elif f"R_{n}" in extri:
-            R = _matrix_from_rodrigues(extri[f"R_{n}"].reshape(3))
+            R = rotvec_to_matrix(extri[f"R_{n}"].reshape(3))
         else:
             raise DataError(f"{ep}: neither Rot_{n} nor R_{n} found for camera {n}")
         if f"T_{n}" not in extri:
@@ -293,36 +294,6 @@ def read_easyvolcap(root: Path, sizes: dict[str, tuple[int, int]] | None = None)
             raise DataError(f"{ip}: image size of camera {n} unknown (no H_{n}/W_{n} and no images)")
         cams.append(Camera(str(n), W, H, K, w2c, None if dist is None else dist.reshape(-1)))
     return cams
-
-
-def _rodrigues_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle) of a rotation matrix, stable near 0 and pi."""
-    R = np.asarray(R, np.float64)
-    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(cos))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-8:
-        return 0.5 * w
-    if np.pi - angle < 1e-4:  # near pi the skew part vanishes: take the axis from R + I
-        B = 0.25 * (R + R.T) + 0.5 * np.eye(3)  # symmetric part: (1+cos)/2 I + (1-cos)/2 k k^T
-        axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
-        k = int(np.argmax(axis))
-        axis = B[k] / axis[k]
-        axis /= np.linalg.norm(axis)
-        if w @ axis < 0:
-            axis = -axis
-        return axis * angle
-    return w * (angle / (2.0 * np.sin(angle)))
-
-
-def _matrix_from_rodrigues(r: np.ndarray) -> np.ndarray:
-    r = np.asarray(r, np.float64).reshape(3)
-    angle = float(np.linalg.norm(r))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = r / angle
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * (Kx @ Kx)
 
 
 # --- Dynamic 3D Gaussians train_meta.json / test_meta.json ------------------------------------

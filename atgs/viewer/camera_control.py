@@ -9,17 +9,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from atgs.cameras import Camera
+from atgs.rotations import axis_angle_matrix
 
 MIN_POLAR = math.radians(2.0)  # orbit/look stop short of the poles (no flip over the up axis)
 MIN_DISTANCE = 1e-4
-
-
-def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Right-handed rotation matrix about a unit axis (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * Kx + (1 - math.cos(angle)) * (Kx @ Kx)
 
 
 def intrinsics(width: int, height: int, fov_y: float) -> np.ndarray:
@@ -99,18 +92,18 @@ class CameraControl:
         camera's right axis (positive pitch raises the camera's view direction). The pivot stays
         at the image center and the distance is unchanged."""
         p = self.pivot
-        self._rotate(rotation(self.up, dyaw), p)
+        self._rotate(axis_angle_matrix(self.up, dyaw), p)
         dp = self._clamped_pitch(dpitch)
         if dp:
-            self._rotate(rotation(self.right, dp), p)
+            self._rotate(axis_angle_matrix(self.right, dp), p)
 
     def look(self, dyaw: float, dpitch: float) -> None:
         """Fly-mode mouse look: rotate about the eye (the eye stays put)."""
         e = self.state.eye.copy()
-        self._rotate(rotation(self.up, dyaw), e)
+        self._rotate(axis_angle_matrix(self.up, dyaw), e)
         dp = self._clamped_pitch(dpitch)
         if dp:
-            self._rotate(rotation(self.right, dp), e)
+            self._rotate(axis_angle_matrix(self.right, dp), e)
 
     def pan(self, dx_px: float, dy_px: float, height: int) -> None:
         """Drag the scene by (dx, dy) pixels: a point at pivot depth follows the mouse exactly."""

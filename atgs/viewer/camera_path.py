@@ -40,7 +40,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from atgs.cameras import Camera
-from atgs.viewer import quaternions as quat
+from atgs.rotations import (quat_conj, quat_exp, quat_from_matrix, quat_log, quat_mul, quat_normalized, quat_slerp,
+                             quat_to_matrix)
 from atgs.viewer.camera_control import intrinsics
 
 
@@ -131,7 +132,7 @@ class PathSpline:
             raise ValueError(f"keyframe times must increase strictly, got {self.t.tolist()}")
         self.eye = np.stack([k.eye for k in keys])
         self.R = np.stack([k.R for k in keys])
-        self.q = np.stack([quat.from_matrix(R.T) for R in self.R])  # camera-to-world rotations
+        self.q = np.stack([quat_from_matrix(R.T) for R in self.R])  # camera-to-world rotations
         self.fov = np.array([k.fov_y_deg for k in keys])
         self.scene = np.array([k.scene_t for k in keys])
         self.m_eye = catmull_rom_tangents(self.t, self.eye)
@@ -168,7 +169,7 @@ class PathSpline:
         q = rotation_bezier(self.q[i], self.q[i + 1], self.m_q[i] * d, self.m_q[i + 1] * d, s)
         fov = hermite(self.fov[i], self.fov[i + 1], self.m_fov[i] * d, self.m_fov[i + 1] * d, s)
         scene = hermite(self.scene[i], self.scene[i + 1], self.m_scene[i] * d, self.m_scene[i + 1] * d, s)
-        return PathPose(eye, quat.to_matrix(q).T, float(fov), float(min(1.0, max(0.0, scene))))
+        return PathPose(eye, quat_to_matrix(q).T, float(fov), float(min(1.0, max(0.0, scene))))
 
 
 def hermite(p0, p1, m0, m1, s: float):
@@ -214,13 +215,13 @@ def rotation_tangents(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     if K < 2:
         return m
     d = np.diff(t)
-    w = np.stack([quat.log(quat.mul(quat.conj(q[j]), q[j + 1])) / d[j] for j in range(K - 1)])
+    w = np.stack([quat_log(quat_mul(quat_conj(q[j]), q[j + 1])) / d[j] for j in range(K - 1)])
     if K == 2:
         m[:] = w[0]
         return m
     m[1:-1] = _bessel_inner(w[:-1], w[1:], d[:-1, None], d[1:, None])
-    w1_at_0 = quat.to_matrix(quat.mul(quat.conj(q[0]), q[1])) @ w[1]
-    w2_at_end = quat.to_matrix(quat.mul(quat.conj(q[-1]), q[-2])) @ w[-2]
+    w1_at_0 = quat_to_matrix(quat_mul(quat_conj(q[0]), q[1])) @ w[1]
+    w2_at_end = quat_to_matrix(quat_mul(quat_conj(q[-1]), q[-2])) @ w[-2]
     m[0] = _bessel_end(w[0], w1_at_0, d[0], d[1])
     m[-1] = _bessel_end(w[-1], w2_at_end, d[-1], d[-2])
     return m
@@ -230,10 +231,10 @@ def rotation_bezier(q0: np.ndarray, q1: np.ndarray, w0: np.ndarray, w1: np.ndarr
     """Cubic Bezier on unit quaternions by De Casteljau with slerps, from q0 (s = 0) to q1 (s = 1)
     with body angular velocities w0, w1 (per unit s) at the ends: like the Euclidean Bezier, its
     end velocity is 3x the first leg, so the inner control points are q exp(+-w / 3)."""
-    a = quat.mul(q0, quat.exp(w0 / 3.0))
-    b = quat.mul(q1, quat.exp(-w1 / 3.0))
-    r0, r1, r2 = quat.slerp(q0, a, s), quat.slerp(a, b, s), quat.slerp(b, q1, s)
-    return quat.normalized(quat.slerp(quat.slerp(r0, r1, s), quat.slerp(r1, r2, s), s))
+    a = quat_mul(q0, quat_exp(w0 / 3.0))
+    b = quat_mul(q1, quat_exp(-w1 / 3.0))
+    r0, r1, r2 = quat_slerp(q0, a, s), quat_slerp(a, b, s), quat_slerp(b, q1, s)
+    return quat_normalized(quat_slerp(quat_slerp(r0, r1, s), quat_slerp(r1, r2, s), s))
 
 
 def pchip_tangents(t: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from atgs.cameras import Camera, look_at
+from atgs.rotations import matrix_slerp
 from atgs.viewer.errors import ViewerError
 from atgs.viewer.source import GaussianSource, decode_frame, scene_up
 
@@ -155,25 +156,6 @@ def orbit_path(cameras: list[Camera], n: int, center: np.ndarray | None = None) 
     return out
 
 
-def _slerp_rot(R0: np.ndarray, R1: np.ndarray, s: float) -> np.ndarray:
-    """Rotation-matrix geodesic interpolation via the quaternion of R0^T R1."""
-    D = R0.T @ R1
-    cos = np.clip((np.trace(D) - 1) / 2, -1.0, 1.0)
-    ang = math.acos(cos)
-    if ang < 1e-9:
-        return R0.copy()
-    w = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
-    nrm = np.linalg.norm(w)
-    if nrm < 1e-9:  # 180 degrees: axis from the symmetric part
-        vals, vecs = np.linalg.eigh((D + D.T) / 2)
-        axis = vecs[:, np.argmax(vals)]
-    else:
-        axis = w / nrm
-    from atgs.viewer.camera_control import rotation
-
-    return R0 @ rotation(axis, s * ang)
-
-
 def cameras_path(cameras: list[Camera], n: int) -> list[Camera]:
     """n cameras moving through the training cameras in order (position lerp, rotation slerp)."""
     if not cameras:
@@ -187,7 +169,7 @@ def cameras_path(cameras: list[Camera], n: int) -> list[Camera]:
         k = min(int(u), segs - 1)
         s = u - k
         a, b = cameras[k], cameras[k + 1]
-        R = _slerp_rot(a.R.T, b.R.T, s).T  # interpolate camera-to-world rotations
+        R = matrix_slerp(a.R.T, b.R.T, s).T  # interpolate camera-to-world rotations
         eye = (1 - s) * a.center + s * b.center
         K = (1 - s) * a.K + s * b.K
         w2c = np.eye(4)

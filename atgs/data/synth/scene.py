@@ -27,6 +27,7 @@ import numpy as np
 from PIL import Image
 
 from atgs.cameras import Camera, look_at
+from atgs.rotations import axis_angle_matrix
 
 Preset = Literal["small-motion", "large-motion"]
 Rig = Literal["ring", "front", "dome"]
@@ -306,13 +307,6 @@ class SceneObject:
     static: bool = False
 
 
-def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = np.asarray(axis, np.float64)
-    a = a / np.linalg.norm(a)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)
-
-
 def _M(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = R, t
@@ -410,9 +404,9 @@ class SynthScene:
             d = np.array([np.cos(p["dir"]), np.sin(p["dir"]), 0.0])
             side = np.array([-d[1], d[0], 0.0])
             pos = x * d + 0.3 * side + np.array([0, 0, 0.3])
-            return _M(_rot([0, 0, 1], p["dir"] + 0.8 * x), pos)
+            return _M(axis_angle_matrix([0, 0, 1], p["dir"] + 0.8 * x), pos)
         if obj.name == "spinner":
-            R = _rot(p["axis"], 2 * np.pi * m.spin_rate * s) @ _rot([1, 0, 0], 0.6)
+            R = axis_angle_matrix(p["axis"], 2 * np.pi * m.spin_rate * s) @ axis_angle_matrix([1, 0, 0], 0.6)
             return _M(R, np.asarray(p["center"], np.float64))
         if obj.name == "jumper":
             # hops along a line; sunk below the ground for part of each long cycle (enters/leaves)
@@ -422,16 +416,16 @@ class SynthScene:
             hop = abs(np.sin(np.pi * s / m.hop_period))
             ramp = np.clip(min(q, 1 - q) / 0.15, 0, 1)  # 0 at the ends of the path: under ground
             z = -0.4 + ramp * (0.72 + 0.9 * hop)
-            return _M(_rot([0, 1, 0], 3 * np.pi * q), np.array([x, 1.6 * np.sin(np.pi * q) - 1.2, z]))
+            return _M(axis_angle_matrix([0, 1, 0], 3 * np.pi * q), np.array([x, 1.6 * np.sin(np.pi * q) - 1.2, z]))
         if obj.name == "orbiter":
             a = 2 * np.pi * m.orbit_rate * s + p["phase"]
             pos = np.array([m.orbit_radius * np.cos(a), m.orbit_radius * np.sin(a), 1.2 + 0.2 * np.sin(3 * a)])
-            return _M(_rot([0.2, 1, 0.3], 2 * a), pos)
+            return _M(axis_angle_matrix([0.2, 1, 0.3], 2 * a), pos)
         if obj.name.startswith("person_"):
             v = WALK_SPEED[self.cfg.preset]
             a = p["phase"] + v * s / WALK_RADIUS  # counter-clockwise: the body's x (forward) turns with a + 90 deg
-            body = _M(_rot([0, 0, 1], a + np.pi / 2), WALK_RADIUS * np.array([np.cos(a), np.sin(a), 0.0]))
-            R = _rot([0, 1, 0], p["swing"] * GAIT_SWING * np.sin(2 * np.pi * v * s / STRIDE + p["phase"]))
+            body = _M(axis_angle_matrix([0, 0, 1], a + np.pi / 2), WALK_RADIUS * np.array([np.cos(a), np.sin(a), 0.0]))
+            R = axis_angle_matrix([0, 1, 0], p["swing"] * GAIT_SWING * np.sin(2 * np.pi * v * s / STRIDE + p["phase"]))
             return body @ _M(R, np.asarray(p["pivot"], np.float64) - R[:, 2] * p["drop"])
         raise KeyError(obj.name)
 
