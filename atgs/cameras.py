@@ -7,6 +7,9 @@ Convention (used everywhere: data, training rasterizer, viewer):
   Prepared scenes are always undistorted, so cameras in a prepared scene have ``dist=None``.
 
 Conversions to and from dataset formats live in :mod:`atgs.data.camera_formats`.
+:meth:`Camera.project` projects numpy points (float64, with distortion); :func:`to_camera_frame`,
+:func:`pinhole_pixels` and :func:`pinhole_jacobian` are the same pinhole in torch, in the
+points' dtype and device, for the prepared scene's undistorted cameras.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 
 # OpenCV camera axes -> OpenGL camera axes (y up, z backward).
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -154,6 +158,33 @@ class Camera:
             w2c=np.asarray(d["w2c"], dtype=np.float64),
             dist=None if d.get("dist") is None else np.asarray(d["dist"], dtype=np.float64),
         )
+
+
+def to_camera_frame(cam: Camera, x: torch.Tensor) -> torch.Tensor:
+    """World points (N, 3) -> the same points in ``cam``'s OpenCV camera frame (z = depth), in
+    x's dtype and device."""
+    R = torch.as_tensor(cam.R, dtype=x.dtype, device=x.device)
+    t = torch.as_tensor(cam.t, dtype=x.dtype, device=x.device)
+    return x @ R.T + t
+
+
+def pinhole_pixels(cam: Camera, pc: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel coordinates (u, v), each (N,), of camera-frame points ``pc`` (N, 3) seen at depths
+    ``z`` (N,): ``pc``'s z made safe to divide by, each caller its own way (clamped, or 1 behind
+    the camera). The distortion ``cam.dist`` is not applied: the cameras of a prepared scene
+    are undistorted."""
+    return cam.fx * pc[..., 0] / z + cam.cx, cam.fy * pc[..., 1] / z + cam.cy
+
+
+def pinhole_jacobian(cam: Camera, pc: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """(N, 2, 3) derivative of :func:`pinhole_pixels` (u, v) with respect to the world point,
+    at camera-frame points ``pc`` (N, 3) seen at depths ``z`` (N,)."""
+    j = torch.zeros(pc.shape[0], 2, 3, dtype=pc.dtype, device=pc.device)  # d(u, v)/d(camera point)
+    j[:, 0, 0] = cam.fx / z
+    j[:, 0, 2] = -cam.fx * pc[:, 0] / z**2
+    j[:, 1, 1] = cam.fy / z
+    j[:, 1, 2] = -cam.fy * pc[:, 1] / z**2
+    return j @ torch.as_tensor(cam.R, dtype=pc.dtype, device=pc.device)  # then through the rotation
 
 
 def distort_normalized(x: np.ndarray, y: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

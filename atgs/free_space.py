@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from atgs.cameras import Camera
+from atgs.cameras import Camera, pinhole_pixels, to_camera_frame
 
 GRID_CELLS = 32  # cells along each image's long side
 MARGIN = 0.8  # a position at depth < MARGIN x the cell's nearest point depth is in empty space
@@ -63,12 +63,10 @@ class FreeSpace:
         empty = torch.zeros(X.shape[0], dtype=torch.bool, device=X.device)
         seen = torch.zeros_like(empty)
         for cam, grid, cell in zip(self.cameras, self.grids, self.cells):
-            R = torch.as_tensor(cam.R, dtype=X.dtype, device=X.device)
-            t = torch.as_tensor(cam.t, dtype=X.dtype, device=X.device)
-            p = X @ R.T + t
+            p = to_camera_frame(cam, X)
             z = p[:, 2]
             zs = z.clamp_min(1e-9)
-            u, v = cam.fx * p[:, 0] / zs + cam.cx, cam.fy * p[:, 1] / zs + cam.cy
+            u, v = pinhole_pixels(cam, p, zs)
             inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
             r = (v / cell).long().clamp(0, grid.shape[0] - 1)
             c = (u / cell).long().clamp(0, grid.shape[1] - 1)

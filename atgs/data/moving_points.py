@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 import tyro
 
-from atgs.cameras import Camera
+from atgs.cameras import Camera, pinhole_pixels, to_camera_frame
 from atgs.data.motion_measure import box_downsample, frame_difference
 from atgs.timeline import evenly_spaced
 
@@ -152,13 +152,11 @@ def hull_votes(centers: np.ndarray, half_size: float, cams: Sequence[Camera], ma
     n_see = torch.zeros(len(x), dtype=torch.int32)
     radius_world = half_size * math.sqrt(3.0)
     for cam, mask in zip(cams, masks):
-        R, t = torch.from_numpy(cam.R), torch.from_numpy(cam.t)
-        pc = x @ R.T + t
+        pc = to_camera_frame(cam, x)
         z = pc[:, 2]
         front = z > 1e-6
         zs = torch.where(front, z, torch.ones_like(z))
-        u = cam.fx * pc[:, 0] / zs + cam.cx
-        v = cam.fy * pc[:, 1] / zs + cam.cy
+        u, v = pinhole_pixels(cam, pc, zs)
         H, W = mask.shape
         sx, sy = W / cam.width, H / cam.height  # the mask may be downsampled
         ui, vi = torch.floor(u * sx).long(), torch.floor(v * sy).long()

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import torch
 
-from atgs.cameras import Camera
+from atgs.cameras import Camera, to_camera_frame
 from atgs.render.constants import NEAR, RADIUS_SIGMAS
 
 SAFETY = 1.25  # the bound's slack for what the shared decoder changes between measurements
@@ -40,9 +40,7 @@ def spheres_in_frustum(centres: torch.Tensor, radii: torch.Tensor, cam: Camera, 
     """(A,) True where a sphere may reach ``cam``'s image grown by ``margin`` of its size on each
     side: in front of the near plane and inside all four side planes, each by its radius (a
     conservative test: spheres near a corner may pass). With radius 0 it is the centre's test."""
-    R = torch.as_tensor(cam.R, dtype=torch.float32, device=centres.device)
-    t = torch.as_tensor(cam.t, dtype=torch.float32, device=centres.device)
-    p = centres @ R.T + t
+    p = to_camera_frame(cam, centres)
     x, y, z = p.unbind(1)
     ok = z + radii > NEAR
     mw, mh = margin * cam.width, margin * cam.height

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import torch
 
-from atgs.cameras import Camera
+from atgs.cameras import Camera, pinhole_pixels, to_camera_frame
 
 # An anchor counts as seen by a camera inside its image grown by this fraction per side (the
 # decode's frustum margin): Gaussians reach a little beyond their anchor.
@@ -29,13 +29,10 @@ def sampling_rates(mu: torch.Tensor, cameras: Sequence[Camera], near: float = 0.
     """(A,) highest focal / depth over ``cameras`` that see each anchor position (0: none does)."""
     best = torch.zeros(mu.shape[0], dtype=torch.float32, device=mu.device)
     for cam in cameras:
-        R = torch.as_tensor(cam.R, dtype=torch.float32, device=mu.device)
-        t = torch.as_tensor(cam.t, dtype=torch.float32, device=mu.device)
-        pc = mu.float() @ R.T + t
+        pc = to_camera_frame(cam, mu.float())
         z = pc[:, 2]
         zs = z.clamp_min(near)
-        u = cam.fx * pc[:, 0] / zs + cam.cx
-        v = cam.fy * pc[:, 1] / zs + cam.cy
+        u, v = pinhole_pixels(cam, pc, zs)
         mw, mh = VIEW_MARGIN * cam.width, VIEW_MARGIN * cam.height
         seen = (z > near) & (u > -mw) & (u < cam.width + mw) & (v > -mh) & (v < cam.height + mh)
         rate = max(float(cam.fx), float(cam.fy)) / zs

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from atgs.cameras import Camera
+from atgs.cameras import Camera, pinhole_jacobian, pinhole_pixels, to_camera_frame
 from atgs.data.flow import pyramid, track_points
 
 
@@ -57,18 +57,9 @@ class SceneFlowConfig:
 
 def _project(cam: Camera, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Pixels (N, 2), depths (N,) and the projection's Jacobians (N, 2, 3) of world points x."""
-    R = torch.as_tensor(cam.R, dtype=torch.float32, device=x.device)
-    t = torch.as_tensor(cam.t, dtype=torch.float32, device=x.device)
-    pc = x @ R.T + t
+    pc = to_camera_frame(cam, x)
     z = pc[:, 2].clamp_min(1e-6)
-    uv = torch.stack([cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy], 1)
-    # d(u, v)/d(camera point), then through R
-    j = torch.zeros(x.shape[0], 2, 3, device=x.device)
-    j[:, 0, 0] = cam.fx / z
-    j[:, 0, 2] = -cam.fx * pc[:, 0] / z**2
-    j[:, 1, 1] = cam.fy / z
-    j[:, 1, 2] = -cam.fy * pc[:, 1] / z**2
-    return uv, pc[:, 2], j @ R
+    return torch.stack(pinhole_pixels(cam, pc, z), 1), pc[:, 2], pinhole_jacobian(cam, pc, z)
 
 
 def robust_velocity(jac: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor, inlier_px: float,

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from atgs.cameras import Camera
+from atgs.cameras import Camera, pinhole_pixels
 from atgs.data.mvs.config import StereoConfig
 from atgs.data.mvs.patchmatch import DepthMap
 from atgs.data.mvs.views import View, pixel_rays
@@ -38,7 +38,7 @@ def _to_camera(cam: Camera, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     pc = torch.from_numpy(cam.R) @ X + torch.from_numpy(cam.t)[:, None]
     z = pc[2]
     zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
-    return cam.fx * pc[0] / zs + cam.cx, cam.fy * pc[1] / zs + cam.cy, z
+    return (*pinhole_pixels(cam, pc.T, zs), z)
 
 
 SMOOTH_SPREAD = 0.1  # 2x2 inverse depths spread less than this (relative): one surface, interpolate
