@@ -188,7 +188,7 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
     import numpy as np
 
     from atgs.data.moving_points import MotionPointsConfig, motion_keyframes, motion_points
-    from atgs.data.scene import PreparedScene, compute_bounds, write_scene_metadata
+    from atgs.data.scene import MemoryScene, PreparedScene, compute_bounds, write_scene_metadata
     from atgs.io.atomic import atomic_dir, link_or_copy
 
     # named after the scene it derives from, so a new PREPARE_VERSION never reuses an older copy
@@ -205,12 +205,13 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
     with atomic_dir(out, True) as tmp:
         shutil.copytree(scene_dir / "images", tmp / "images", copy_function=link_or_copy)
         shutil.copy2(scene_dir / "synth.json", tmp / "synth.json")
-        write_scene_metadata(tmp, scene.cameras, scene.num_frames, scene.points, scene.point_colors,
-                             scene.point_keyframes, fps=scene.fps, keyframes=scene.keyframes,
-                             test_cameras=scene.test_cameras, name=f"{scene.name}-motion-per{per_interval}",
+        content = MemoryScene(scene.cameras, scene.num_frames, scene.fps, scene.keyframes, scene.points,
+                              scene.point_keyframes, scene.test_cameras, point_colors=scene.point_colors,
+                              **mp.scene_fields())
+        write_scene_metadata(tmp, content, name=f"{scene.name}-motion-per{per_interval}",
                              source=scene.source, extra={"coverage": meta.get("coverage"),
                                                          "keyframe_points": meta.get("keyframe_points"),
-                                                         "motion_points": mp.stats}, motion=mp)
+                                                         "motion_points": mp.stats})
     return out
 
 

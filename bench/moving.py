@@ -31,7 +31,7 @@ import tyro
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _docs import publish  # noqa: E402
 
-from atgs.data.scene import PreparedScene, write_prepared_scene  # noqa: E402
+from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene  # noqa: E402
 from atgs.data.synth.videos import ensure_default_scene, load_ground_truth  # noqa: E402
 from atgs.data.synth.scene import sample_surface  # noqa: E402
 from atgs.io.cache import cache_dir  # noqa: E402
@@ -78,9 +78,9 @@ def oracle_scene(base: Path, out: Path, keyframes: int, per_keyframe: int) -> Pa
         pts.append(p)
         kf.append(np.full(len(p), j))
     P = np.concatenate(pts)
-    write_prepared_scene(out, src.cameras, src.image_uint8, src.num_frames, P, np.full_like(P, 0.5),
-                         np.concatenate(kf), fps=src.fps, keyframes=kfs, test_cameras=list(src.test_cameras),
-                         overwrite=True)
+    write_prepared_scene(out, MemoryScene(src.cameras, src.num_frames, src.fps, kfs, P, np.concatenate(kf),
+                                          list(src.test_cameras), point_colors=np.full_like(P, 0.5)),
+                         src.image_uint8, overwrite=True)
     shutil.copy2(base / "synth.json", out / "synth.json")
     return out
 

@@ -25,14 +25,10 @@ def renderer():
 @pytest.fixture(scope="session")
 def toy_scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """builders.make_toy_scene written as a prepared scene (atgs-prepare's output) for the CLIs."""
-    import numpy as np
-
     from atgs.data.scene import write_prepared_scene
     from builders import make_toy_scene
 
     s = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
     out = tmp_path_factory.mktemp("scene") / "toy"
-    write_prepared_scene(out, s.cameras, lambda c, f: s.frames[(c, f)], s.num_frames, s.points,
-                         np.full((len(s.points), 3), 0.5), s.point_keyframes, fps=s.fps, keyframes=s.keyframes,
-                         test_cameras=s.test_cameras)
+    write_prepared_scene(out, s)  # colours: grey
     return out

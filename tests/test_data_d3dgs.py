@@ -21,7 +21,7 @@ from atgs.data.errors import DataError
 from atgs.data.moving_points import MotionPointsConfig, motion_keyframes
 from atgs.data.mvs import StereoConfig
 from atgs.data.prepare import PrepareConfig, prepare
-from atgs.data.scene import PreparedScene, read_mask, write_prepared_scene
+from atgs.data.scene import MemoryScene, PreparedScene, read_mask, write_prepared_scene
 from atgs.data.sources import detect_format, open_source
 from atgs.data.synth.mesh_renderer import MeshRenderer
 from atgs.data.synth.scene import SynthConfig, SynthScene
@@ -122,7 +122,8 @@ def test_prepared_mask_errors_name_the_file(capture, tmp_path) -> None:
         PreparedScene.load(copy)
     cams = [Camera(f"c{i}", 8, 6, np.diag([8.0, 8.0, 1.0]), look_at(np.array([3.0, i, 1.0]), np.zeros(3)))
             for i in range(2)]
-    plain = PreparedScene.load(write_prepared_scene(tmp_path / "plain", cams, lambda c, f: np.zeros((6, 8, 3)), 1))
+    blank = write_prepared_scene(tmp_path / "plain", MemoryScene(cams, 1), lambda c, f: np.zeros((6, 8, 3)))
+    plain = PreparedScene.load(blank)
     assert not plain.has_masks and "masks" not in json.loads((tmp_path / "plain" / "scene.json").read_text())
     with pytest.raises(DataError, match="the scene has no masks"):
         plain.mask(0, 0)

@@ -17,7 +17,7 @@ from atgs.data.mvs.fill import fallback_points, frustum_fill
 from atgs.data.mvs.fusion import fuse_depth_maps, fuse_reference
 from atgs.data.mvs.patchmatch import DepthMap, PlaneCost, patchmatch, patchmatch_cost_reference, random_normals
 from atgs.data.mvs.views import depth_ranges, make_view
-from atgs.data.scene import write_prepared_scene
+from atgs.data.scene import MemoryScene, write_prepared_scene
 
 W, H = 96, 72
 BOX = (np.array([-0.45, -0.35, 0.0]), np.array([0.45, 0.35, 0.7]))
@@ -221,7 +221,7 @@ def test_scene_coverage_reports_every_camera_and_the_test_cameras(rig) -> None:
 # --- the fallback start --------------------------------------------------------------------------
 
 def _prepared(tmp_path, cams, imgs):
-    root = write_prepared_scene(tmp_path / "scene", cams, lambda ci, f: imgs[ci], 1)
+    root = write_prepared_scene(tmp_path / "scene", MemoryScene(cams, 1), lambda ci, f: imgs[ci])
     return root, (tmp_path / "work")
 
 
@@ -317,7 +317,7 @@ def test_held_out_cameras_never_feed_the_keyframe_points(tmp_path) -> None:
     noise = np.random.default_rng(0).integers(0, 256, imgs[0].shape, dtype=np.uint8)
     runs = []
     for name, first in (("real", imgs[0]), ("noise", noise)):
-        root = write_prepared_scene(tmp_path / name, cams, lambda ci, f: first if ci == 0 else imgs[ci], 1)
+        root = write_prepared_scene(tmp_path / name, MemoryScene(cams, 1), lambda ci, f: first if ci == 0 else imgs[ci])
         runs.append(keyframe_points(root, cams, [cams[0].name], [0], ".png", tmp_path / f"work-{name}",
                                     ColmapOptions(), CFG, FillConfig(), progress=False))
     assert len(runs[0].points) > 100
@@ -364,8 +364,8 @@ def test_an_empty_point_cloud_trains(tmp_path, capsys) -> None:
     from atgs.train.trainer import Trainer
 
     toy = make_toy_scene(num_frames=4, num_cameras=4, width=40, height=32, keyframes=2)
-    root = write_prepared_scene(tmp_path / "empty", toy.cameras, toy.image_uint8, toy.num_frames,
-                                keyframes=toy.keyframes, test_cameras=toy.test_cameras)
+    root = write_prepared_scene(tmp_path / "empty", MemoryScene(toy.cameras, toy.num_frames, keyframes=toy.keyframes,
+                                                                test_cameras=toy.test_cameras), toy.image_uint8)
     scene = PreparedScene.load(root)
     assert len(scene.points) == 0 and np.all(scene.bounds[1] > scene.bounds[0])
     m, t = preset("tiny")

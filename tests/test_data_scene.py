@@ -11,7 +11,7 @@ from plyfile import PlyData
 from atgs.cameras import Camera, look_at
 from atgs.data.errors import DataError
 from atgs.errors import OutputError
-from atgs.data.scene import PreparedScene, write_prepared_scene
+from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene
 
 K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
 
@@ -34,9 +34,11 @@ def _write(path, **kw):
     pts = rng.normal(size=(30, 3))
     cols = rng.random((30, 3)).astype(np.float32)
     kf = np.arange(30) % 2
-    args = dict(fps=25.0, keyframes=[0, 4], test_cameras=["cam01"])
-    args.update(kw)
-    return write_prepared_scene(path, _cams(), _frame, 5, pts, cols, kf, **args), pts, cols, kf
+    content = dict(fps=25.0, keyframes=[0, 4], test_cameras=["cam01"])
+    content.update({k: v for k, v in kw.items() if k in ("fps", "keyframes", "test_cameras")})
+    scene = MemoryScene(_cams(), 5, points=pts, point_keyframes=kf, point_colors=cols, **content)
+    args = {k: v for k, v in kw.items() if k not in content}
+    return write_prepared_scene(path, scene, _frame, **args), pts, cols, kf
 
 
 def test_layout_and_reader(tmp_path) -> None:
@@ -76,7 +78,7 @@ def test_refuses_to_overwrite_and_keeps_old_scene(tmp_path) -> None:
                 raise RuntimeError("boom")
             return _frame(ci, f)
 
-        write_prepared_scene(out, _cams(), bad, 5, overwrite=True)
+        write_prepared_scene(out, MemoryScene(_cams(), 5), bad, overwrite=True)
     assert (out / "scene.json").read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]  # no temp dirs left behind
     _write(tmp_path / "s", fps=50.0, overwrite=True)
@@ -119,3 +121,43 @@ def test_jpg_frames(tmp_path) -> None:
     s = PreparedScene.load(out)
     assert s.image_ext == ".jpg" and (out / "images" / "cam00" / "000000.jpg").is_file()
     assert np.abs(s.image(1, 2) * 255 - _frame(1, 2)).mean() < 3.0
+
+
+def _scene_reads() -> set[str]:
+    """Every attribute atgs/train/ reads of the scene it trains on (``scene.x``, ``self.scene.x``)."""
+    import ast
+    from pathlib import Path
+
+    import atgs.train
+
+    names = set()
+    for path in Path(atgs.train.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute):
+                v = node.value
+                if (isinstance(v, ast.Name) and v.id == "scene") or \
+                        (isinstance(v, ast.Attribute) and v.attr == "scene" and isinstance(v.value, ast.Name)):
+                    names.add(node.attr)
+    return names
+
+
+def test_both_scene_kinds_provide_what_the_trainer_reads(tmp_path) -> None:
+    """SceneData names everything atgs/train/ reads of a scene, and PreparedScene and
+    MemoryScene both have all of it, with the same meaning."""
+    from atgs.train.trainer import SceneData
+
+    members = {n for n in SceneData.__annotations__} | {
+        n for n, v in vars(SceneData).items() if not n.startswith("_") and (callable(v) or isinstance(v, property))}
+    assert _scene_reads() <= members, f"read but not in SceneData: {_scene_reads() - members}"
+    root, pts, cols, kf = _write(tmp_path / "s")
+    prepared = PreparedScene.load(root)
+    memory = MemoryScene(_cams(), 5, 25.0, [0, 4], pts, kf, ["cam01"],
+                         {(c, f): _frame(c, f) for c in range(3) for f in range(5)}, point_colors=cols)
+    for scene in (prepared, memory):
+        missing = [n for n in members if not hasattr(scene, n)]
+        assert not missing, f"{type(scene).__name__} lacks {missing}"
+        assert scene.measured_points.dtype == bool and scene.measured_points.shape == (len(scene.points),)
+        assert scene.train_indices == [0, 2] and scene.test_indices == [1]
+        np.testing.assert_array_equal(scene.image_uint8(2, 3), _frame(2, 3))
+        assert len(scene.motion_points) == len(scene.motion_point_keyframes) == 0 and scene.motion_keyframes == []
+    assert memory.bounds is None and prepared.bounds.shape == (2, 3)

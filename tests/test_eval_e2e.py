@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from atgs.cli.evaluate import main
-from atgs.data.scene import PreparedScene, write_prepared_scene
+from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene
 from atgs.eval import metrics as M
 from test_eval import make_cameras, make_gaussians, moving, render
 
@@ -31,8 +31,8 @@ def write_scene(root: Path, cams, test: tuple[str, ...] = ("cam02",)) -> Path:
     pts = torch.cat([moving(truth, 0).means, moving(truth, 3).means]).numpy()
     cols = torch.cat([truth.colors, truth.colors]).numpy()
     kfs = np.repeat([0, 1], len(truth))
-    return write_prepared_scene(root, cams, frame, NUM_FRAMES, pts, cols, kfs, fps=10.0, keyframes=[0, 3],
-                                test_cameras=test)
+    return write_prepared_scene(root, MemoryScene(cams, NUM_FRAMES, 10.0, [0, 3], pts, kfs, list(test),
+                                                  point_colors=cols), frame)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from atgs.auto_config import choose_config
 from atgs.cameras import Camera, look_at
 from atgs.data.motion_measure import (MotionConfig, box_downsample, estimate_noise, frame_difference, lag_steps,
                               measure_motion, point_spacing, turnover_time)
-from atgs.data.scene import PreparedScene, write_prepared_scene
+from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene
 from atgs.train.config import preset
 
 W, H = 64, 48
@@ -58,7 +58,8 @@ def _write_scene(path, frames: int, cams: int = 2, square: dict | None = None, n
     pts = rng.random((200, 3)) * np.array([4.0, 2.0, 1.0])
     keyframes = sorted(set(keyframes or [0, frames - 1]))
     kf = np.arange(200) % len(keyframes)
-    write_prepared_scene(path, _cams(cams), frame, frames, pts, np.full((200, 3), 0.5), kf, keyframes=keyframes)
+    write_prepared_scene(path, MemoryScene(_cams(cams), frames, keyframes=keyframes, points=pts, point_keyframes=kf,
+                                           point_colors=np.full((200, 3), 0.5)), frame)
     return PreparedScene.load(path)
 
 
@@ -222,7 +223,7 @@ def test_compression_like_flicker_is_not_motion(tmp_path) -> None:
     def frame(ci: int, f: int) -> np.ndarray:
         return np.clip(bg + jumps[f, ..., None] * levels[f], 0, 1)
 
-    write_prepared_scene(tmp_path / "s", _cams(1), frame, 20)
+    write_prepared_scene(tmp_path / "s", MemoryScene(_cams(1), 20), frame)
     s = measure_motion(PreparedScene.load(tmp_path / "s"), CFG)
     assert s.noise == 0.0  # most pixels never change: the noise floor cannot see the jumps
     assert s.static and s.moving_fraction == 0.0

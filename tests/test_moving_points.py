@@ -14,7 +14,7 @@ from atgs.data.errors import DataError
 from atgs.data.motion_measure import box_downsample
 from atgs.data.moving_points import (MotionPointsConfig, background, foreground_mask, hull_votes, motion_keyframes,
                                      motion_mask, motion_points, visual_hull)
-from atgs.data.scene import PreparedScene, write_prepared_scene
+from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ATGSModel
 from atgs.timeline import evenly_spaced
@@ -188,9 +188,9 @@ def test_scene_round_trip_and_missing_file(tmp_path) -> None:
     from atgs.data.moving_points import MotionPoints
     mp = MotionPoints([0, 2, 4], np.array([[0.0, 0, 0], [1, 1, 1], [2, 2, 2]]), np.full((3, 3), 0.5, np.float32),
                       np.array([0, 1, 2]), {"keyframes": 3})
-    out = write_prepared_scene(tmp_path / "s", cams, lambda ci, f: np.zeros((24, 32, 3), np.uint8), F,
-                               np.zeros((200, 3)) + np.arange(200)[:, None] * 0.01, keyframes=[0, 4],
-                               point_keyframes=np.repeat([0, 1], 100), motion=mp)
+    scene = MemoryScene(cams, F, keyframes=[0, 4], points=np.zeros((200, 3)) + np.arange(200)[:, None] * 0.01,
+                        point_keyframes=np.repeat([0, 1], 100), **mp.scene_fields())
+    out = write_prepared_scene(tmp_path / "s", scene, lambda ci, f: np.zeros((24, 32, 3), np.uint8))
     s = PreparedScene.load(out)
     assert s.motion_keyframes == [0, 2, 4]
     np.testing.assert_allclose(s.motion_points, mp.points, atol=1e-6)

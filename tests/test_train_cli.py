@@ -30,15 +30,16 @@ def test_auto_applies_scene_choices_and_keeps_explicit_flags(tmp_path, capsys):
 
     from atgs.cameras import Camera, look_at
     from atgs.cli.train import apply_auto, explicit_model_flags
-    from atgs.data.scene import PreparedScene, write_prepared_scene
+    from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene
 
     K = np.array([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]])
     cams = [Camera(f"cam{i:02d}", 48, 32, K, look_at([3 * np.cos(i), 3 * np.sin(i), 1.0], [0, 0, 0]))
             for i in range(3)]
     still = np.random.default_rng(0).random((32, 48, 3)).astype(np.float32)
     pts = np.random.default_rng(1).random((50, 3)) - 0.5
-    write_prepared_scene(tmp_path / "s", cams, lambda c, f: still, 12, pts, np.full((50, 3), 0.5),
-                         np.arange(50) % 3, keyframes=[0, 5, 11])
+    write_prepared_scene(tmp_path / "s", MemoryScene(cams, 12, keyframes=[0, 5, 11], points=pts,
+                                                     point_keyframes=np.arange(50) % 3,
+                                                     point_colors=np.full((50, 3), 0.5)), lambda c, f: still)
     scene = PreparedScene.load(tmp_path / "s")
 
     argv = ["--auto", "--preset", "cpu-fast", "--model.spatial-resolution", "17"]

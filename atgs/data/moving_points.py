@@ -100,6 +100,11 @@ class MotionPoints:
     point_keyframes: np.ndarray  # (P,) int64, index into ``keyframes``
     stats: dict = field(default_factory=dict)  # for scene.json
 
+    def scene_fields(self) -> dict:
+        """These points as the motion fields of an :class:`atgs.data.scene.MemoryScene`."""
+        return {"motion_keyframes": list(self.keyframes), "motion_points": self.points,
+                "motion_point_colors": self.colors, "motion_point_keyframes": self.point_keyframes}
+
 
 def motion_keyframes(num_frames: int, geometry_keyframes: int, per_interval: int) -> list[int]:
     """(K - 1) * per_interval + 1 evenly spaced frames: a superset of the K geometry keyframes

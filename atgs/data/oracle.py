@@ -29,7 +29,7 @@ from atgs.data.coverage import scene_coverage, working_camera
 from atgs.data.errors import DataError
 from atgs.data.mvs import StereoConfig
 from atgs.data.mvs.fusion import capped_voxel_average
-from atgs.data.scene import PreparedScene, write_scene_metadata
+from atgs.data.scene import MemoryScene, PreparedScene, write_scene_metadata
 
 
 def source_frame(scene: PreparedScene, frame: int) -> int:
@@ -95,9 +95,9 @@ def make_oracle_scene(prepared: Path, out: Path, stereo: StereoConfig = StereoCo
             shutil.copy2(Path(prepared) / "motion_points.ply", tmp / "motion_points.ply")
         cov = scene_coverage(scene.cameras, pts, kf, len(scene.keyframes), scene.test_cameras, stereo.long_side)
         source = dict(scene.source, oracle={"from": str(Path(prepared).resolve()), "points": int(len(pts))})
-        write_scene_metadata(tmp, scene.cameras, scene.num_frames, pts, cols, kf, fps=scene.fps,
-                             keyframes=scene.keyframes, test_cameras=scene.test_cameras, name=scene.name,
-                             bounds=scene.bounds, source=source,
+        content = MemoryScene(scene.cameras, scene.num_frames, scene.fps, scene.keyframes, pts, kf, scene.test_cameras,
+                              bounds=scene.bounds, point_colors=cols)
+        write_scene_metadata(tmp, content, name=scene.name, source=source,
                              extra={"coverage": cov, "keyframe_points": {"oracle": np.bincount(
                                  kf, minlength=len(scene.keyframes)).tolist()},
                                  **{k: v for k, v in meta.items() if k not in _WRITTEN}})

@@ -33,8 +33,8 @@ from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
 from atgs.data.moving_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
 from atgs.data.mvs import FillConfig, StereoConfig
-from atgs.data.scene import (compute_bounds, frame_path, mask_path, read_mask, read_rgb, save_frame, save_mask,
-                             write_scene_metadata)
+from atgs.data.scene import (MemoryScene, compute_bounds, frame_path, mask_path, read_mask, read_rgb, save_frame,
+                             save_mask, write_scene_metadata)
 from atgs.data.sources import Source, SourceFormat, open_source
 from atgs.data.undistort import apply_undistort_map, build_undistort_map
 from atgs.timeline import evenly_spaced
@@ -225,11 +225,12 @@ def prepare(cfg: PrepareConfig) -> Path:
             source["synth"] = "synth.json"
         timings["total"] = time.perf_counter() - t0
         source["timings_s"] = {k: round(v, 2) for k, v in timings.items()}
-        write_scene_metadata(tmp, out_cams, num_frames, kp.points, kp.colors, kp.keyframes, fps=fps, keyframes=kfs,
-                             test_cameras=test, name=cfg.name or out.name, source=source,
+        content = MemoryScene(out_cams, num_frames, fps, kfs, kp.points, kp.keyframes, test, point_colors=kp.colors,
+                              **(motion.scene_fields() if motion is not None else {}))
+        write_scene_metadata(tmp, content, name=cfg.name or out.name, source=source,
                              extra={"coverage": kp.coverage, "keyframe_points": kp.counts,
                                     "motion_points": motion.stats if motion is not None else {"enabled": False}},
-                             motion=motion, masks=src.masks is not None)
+                             masks=src.masks is not None)
     return out
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -208,21 +208,29 @@ class PreparedScene:
 class MemoryScene:
     """A scene held in memory, with what training and evaluation read of a
     :class:`PreparedScene` (cameras, frames, keyframe points, test cameras by name): toy scenes
-    of the tests and the benchmarks' synthetic scenes. ``frames[(camera index, frame)]`` is a
-    uint8 (H, W, 3) image."""
+    of the tests and the benchmarks' synthetic scenes, and what :func:`write_prepared_scene` and
+    :func:`write_scene_metadata` write. ``frames[(camera index, frame)]`` is a uint8 (H, W, 3)
+    image; a writer may take the frames from elsewhere and leave it empty."""
 
     cameras: list[Camera]
     num_frames: int
-    fps: float
-    keyframes: list[int]
-    points: np.ndarray
-    point_keyframes: np.ndarray
-    test_cameras: list[str]
+    fps: float = 30.0
+    keyframes: list[int] = field(default_factory=lambda: [0])
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    point_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # index into keyframes
+    test_cameras: list[str] = field(default_factory=list)
     frames: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
-    bounds: np.ndarray | None = None  # (2, 3) min and max corner, as PreparedScene.bounds
+    bounds: np.ndarray | None = None  # (2, 3) min and max corner, as PreparedScene.bounds (None: from the points)
     motion_keyframes: list[int] = field(default_factory=list)  # as PreparedScene's
     motion_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     motion_point_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    point_colors: np.ndarray | None = None  # (P, 3) in [0, 1]; None: grey (what a writer stores)
+    motion_point_colors: np.ndarray | None = None  # likewise for the motion points
+
+    @property
+    def measured_points(self) -> np.ndarray:
+        """(P,) bool, as PreparedScene's: all True, nothing here was filled in."""
+        return np.ones(len(self.points), bool)
 
     @property
     def train_indices(self) -> list[int]:
@@ -355,50 +363,39 @@ def compute_bounds(points: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
 
 def write_prepared_scene(
     out: str | Path,
-    cameras: Sequence[Camera],
-    frames_fn: Callable[[int, int], np.ndarray],
-    num_frames: int,
-    points: np.ndarray | None = None,
-    point_colors: np.ndarray | None = None,
-    point_keyframes: np.ndarray | None = None,
+    scene: MemoryScene,
+    frames: Callable[[int, int], np.ndarray] | None = None,
     *,
-    fps: float = 30.0,
-    keyframes: Sequence[int] | None = None,
-    test_cameras: Sequence[str] = (),
     name: str | None = None,
-    bounds: np.ndarray | None = None,
     source: dict | None = None,
     image_ext: str = ".png",
     overwrite: bool = False,
     progress: bool = False,
-    motion=None,
 ) -> Path:
-    """Write a prepared scene atomically and return its path.
+    """Write ``scene`` as a prepared scene, atomically, and return its path.
 
-    ``frames_fn(cam_index, frame)`` returns an (H,W,3) image (uint8, or float in [0,1]); it is
-    called once per file so the frames never need to be in memory together.
+    ``frames(cam_index, frame)`` (default: the scene's own, ``scene.image_uint8``) returns an
+    (H,W,3) image (uint8, or float in [0,1]); it is called once per file so the frames never
+    need to be in memory together. The keyframes are stored sorted and without repeats.
     """
     out = Path(out)
-    cameras = list(cameras)
+    cameras = list(scene.cameras)
     if any(c.dist is not None for c in cameras):
         raise ValueError("prepared scenes hold undistorted cameras (dist must be None)")
     if image_ext not in IMAGE_EXTS:
         raise ValueError(f"image_ext must be one of {IMAGE_EXTS}")
-    pts = np.zeros((0, 3), np.float32) if points is None else np.asarray(points, np.float32).reshape(-1, 3)
-    cols = np.full_like(pts, 0.5) if point_colors is None else np.asarray(point_colors, np.float32).reshape(-1, 3)
-    kfs = np.zeros(len(pts), np.int64) if point_keyframes is None else np.asarray(point_keyframes, np.int64)
-    keyframes = [0] if keyframes is None else sorted({int(k) for k in keyframes})
+    frames = scene.image_uint8 if frames is None else frames
+    colors = None if scene.point_colors is None else np.asarray(scene.point_colors, np.float32).reshape(-1, 3)
+    scene = replace(scene, cameras=cameras, keyframes=sorted({int(k) for k in scene.keyframes}), point_colors=colors)
     with atomic_dir(out, overwrite) as tmp:
-        total = len(cameras) * num_frames
+        total = len(cameras) * scene.num_frames
         with progress_bar(total, "write frames", unit="img", enabled=progress) as bar:
             for ci, cam in enumerate(cameras):
                 (tmp / "images" / cam.name).mkdir(parents=True)
-                for f in range(num_frames):
-                    save_frame(tmp, cam, f, np.asarray(frames_fn(ci, f)), image_ext)
+                for f in range(scene.num_frames):
+                    save_frame(tmp, cam, f, np.asarray(frames(ci, f)), image_ext)
                     bar.update(1)
-        write_scene_metadata(tmp, cameras, num_frames, pts, cols, kfs, fps=fps, keyframes=keyframes,
-                             test_cameras=test_cameras, name=name or out.name, bounds=bounds, source=source,
-                             motion=motion)
+        write_scene_metadata(tmp, scene, name=name or out.name, source=source)
     return out
 
 
@@ -412,36 +409,42 @@ def save_frame(root: Path, cam: Camera, frame: int, img: np.ndarray, image_ext: 
     Image.fromarray(img[..., :3]).save(frame_path(root, cam.name, frame, image_ext), **opts)
 
 
-def write_scene_metadata(root: Path, cameras: Sequence[Camera], num_frames: int, points: np.ndarray,
-                         point_colors: np.ndarray, point_keyframes: np.ndarray, *, fps: float,
-                         keyframes: Sequence[int], test_cameras: Sequence[str], name: str,
-                         bounds: np.ndarray | None = None, source: dict | None = None,
-                         extra: dict | None = None, motion=None, masks: bool = False) -> None:
-    """Write scene.json and points.ply into ``root`` (whose images/ already exist), then validate.
-    ``extra`` adds informational keys (e.g. "coverage") that readers may ignore; ``motion`` (an
-    :class:`atgs.data.moving_points.MotionPoints`) adds motion_points.ply and "motion_keyframes";
-    ``masks`` records that masks/ holds a mask of every frame (the key is absent otherwise)."""
+def write_scene_metadata(root: Path, scene: MemoryScene, *, name: str, source: dict | None = None,
+                         extra: dict | None = None, masks: bool = False) -> None:
+    """Write scene.json and points.ply of ``scene`` (its frames are not read) into ``root``
+    (whose images/ already exist), then validate. Motion keyframes add motion_points.ply and
+    "motion_keyframes"; ``extra`` adds informational keys (e.g. "coverage") that readers may
+    ignore; ``masks`` records that masks/ holds a mask of every frame (the key is absent
+    otherwise). Missing colours are stored grey."""
     root = Path(root)
-    pts = np.asarray(points, np.float32).reshape(-1, 3)
-    if bounds is None:
-        bounds = compute_bounds(pts, cameras)
+    cameras = list(scene.cameras)
+    pts = np.asarray(scene.points, np.float32).reshape(-1, 3)
+    bounds = compute_bounds(pts, cameras) if scene.bounds is None else scene.bounds
     meta = {
         "format": SCENE_FORMAT,
         "version": SCENE_VERSION,
         "name": name,
-        "fps": float(fps),
-        "num_frames": int(num_frames),
+        "fps": float(scene.fps),
+        "num_frames": int(scene.num_frames),
         "cameras": [c.to_dict() for c in cameras],
-        "test_cameras": list(test_cameras),
-        "keyframes": keyframes,
+        "test_cameras": list(scene.test_cameras),
+        "keyframes": [int(k) for k in scene.keyframes],
         "bounds": {"min": np.asarray(bounds)[0].tolist(), "max": np.asarray(bounds)[1].tolist()},
         "source": dict(source or {}),
         **(extra or {}),
         **({"masks": True} if masks else {}),
     }
-    if motion is not None and len(motion.keyframes):
-        meta["motion_keyframes"] = [int(k) for k in motion.keyframes]
-        write_points_ply(root / "motion_points.ply", motion.points, motion.colors, motion.point_keyframes)
-    write_points_ply(root / "points.ply", pts, point_colors, point_keyframes)
+    if len(scene.motion_keyframes):
+        meta["motion_keyframes"] = [int(k) for k in scene.motion_keyframes]
+        write_points_ply(root / "motion_points.ply", scene.motion_points,
+                         _grey_if_none(scene.motion_point_colors, len(scene.motion_point_keyframes)),
+                         scene.motion_point_keyframes)
+    write_points_ply(root / "points.ply", pts, _grey_if_none(scene.point_colors, len(pts)),
+                     np.asarray(scene.point_keyframes, np.int64))
     (root / "scene.json").write_text(json.dumps(meta, indent=1))
     PreparedScene.load(root)  # validate what we wrote before it becomes visible
+
+
+def _grey_if_none(colors: np.ndarray | None, n: int) -> np.ndarray:
+    """``colors`` as given (float in [0, 1] or integer in [0, 255]: write_points_ply), or n greys."""
+    return np.full((n, 3), 0.5, np.float32) if colors is None else colors

@@ -52,7 +52,8 @@ from atgs.train.schedule import exp_decay, warmup
 
 
 class SceneData(Protocol):
-    """What the trainer needs of a scene (``atgs.data.scene.PreparedScene`` provides it)."""
+    """What the trainer reads of a scene (``atgs.data.scene.PreparedScene`` and ``MemoryScene``
+    provide it; tests/test_data_scene.py checks both)."""
 
     cameras: list[Camera]
     num_frames: int
@@ -61,6 +62,13 @@ class SceneData(Protocol):
     points: np.ndarray
     point_keyframes: np.ndarray
     test_cameras: list[str]
+    bounds: np.ndarray | None  # (2, 3) min and max corner; None: the model takes the points' box
+    motion_keyframes: list[int]  # points on moving content at extra keyframes (may be empty)
+    motion_points: np.ndarray
+    motion_point_keyframes: np.ndarray
+
+    @property
+    def measured_points(self) -> np.ndarray: ...
 
     @property
     def train_indices(self) -> list[int]: ...
@@ -74,7 +82,7 @@ class SceneData(Protocol):
 
 
 def _bounds(scene: SceneData) -> torch.Tensor | None:
-    b = getattr(scene, "bounds", None)
+    b = scene.bounds
     # on the CPU: the model is initialised there and moved afterwards
     return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32), device="cpu").reshape(2, 3)
 
@@ -96,10 +104,8 @@ def free_space_of(scene: SceneData, cams: list[Camera], device: torch.device) ->
     fill; all keyframes at once, so anything a moving object occupies at one keyframe stays
     non-empty) and its motion points."""
     pts = np.asarray(scene.points, np.float64)
-    measured = getattr(scene, "measured_points", None)  # a MemoryScene has only measured points
-    if measured is not None:
-        pts = pts[np.asarray(measured, bool)]
-    motion = np.asarray(getattr(scene, "motion_points", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    pts = pts[np.asarray(scene.measured_points, bool)]
+    motion = np.asarray(scene.motion_points, np.float64).reshape(-1, 3)
     return FreeSpace.of(cams, np.concatenate([pts, motion]), device=device)
 
 
