@@ -1,12 +1,18 @@
-"""Writes a benchmark's table into a docs page, between `<!-- bench:NAME:start/end -->` markers."""
+"""A benchmark's results: stamped (when, at what load, at which commit), written as JSON, and its
+table written into a docs page between `<!-- bench:NAME:start/end -->` markers."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
+import time
 from pathlib import Path
 
 from atgs.io.atomic import write_json_atomic as _write_json, write_text_atomic
+
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 def markers(name: str) -> tuple[str, str]:
@@ -41,6 +47,25 @@ def git_commit(repo: Path) -> str:
                               text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+def today() -> str:
+    return time.strftime("%Y-%m-%d")
+
+
+def utc_now() -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+
+
+def loadavg() -> list[float]:
+    """The machine's 1, 5 and 15-minute load averages: how much else ran beside a timing."""
+    return list(os.getloadavg())
+
+
+def run_stamp(load: bool = True) -> dict:
+    """The fields that end a run's results row: its load average at the end (``load``), the
+    commit measured and the day."""
+    return {**({"loadavg": loadavg()} if load else {}), "commit": git_commit(REPO), "date": today()}
 
 
 def publish(result, json_out: Path, table: str, docs: Path | None, name: str) -> None:

@@ -81,26 +81,20 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
     import resource
 
     import torch
-
-    from atgs.train.config import preset
-    from atgs.train.trainer import Trainer
+    from _docs import utc_now
+    from _harness import build_trainer, case_configs, run_timed
 
     if spec.threads:
         torch.set_num_threads(spec.threads)
     t_data = time.perf_counter()
     scene = scene_for(spec, cache_dir)
     t_data = time.perf_counter() - t_data
-    m, t = preset(spec.preset, spec.iterations)
-    for k, v in spec.model_overrides.items():
-        setattr(m, k, v)
-    for k, v in spec.train_overrides.items():
-        setattr(t, k, v)
-    t.eval_every, t.save_every = 0, 0
-    out = work_dir / spec.name
-    trainer = Trainer(scene, m, t, out)
-    res = trainer.train(progress=sys.stderr.isatty(), final_renders=True)
+    trainer = build_trainer(scene, work_dir / spec.name, spec.preset, iterations=spec.iterations,
+                            model=spec.model_overrides, train=spec.train_overrides, threads=spec.threads)
+    res = run_timed(trainer, "renders", progress=sys.stderr.isatty()).result
+    planned = case_configs(spec.preset, iterations=spec.iterations, train=spec.train_overrides)[1].iterations
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return {"name": spec.name, "preset": spec.preset, "iterations": t.iterations,
+    return {"name": spec.name, "preset": spec.preset, "iterations": planned,
             "frames": scene.num_frames, "cameras": len(scene.cameras), "test_cameras": scene.test_cameras,
             "width": scene.cameras[0].width, "height": scene.cameras[0].height,
             "keyframes": trainer.model.num_keyframes, "segments": trainer.model.num_segments,
@@ -108,8 +102,7 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
             "scene_seconds": t_data, "psnr": res["eval"]["psnr"], "ssim": res["eval"]["ssim"],
             "eval_views": res["eval"]["views"], "peak_rss_mb": peak_kb / 1024.0,
             "model_overrides": spec.model_overrides, "torch_threads": torch.get_num_threads(),
-            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-            "load_average": list(os.getloadavg())}  # 1, 5, 15 min at the end of the run
+            "date": utc_now(), "load_average": list(os.getloadavg())}  # 1, 5, 15 min at the end of the run
 
 
 def run_subprocess(spec: RunSpec, args: BenchArgs) -> dict:
