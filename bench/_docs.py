@@ -3,7 +3,6 @@ table written into a docs page between `<!-- bench:NAME:start/end -->` markers."
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import time
@@ -75,13 +74,3 @@ def publish(result, json_out: Path, table: str, docs: Path | None, name: str) ->
     print(table)
     if docs is not None:
         update_docs_table(docs, name, table)
-
-
-def run_worker(cmd: list[str], log_path: Path) -> dict:
-    """Run a bench's worker process (stderr to ``log_path``) and return the JSON of its last line."""
-    with open(log_path, "w") as log:
-        proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"worker {' '.join(cmd[-6:])} failed (exit {proc.returncode}); see {log_path}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-

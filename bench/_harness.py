@@ -1,5 +1,5 @@
-"""What the training benches share: a Trainer built from a scene, a preset and a case's
-overrides, and its run or its steps timed.
+"""What the training benches share: a synthetic scene, a Trainer built from a scene, a preset
+and a case's overrides, its run or its steps timed, and the child processes that run cases.
 
 Every bench script builds its Trainer through :func:`build_trainer`, so what a bench relies on
 is set in one place: periodic evaluations and checkpoints off (a bench times the steps and
@@ -12,7 +12,9 @@ never mixes in). Only the trainer's public surface is used: its constructor, ``t
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
+import subprocess
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -30,6 +32,20 @@ NONE: Mapping[str, Any] = MappingProxyType({})  # no overrides
 # with the trainer's held-out scores after the timed span, or as atgs-train ends (the final
 # evaluation writing its images to OUT/eval), inside the timed span.
 FINALS = ("none", "scores", "renders")
+
+
+def ring_scene(cache: Path, *, keyframes: int, test_cameras: int, **synth: Any):
+    """The built-in synthetic scene with ``synth`` settings of atgs-synth (preset, frames, cameras,
+    width, height; None keeps the default), synthesized and prepared once into ``cache``, with
+    ``test_cameras`` cameras spread around its ring held out."""
+    from atgs.data.scene import PreparedScene
+    from atgs.data.synth import default_config, ensure_default_scene, with_overrides
+
+    cfg = with_overrides(default_config(), **synth)
+    scene = PreparedScene.load(ensure_default_scene(cache, cfg, keyframes=keyframes, progress=False))
+    n = len(scene.cameras)
+    held = sorted({round(i * n / test_cameras) for i in range(test_cameras)})
+    return dataclasses.replace(scene, test_cameras=[scene.cameras[i].name for i in held])
 
 
 def set_fields(cfg: Any, overrides: Mapping[str, Any]) -> None:
@@ -112,3 +128,26 @@ def timed_steps(tr: Trainer, steps: int) -> tuple[list[StepResult], float]:
     results = [tr.train_step() for _ in range(steps)]
     sync()
     return results, time.perf_counter() - t0
+
+
+def run_worker(cmd: list[str], log_path: Path) -> dict:
+    """Run a bench's worker process (stderr to ``log_path``) and return the JSON of its last line."""
+    with open(log_path, "w") as log:
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"worker {' '.join(cmd[-6:])} failed (exit {proc.returncode}); see {log_path}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def run_child(cmd: list[str]) -> tuple[dict | None, str]:
+    """Run a bench's child process (each case its own, so its peak memory is its own): (the JSON
+    of its last stdout line, "") or, when it failed, (None, its stderr)."""
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return None, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1]), ""
+
+
+def last_line(text: str) -> str:
+    """The last non-empty line of a child's stderr (its error), or "failed"."""
+    return text.strip().splitlines()[-1] if text.strip() else "failed"

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import tyro
-from _docs import publish, run_stamp, run_worker  # bench/ (the script's own folder is on sys.path)
-from _harness import build_trainer, run_timed
+from _docs import publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, run_timed, run_worker
 
 from atgs.data.scene import PreparedScene
 from atgs.data.synth import ensure_default_scene

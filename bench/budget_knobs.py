@@ -24,7 +24,8 @@ import sys
 
 import tyro
 
-from _docs import publish, run_stamp, run_worker  # bench/ (the script's own folder is on sys.path)
+from _docs import publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, run_timed, run_worker
 from atgs.train.config import preset
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -220,7 +221,6 @@ def case_scene(name: str, work_dir: Path) -> Path:
 
 
 def run_case(args: BudgetKnobs, name: str) -> dict:
-    from _harness import build_trainer, run_timed
     from _splits import held_out_splits
     from atgs.data.scene import PreparedScene
 

@@ -23,7 +23,6 @@ import json
 import os
 import shutil
 from pathlib import Path
-import subprocess
 import sys
 import time
 
@@ -140,15 +139,10 @@ def plan(args: TradeoffArgs) -> list[RunSpec]:
 
 
 def load_scene(spec: RunSpec, cache_dir: Path):
-    from atgs.data.scene import PreparedScene
-    from atgs.data.synth import default_config, ensure_default_scene, with_overrides
+    from _harness import ring_scene
 
-    cfg = with_overrides(default_config(), preset=spec.scene, frames=spec.frames, cameras=spec.cameras,
-                         width=spec.width, height=spec.height)
-    scene = PreparedScene.load(ensure_default_scene(cache_dir, cfg, keyframes=spec.keyframes, progress=False))
-    n = len(scene.cameras)  # hold out cameras spread around the ring
-    held = sorted({round(i * n / spec.test_cameras) for i in range(spec.test_cameras)})
-    return replace(scene, test_cameras=[scene.cameras[i].name for i in held])
+    return ring_scene(cache_dir, keyframes=spec.keyframes, test_cameras=spec.test_cameras, preset=spec.scene,
+                      frames=spec.frames, cameras=spec.cameras, width=spec.width, height=spec.height)
 
 
 def viewer_times(model, camera, size: tuple[int, int], frames: list[int]) -> dict:
@@ -230,14 +224,14 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
 
 
 def run_subprocess(spec: RunSpec, args: TradeoffArgs) -> dict:
+    from _harness import last_line, run_child
+
     cmd = [sys.executable, __file__, "--child", json.dumps(asdict(spec)), str(args.cache_dir), str(args.work_dir)]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        last = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"
-        print(f"[tradeoff] {spec.scene} / {spec.name}: FAILED {last}", file=sys.stderr, flush=True)
-        return {**asdict(spec), "error": last}
-    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    r, stderr = run_child(cmd)
+    if r is None:
+        print(f"[tradeoff] {spec.scene} / {spec.name}: FAILED {last_line(stderr)}", file=sys.stderr, flush=True)
+        return {**asdict(spec), "error": last_line(stderr)}
     print(f"[tradeoff] {spec.scene} / {spec.name}: PSNR {r['psnr']:.2f} SSIM {r['ssim']:.3f} "
           f"train {r['train_seconds']:.0f}s decode {r['decode_ms']:.0f}ms draw {r['draw_ms'] or float('nan'):.0f}ms "
           f"model {r['model_mb']:.1f}MB anchors {r['anchors']} ({time.perf_counter() - t0:.0f}s)", flush=True)

@@ -12,11 +12,10 @@ bench/results/train.json and a Markdown table to stdout (copied into docs/traini
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 import json
 import os
 from pathlib import Path
-import subprocess
 import sys
 import time
 
@@ -64,16 +63,10 @@ class RunSpec:
 
 
 def scene_for(spec: RunSpec, cache_dir: Path):
-    from atgs.data.scene import PreparedScene
-    from atgs.data.synth import default_config, ensure_default_scene, with_overrides
+    from _harness import ring_scene
 
-    cfg = with_overrides(default_config(), frames=spec.scene_frames, cameras=spec.scene_cameras,
-                         width=spec.scene_width, height=spec.scene_height)
-    scene = PreparedScene.load(ensure_default_scene(cache_dir, cfg, keyframes=spec.keyframes, progress=False))
-    # hold out test_cameras cameras spread around the ring
-    n = len(scene.cameras)
-    held = sorted({round(i * n / spec.test_cameras) for i in range(spec.test_cameras)})
-    return replace(scene, test_cameras=[scene.cameras[i].name for i in held])
+    return ring_scene(cache_dir, keyframes=spec.keyframes, test_cameras=spec.test_cameras, frames=spec.scene_frames,
+                      cameras=spec.scene_cameras, width=spec.scene_width, height=spec.scene_height)
 
 
 def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
@@ -106,15 +99,15 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
 
 
 def run_subprocess(spec: RunSpec, args: BenchArgs) -> dict:
-    spec_json = json.dumps(spec.__dict__)
-    cmd = [sys.executable, __file__, "--child", spec_json, str(args.cache_dir), str(args.work_dir)]
+    from _harness import last_line, run_child
+
+    cmd = [sys.executable, __file__, "--child", json.dumps(spec.__dict__), str(args.cache_dir), str(args.work_dir)]
     print(f"[bench] {spec.name}: {spec.preset}, {spec.iterations} it, {spec.scene_frames} frames, "
           f"{spec.model_overrides}", flush=True)
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        print(proc.stderr[-3000:], file=sys.stderr)
-        return {"name": spec.name, "error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"}
-    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    r, stderr = run_child(cmd)
+    if r is None:
+        print(stderr[-3000:], file=sys.stderr)
+        return {"name": spec.name, "error": last_line(stderr)}
     print(f"[bench]   PSNR {r['psnr']:.2f} SSIM {r['ssim']:.4f} train {r['train_seconds']:.0f}s "
           f"peak RSS {r['peak_rss_mb']:.0f} MB anchors {r['anchors']}", flush=True)
     return r

@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 import torch
 import tyro
-from _docs import publish, run_stamp, run_worker  # bench/ (the script's own folder is on sys.path)
-from _harness import build_trainer, run_timed
+from _docs import publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, run_timed, run_worker
 
 from atgs.data.oracle import source_frame
 from atgs.data.scene import PreparedScene
