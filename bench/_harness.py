@@ -19,12 +19,15 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 
 from atgs.train.config import ModelConfig, TrainConfig, preset
-from atgs.train.trainer import StepResult, Trainer
+from atgs.train.trainer import Trainer
+
+if TYPE_CHECKING:
+    from atgs.train.trainer import StepResult
 
 NONE: Mapping[str, Any] = MappingProxyType({})  # no overrides
 

@@ -102,7 +102,8 @@ def gpu_player(r: dict) -> Cells:
 
 
 def test_suite(r: dict) -> Cells:
-    return Cells(f"`./scripts/test.sh`'s pytest on {cores(r['machine']['cpus'])}", day(r["date"]),
+    subset = f"only `{' '.join(r['pytest_args'])}` of " if r["pytest_args"] else ""
+    return Cells(f"{subset}`./scripts/test.sh`'s pytest on {cores(r['machine']['cpus'])}", day(r["date"]),
                  f"{r['passed']} passed, {r['skipped']} skipped, {r['failed'] + r['errors']} failed in "
                  f"{r['seconds'] / 60:.1f} min")
 
