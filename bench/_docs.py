@@ -1,12 +1,17 @@
-"""Writes a benchmark's table into a docs page, between `<!-- bench:NAME:start/end -->` markers."""
+"""A benchmark's results: stamped (when, at what load, at which commit), written as JSON, and its
+table written into a docs page between `<!-- bench:NAME:start/end -->` markers."""
 
 from __future__ import annotations
 
-import json
+import os
 import subprocess
+import time
 from pathlib import Path
 
 from atgs.io.atomic import write_json_atomic as _write_json, write_text_atomic
+
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 def markers(name: str) -> tuple[str, str]:
@@ -43,6 +48,25 @@ def git_commit(repo: Path) -> str:
         return "unknown"
 
 
+def today() -> str:
+    return time.strftime("%Y-%m-%d")
+
+
+def utc_now() -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+
+
+def loadavg() -> list[float]:
+    """The machine's 1, 5 and 15-minute load averages: how much else ran beside a timing."""
+    return list(os.getloadavg())
+
+
+def run_stamp(load: bool = True) -> dict:
+    """The fields that end a run's results row: its load average at the end (``load``), the
+    commit measured and the day."""
+    return {**({"loadavg": loadavg()} if load else {}), "commit": git_commit(REPO), "date": today()}
+
+
 def publish(result, json_out: Path, table: str, docs: Path | None, name: str) -> None:
     """The end of every benchmark: results JSON (atomic), the table on screen and in the docs."""
     write_json_atomic(json_out, result)
@@ -50,13 +74,3 @@ def publish(result, json_out: Path, table: str, docs: Path | None, name: str) ->
     print(table)
     if docs is not None:
         update_docs_table(docs, name, table)
-
-
-def run_worker(cmd: list[str], log_path: Path) -> dict:
-    """Run a bench's worker process (stderr to ``log_path``) and return the JSON of its last line."""
-    with open(log_path, "w") as log:
-        proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"worker {' '.join(cmd[-6:])} failed (exit {proc.returncode}); see {log_path}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-

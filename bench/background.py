@@ -17,25 +17,18 @@ docs/training.md.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
 import tyro
+from _docs import publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, run_timed, run_worker
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _docs import git_commit, publish, run_worker  # noqa: E402
-
-from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth.videos import ensure_default_scene  # noqa: E402
-from atgs.io.cache import cache_dir  # noqa: E402
-from atgs.train.config import preset  # noqa: E402
-from atgs.train.trainer import Trainer  # noqa: E402
+from atgs.data.scene import PreparedScene
+from atgs.data.synth.videos import ensure_default_scene
+from atgs.io.cache import cache_dir
 
 ROOT = Path(__file__).resolve().parent.parent
 CASES = {"direction": "by direction (default)", "colour": "the images' mean colour"}
@@ -60,26 +53,16 @@ def train_case(case: str, scene_dir: Path, iterations: int, work_dir: Path, seed
     from _splits import held_out_splits
 
     scene = PreparedScene.load(scene_dir)
-    m, t = preset("cpu", iterations=iterations)
-    t.eval_every = t.save_every = 0
-    t.threads = 1
-    t.background_by_direction = case == "direction"
-    t.seed = seed
     run = work_dir / f"run-{scene_dir.name}-{case}-s{seed}"  # as its log: one folder per scene, case and seed
-    shutil.rmtree(run, ignore_errors=True)
-    torch.manual_seed(seed)
-    tr = Trainer(scene, m, t, run, progress=False)
-    t0 = time.perf_counter()
-    tr.run_steps(progress=False)
-    secs = time.perf_counter() - t0
-    ev = tr.final_evaluation(None)
-    cams = scene.cameras
+    tr = build_trainer(scene, run, "cpu", iterations=iterations,
+                       train={"background_by_direction": case == "direction", "seed": seed})
+    timed = run_timed(tr)
+    ev, cams = timed.eval, scene.cameras
     return {"case": case, "what": CASES[case], "scene": scene_dir.name, "iterations": iterations,
             "cameras": f"{len(scene.train_indices)} training + {len(scene.test_indices)} held out, "
                        f"{cams[0].width}x{cams[0].height}, {scene.num_frames} frame{'s' if scene.num_frames > 1 else ''}",
-            "seed": seed, "train_s": round(secs, 1), "psnr": round(ev["psnr"], 2), "ssim": round(ev["ssim"], 4),
-            "split": held_out_splits(run / "ckpt.pt", scene_dir), "loadavg": list(os.getloadavg()),
-            "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
+            "seed": seed, "train_s": round(timed.seconds, 1), "psnr": round(ev["psnr"], 2), "ssim": round(ev["ssim"], 4),
+            "split": held_out_splits(run / "ckpt.pt", scene_dir), **run_stamp()}
 
 
 def table(result: dict) -> str:

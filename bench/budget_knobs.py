@@ -18,16 +18,14 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 import json
-import os
 from pathlib import Path
 import shutil
-import subprocess
 import sys
-import time
 
 import tyro
 
-from _docs import git_commit, publish  # bench/_docs.py (the script's own folder is on sys.path)
+from _docs import publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, run_timed, run_worker
 from atgs.train.config import preset
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -215,16 +213,6 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
     return out
 
 
-def override(cfg, values: dict) -> None:
-    """Set a case's fields on a config; a dict value sets the fields of a nested config (the hash
-    grid, the learning rates)."""
-    for k, v in values.items():
-        if isinstance(v, dict):
-            override(getattr(cfg, k), v)
-        else:
-            setattr(cfg, k, v)
-
-
 def case_scene(name: str, work_dir: Path) -> Path:
     """The prepared scene a case trains on: the built-in one, or its motion-points variant."""
     scene_dir = built_in_scene()
@@ -234,33 +222,21 @@ def case_scene(name: str, work_dir: Path) -> Path:
 
 
 def run_case(args: BudgetKnobs, name: str) -> dict:
-    import torch
-
     from _splits import held_out_splits
     from atgs.data.scene import PreparedScene
-    from atgs.train.trainer import Trainer
 
     _, model_over, train_over = CASES[name]
     scene_dir = case_scene(name, args.work_dir)
-    scene = PreparedScene.load(scene_dir)
-    m, t = preset("cpu", minutes=args.minutes)
-    override(m, model_over)
-    override(t, train_over)
-    t.eval_every = t.save_every = 0
-    t.threads = 1
-    torch.manual_seed(0)
     run = args.work_dir / f"run-{row_key(name, args.minutes, args.tag)}"
-    shutil.rmtree(run, ignore_errors=True)
-    tr = Trainer(scene, m, t, run)
-    t0 = time.perf_counter()
-    res = tr.train(progress=False, final_renders=True)  # the final evaluation (eval/ holds its images)
-    secs = time.perf_counter() - t0
+    tr = build_trainer(PreparedScene.load(scene_dir), run, "cpu", minutes=args.minutes, model=model_over,
+                       train=train_over)
+    timed = run_timed(tr, "renders")  # the final evaluation as atgs-train's (eval/ holds its images)
+    ev = timed.eval
     return {"case": name, "what": CASES[name][0], "model_overrides": model_over, "train_overrides": train_over,
-            "minutes": args.minutes, "steps": tr.step, "train_s": round(secs, 1), "anchors": tr.model.num_anchors,
-            "keyframes": tr.model.num_keyframes, "psnr": round(res["eval"]["psnr"], 2),
-            "ssim": round(res["eval"]["ssim"], 4), "views": res["eval"]["views"],
-            "split": held_out_splits(run / "ckpt.pt", scene_dir), "loadavg": list(os.getloadavg()),
-            "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d"), "tag": args.tag}
+            "minutes": args.minutes, "steps": tr.step, "train_s": round(timed.seconds, 1), "anchors": tr.model.num_anchors,
+            "keyframes": tr.model.num_keyframes, "psnr": round(ev["psnr"], 2),
+            "ssim": round(ev["ssim"], 4), "views": ev["views"],
+            "split": held_out_splits(run / "ckpt.pt", scene_dir), **run_stamp(), "tag": args.tag}
 
 
 def row_key(case: str, minutes: float, tag: str = "") -> str:
@@ -307,12 +283,7 @@ def main() -> None:
     def one(name: str) -> dict:
         cmd = [sys.executable, __file__, "--worker", name, "--minutes", str(args.minutes),
                "--work-dir", str(args.work_dir), "--tag", args.tag]
-        log = args.work_dir / f"{row_key(name, args.minutes, args.tag)}.log"
-        with open(log, "w") as fh:
-            proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=fh, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"case {name} failed (exit {proc.returncode}); see {log}")
-        return json.loads(proc.stdout.strip().splitlines()[-1])
+        return run_worker(cmd, args.work_dir / f"{row_key(name, args.minutes, args.tag)}.log")
 
     if args.rescore:
         from _splits import held_out_splits

@@ -27,9 +27,8 @@ llvmpipe is the CPU).
 from __future__ import annotations
 
 
-from _docs import publish  # noqa: E402  (bench/_docs.py, imported before the folder is dropped)
-from _viewer_scenes import random_gaussians, time_frames, untrained_model, warm_renderer  # noqa: E402
-
+from _docs import publish  # bench/ (the script's own folder is on sys.path)
+from _viewer_scenes import random_gaussians, time_frames, untrained_model, warm_renderer
 
 import json
 import os
@@ -130,21 +129,20 @@ def train_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> lis
     """Training steps/s of each preset on the N3DV-like scene: every image in the trainer's
     cache first (on the device), ``train_warmup`` steps, then the timed steps. The steps are
     the first of a run: the initial anchors, before densification (it starts at step >= 100)."""
+    from _harness import build_trainer, timed_steps
     from atgs.train.config import preset
-    from atgs.train.trainer import Trainer
 
     size = cfg.train_size if device == "cuda" else cfg.cpu_train_size
     steps = cfg.train_steps if device == "cuda" else cfg.cpu_train_steps
     scene = _n3dv_scene(tuple(size), cfg.train_cameras, cfg.train_frames, cfg.train_points)
+    images_mb = sum(a.nbytes for a in scene.frames.values()) / 2**20
     rows = []
     for name in cfg.train_presets:
-        model_cfg, train_cfg = preset(name)
-        train_cfg.eval_every = train_cfg.save_every = 0
-        images_mb = sum(a.nbytes for a in scene.frames.values()) / 2**20
-        train_cfg.image_cache_mb = max(train_cfg.image_cache_mb, int(images_mb) + 1)  # every image cached
+        cache_mb = max(preset(name)[1].image_cache_mb, int(images_mb) + 1)  # every image cached
         with tempfile.TemporaryDirectory() as out:
             t0 = time.perf_counter()
-            tr = Trainer(scene, model_cfg, train_cfg, out, device=device)
+            tr = build_trainer(scene, Path(out) / "run", name, train={"image_cache_mb": cache_mb}, threads=0,
+                               device=device)
             for ci in tr.train_idx:
                 for f in range(scene.num_frames):
                     tr.images.get(ci, f)
@@ -154,11 +152,7 @@ def train_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> lis
                 tr.train_step()
             if device == "cuda":
                 torch.cuda.reset_peak_memory_stats()
-            _sync(device)
-            t0 = time.perf_counter()
-            results = [tr.train_step() for _ in range(steps)]
-            _sync(device)
-            seconds = time.perf_counter() - t0
+            results, seconds = timed_steps(tr, steps)
         row = {"part": "train", "device": device, "device_name": device_name(device), "preset": name,
                "size": f"{size[0]}x{size[1]}", "cameras": len(scene.cameras), "frames": scene.num_frames,
                "anchors": anchors, "gaussians_per_view": int(statistics.mean(r.gaussians for r in results)),

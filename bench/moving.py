@@ -17,28 +17,23 @@ Results: bench/results/moving.json (merged by case) and the bench:moving table i
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import sys
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 import tyro
+from _docs import publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, run_timed
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _docs import publish  # noqa: E402
-
-from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene  # noqa: E402
-from atgs.data.synth.videos import ensure_default_scene, load_ground_truth  # noqa: E402
-from atgs.data.synth.scene import sample_surface  # noqa: E402
-from atgs.io.cache import cache_dir  # noqa: E402
-from atgs.render import rasterize_gaussians  # noqa: E402
-from atgs.timeline import evenly_spaced  # noqa: E402
-from atgs.train.config import preset  # noqa: E402
-from atgs.train.trainer import Trainer  # noqa: E402
+from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene
+from atgs.data.synth.videos import ensure_default_scene, load_ground_truth
+from atgs.data.synth.scene import sample_surface
+from atgs.io.cache import cache_dir
+from atgs.render import rasterize_gaussians
+from atgs.timeline import evenly_spaced
 
 ROOT = Path(__file__).resolve().parent.parent
 # case name -> (keyframes with oracle points, model overrides)
@@ -99,18 +94,8 @@ def run_case(args: MovingBench, name: str, base: Path) -> dict:
     keyframes, overrides = CASES[name]
     scene_dir = oracle_scene(base, args.work_dir / f"oracle-K{keyframes}", keyframes, args.points_per_keyframe)
     scene = replace(PreparedScene.load(scene_dir), test_cameras=["cam00", "cam06"])
-    m, t = preset("cpu-fast", args.iterations)
-    for k, v in overrides.items():
-        setattr(m, k, v)
-    t.eval_every = t.save_every = 0
-    t.threads = 1
-    torch.manual_seed(0)
-    run = args.work_dir / f"run-{name}"
-    shutil.rmtree(run, ignore_errors=True)
-    tr = Trainer(scene, m, t, run)
-    t0 = time.perf_counter()
-    tr.train(progress=False, final_renders=False)
-    secs = time.perf_counter() - t0
+    tr = build_trainer(scene, args.work_dir / f"run-{name}", "cpu-fast", iterations=args.iterations, model=overrides)
+    secs = run_timed(tr, "none").seconds
     frames = list(range(0, scene.num_frames, 8))
     masks = moving_masks(scene, tr.test_idx, frames)
     se = {"all": 0.0, "moving": 0.0}
@@ -131,8 +116,7 @@ def run_case(args: MovingBench, name: str, base: Path) -> dict:
             "anchors": tr.model.num_anchors, "train_s": round(secs, 1), "psnr": psnr(se["all"], n["all"]),
             "psnr_moving": psnr(se["moving"], n["moving"]),
             "psnr_static": psnr(se["all"] - se["moving"], n["all"] - n["moving"]),
-            "moving_fraction": n["moving"] / n["all"], "loadavg": list(os.getloadavg()),
-            "date": time.strftime("%Y-%m-%d")}
+            "moving_fraction": n["moving"] / n["all"], **run_stamp()}
 
 
 def table(rows: dict) -> str:

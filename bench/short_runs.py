@@ -16,24 +16,16 @@ bench:short-runs table in docs/training.md.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import torch
 import tyro
+from _docs import publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, case_configs, run_timed
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _docs import git_commit, publish  # noqa: E402
-
-from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth.videos import ensure_default_scene  # noqa: E402
-from atgs.io.cache import cache_dir  # noqa: E402
-from atgs.train.config import preset  # noqa: E402
-from atgs.train.trainer import Trainer  # noqa: E402
+from atgs.data.scene import PreparedScene
+from atgs.data.synth.videos import ensure_default_scene
+from atgs.io.cache import cache_dir
 
 ROOT = Path(__file__).resolve().parent.parent
 LR5 = ("anchor_feature", "spatial_grid", "offset_init", "color_init", "opacity_init")
@@ -65,32 +57,27 @@ class ShortRuns:
     docs: Path = ROOT / "docs" / "training.md"
 
 
-def apply(train, overrides: dict) -> None:
-    for key, value in overrides.items():
-        obj, parts = train, key.split(".")
-        for p in parts[:-1]:
-            obj = getattr(obj, p)
-        if parts[0] == "lr":
-            value = getattr(obj, parts[-1]) * value
-        setattr(obj, parts[-1], value)
+def train_overrides(name: str, minutes: float) -> dict:
+    """The case's overrides with its learning-rate factors turned into rates (the preset's x factor)."""
+    _, preset_train = case_configs("cpu", minutes=minutes)
+    out = {}
+    for key, value in CASES[name].items():
+        if key.startswith("lr."):
+            value *= getattr(preset_train.lr, key.split(".", 1)[1])
+        out[key] = value
+    return out
 
 
 def run_case(scene, name: str, args: ShortRuns) -> dict:
-    m, t = preset("cpu", minutes=args.minutes)
-    t.eval_every = t.save_every = 0
-    t.threads = args.threads
-    apply(t, CASES[name])
-    torch.manual_seed(0)
     out = args.work_dir / name.replace(" ", "_").replace(",", "")
-    shutil.rmtree(out, ignore_errors=True)
-    tr = Trainer(scene, m, t, out)
-    t0 = time.perf_counter()
-    res = tr.train(progress=False, final_renders=True)
-    ev = res["eval"]
+    tr = build_trainer(scene, out, "cpu", minutes=args.minutes, train=train_overrides(name, args.minutes),
+                       threads=args.threads)
+    timed = run_timed(tr, "renders")
+    ev = timed.eval
     return {"case": name, "label": args.label, "overrides": CASES[name], "minutes": args.minutes,
-            "threads": args.threads, "steps": tr.step, "train_s": round(time.perf_counter() - t0, 1),
+            "threads": args.threads, "steps": tr.step, "train_s": round(timed.seconds, 1),
             "anchors": tr.model.num_anchors, "psnr": ev["psnr"], "ssim": ev["ssim"], "views": ev["views"],
-            "loadavg": list(os.getloadavg()), "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d")}
+            **run_stamp()}
 
 
 def table(rows: list[dict]) -> str:

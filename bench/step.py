@@ -22,22 +22,19 @@ Results: bench/results/step.json and the bench:step table in docs/training.md.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 import tyro
+from _docs import loadavg, publish, run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer, timed_steps
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _docs import git_commit, publish  # noqa: E402
-
-from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth.videos import ensure_default_scene  # noqa: E402
-from atgs.io.cache import cache_dir  # noqa: E402
-from atgs.train.config import preset  # noqa: E402
-from atgs.train.trainer import Trainer  # noqa: E402
+from atgs.data.scene import PreparedScene
+from atgs.data.synth.videos import ensure_default_scene
+from atgs.io.cache import cache_dir
+from atgs.train.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parent.parent
 CASES = {  # name: (grid backend, cameras per frame, sparse Adam backend)
@@ -63,11 +60,8 @@ class StepBench:
 
 def make_trainer(scene, name: str, threads: int, args: StepBench) -> Trainer:
     backend, cams, optim = CASES[name]
-    m, t = preset("cpu", 1000)
-    t.eval_every = t.save_every = 0
-    t.densify.enabled = False
-    t.threads, t.cameras_per_frame = threads, cams
-    tr = Trainer(scene, m, t, args.work_dir / name.replace(" ", "_").replace("/", "_"))
+    tr = build_trainer(scene, args.work_dir / name.replace(" ", "_").replace("/", "_"), "cpu", iterations=1000,
+                       train={"densify.enabled": False, "cameras_per_frame": cams}, threads=threads)
     tr.model.hash.backend = tr.model.spatial.backend = backend
     tr.sparse_opt.backend = optim
     for _ in range(args.warmup):
@@ -95,10 +89,7 @@ def run_cases(scene, threads: int, args: StepBench) -> list[dict]:
     per_turn = max(1, args.steps // args.rounds)
     for _ in range(args.rounds):
         for name, tr in trainers.items():
-            t0 = time.perf_counter()
-            for _ in range(per_turn):
-                tr.train_step()
-            seconds[name] += time.perf_counter() - t0
+            seconds[name] += timed_steps(tr, per_turn)[1]
     rows = []
     for name, tr in trainers.items():
         backend, cams, optim = CASES[name]
@@ -107,7 +98,7 @@ def run_cases(scene, threads: int, args: StepBench) -> list[dict]:
                      "sparse_adam": optim, "seconds_per_step": sec, "images_per_second": cams / sec,
                      "sparse_update_seconds": update[name] / (per_turn * args.rounds),
                      "anchors": tr.model.num_anchors, "steps": per_turn * args.rounds,
-                     "loadavg": list(os.getloadavg())})
+                     "loadavg": loadavg()})
     return rows
 
 
@@ -136,8 +127,7 @@ def main() -> None:
         for r in run_cases(scene, threads, args):
             print(r, flush=True)
             rows.append(r)
-    result = {"rows": rows, "commit": git_commit(ROOT), "date": time.strftime("%Y-%m-%d"),
-              "machine": {"cpus": os.cpu_count()}}
+    result = {"rows": rows, **run_stamp(load=False), "machine": {"cpus": os.cpu_count()}}
     publish(result, args.out, table(rows), args.docs, "step")
 
 

@@ -23,13 +23,12 @@ import json
 import os
 import shutil
 from pathlib import Path
-import subprocess
 import sys
 import time
 
 import tyro
 
-from _docs import update_docs_table, write_json_atomic  # bench/_docs.py (the script's own folder is on sys.path)
+from _docs import publish, write_json_atomic  # bench/_docs.py (the script's own folder is on sys.path)
 
 from atgs.io.atomic import atomic_file
 from atgs.io.cache import cache_dir
@@ -140,15 +139,10 @@ def plan(args: TradeoffArgs) -> list[RunSpec]:
 
 
 def load_scene(spec: RunSpec, cache_dir: Path):
-    from atgs.data.scene import PreparedScene
-    from atgs.data.synth.videos import default_config, ensure_default_scene, with_overrides
+    from _harness import ring_scene
 
-    cfg = with_overrides(default_config(), preset=spec.scene, frames=spec.frames, cameras=spec.cameras,
-                         width=spec.width, height=spec.height)
-    scene = PreparedScene.load(ensure_default_scene(cache_dir, cfg, keyframes=spec.keyframes, progress=False))
-    n = len(scene.cameras)  # hold out cameras spread around the ring
-    held = sorted({round(i * n / spec.test_cameras) for i in range(spec.test_cameras)})
-    return replace(scene, test_cameras=[scene.cameras[i].name for i in held])
+    return ring_scene(cache_dir, keyframes=spec.keyframes, test_cameras=spec.test_cameras, preset=spec.scene,
+                      frames=spec.frames, cameras=spec.cameras, width=spec.width, height=spec.height)
 
 
 def viewer_times(model, camera, size: tuple[int, int], frames: list[int]) -> dict:
@@ -193,29 +187,23 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
     import resource
 
     import torch
+    from _harness import build_trainer, case_configs, run_timed
 
     from atgs.timeline import evenly_spaced
-    from atgs.train.config import preset
-    from atgs.train.trainer import Trainer
 
     torch.set_num_threads(spec.threads)
     scene = load_scene(spec, cache_dir)
-    from atgs.auto_config import apply_overrides  # dotted keys ("hash.log2_table_size") on any config
-
-    m, t = preset(spec.preset, spec.iterations)
-    m, t = apply_overrides(m, spec.model_overrides), apply_overrides(t, spec.train_overrides)
     chosen = {}
-    if spec.auto:
+    if spec.auto:  # --auto: the scene's measured motion picks K, M, table size and grid over the case's model
         from atgs.auto_config import choose_config
         from atgs.data.motion_measure import measure_motion
 
-        choice = choose_config(measure_motion(scene), m)
-        chosen = dict(choice.overrides)
-        m = apply_overrides(m, choice.overrides)
-    t.eval_every, t.save_every, t.threads = 0, 0, spec.threads
+        m, _ = case_configs(spec.preset, iterations=spec.iterations, model=spec.model_overrides)
+        chosen = dict(choose_config(measure_motion(scene), m).overrides)
     out = work_dir / spec.scene / spec.name.replace(" ", "_").replace("/", "_")
-    trainer = Trainer(scene, m, t, out)
-    res = trainer.train(progress=False, final_renders=False)
+    trainer = build_trainer(scene, out, spec.preset, iterations=spec.iterations,
+                            model={**spec.model_overrides, **chosen}, train=spec.train_overrides, threads=spec.threads)
+    res = run_timed(trainer, "none").result
     ev = trainer.evaluate(resolution_scale=1.0)  # full resolution whatever the training resolution
     model = trainer.model
     payload = trainer.checkpoint_payload()
@@ -236,14 +224,14 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
 
 
 def run_subprocess(spec: RunSpec, args: TradeoffArgs) -> dict:
+    from _harness import last_line, run_child
+
     cmd = [sys.executable, __file__, "--child", json.dumps(asdict(spec)), str(args.cache_dir), str(args.work_dir)]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        last = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"
-        print(f"[tradeoff] {spec.scene} / {spec.name}: FAILED {last}", file=sys.stderr, flush=True)
-        return {**asdict(spec), "error": last}
-    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    r, stderr = run_child(cmd)
+    if r is None:
+        print(f"[tradeoff] {spec.scene} / {spec.name}: FAILED {last_line(stderr)}", file=sys.stderr, flush=True)
+        return {**asdict(spec), "error": last_line(stderr)}
     print(f"[tradeoff] {spec.scene} / {spec.name}: PSNR {r['psnr']:.2f} SSIM {r['ssim']:.3f} "
           f"train {r['train_seconds']:.0f}s decode {r['decode_ms']:.0f}ms draw {r['draw_ms'] or float('nan'):.0f}ms "
           f"model {r['model_mb']:.1f}MB anchors {r['anchors']} ({time.perf_counter() - t0:.0f}s)", flush=True)
@@ -307,13 +295,11 @@ def plot(rows: list[dict], path: Path) -> None:
     print(f"wrote {path}")
 
 
-def publish(results: dict, args: TradeoffArgs) -> None:
+def publish_all(results: dict, args: TradeoffArgs) -> None:
+    """The results file, the docs table and the plot."""
     order = {g: i for i, g in enumerate(GROUPS)}
     rows = sorted(results["runs"].values(), key=lambda r: (r["scene"], order[r["group"]]))
-    write_json_atomic(args.out, results)
-    t = table(rows)
-    print(t)
-    update_docs_table(args.docs, "tradeoff", t)
+    publish(results, args.out, table(rows), args.docs, "tradeoff")
     plot(rows, args.plot)
 
 
@@ -326,7 +312,7 @@ def main() -> None:
     args = tyro.cli(TradeoffArgs)
     results = json.loads(args.out.read_text()) if args.out.is_file() else {"runs": {}}
     if args.replot:
-        publish(results, args)
+        publish_all(results, args)
         return
     specs = plan(args)
     if not args.rerun:  # resume an interrupted benchmark
@@ -345,7 +331,7 @@ def main() -> None:
             write_json_atomic(args.out, results)  # keep what finished if interrupted
             bar.update(1)
     results["machine"]["loadavg_end"] = list(os.getloadavg())
-    publish(results, args)
+    publish_all(results, args)
 
 
 if __name__ == "__main__":

@@ -12,11 +12,10 @@ bench/results/train.json and a Markdown table to stdout (copied into docs/traini
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 import json
 import os
 from pathlib import Path
-import subprocess
 import sys
 import time
 
@@ -64,16 +63,10 @@ class RunSpec:
 
 
 def scene_for(spec: RunSpec, cache_dir: Path):
-    from atgs.data.scene import PreparedScene
-    from atgs.data.synth.videos import default_config, ensure_default_scene, with_overrides
+    from _harness import ring_scene
 
-    cfg = with_overrides(default_config(), frames=spec.scene_frames, cameras=spec.scene_cameras,
-                         width=spec.scene_width, height=spec.scene_height)
-    scene = PreparedScene.load(ensure_default_scene(cache_dir, cfg, keyframes=spec.keyframes, progress=False))
-    # hold out test_cameras cameras spread around the ring
-    n = len(scene.cameras)
-    held = sorted({round(i * n / spec.test_cameras) for i in range(spec.test_cameras)})
-    return replace(scene, test_cameras=[scene.cameras[i].name for i in held])
+    return ring_scene(cache_dir, keyframes=spec.keyframes, test_cameras=spec.test_cameras, frames=spec.scene_frames,
+                      cameras=spec.scene_cameras, width=spec.scene_width, height=spec.scene_height)
 
 
 def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
@@ -81,26 +74,20 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
     import resource
 
     import torch
-
-    from atgs.train.config import preset
-    from atgs.train.trainer import Trainer
+    from _docs import utc_now
+    from _harness import build_trainer, case_configs, run_timed
 
     if spec.threads:
         torch.set_num_threads(spec.threads)
     t_data = time.perf_counter()
     scene = scene_for(spec, cache_dir)
     t_data = time.perf_counter() - t_data
-    m, t = preset(spec.preset, spec.iterations)
-    for k, v in spec.model_overrides.items():
-        setattr(m, k, v)
-    for k, v in spec.train_overrides.items():
-        setattr(t, k, v)
-    t.eval_every, t.save_every = 0, 0
-    out = work_dir / spec.name
-    trainer = Trainer(scene, m, t, out)
-    res = trainer.train(progress=sys.stderr.isatty(), final_renders=True)
+    trainer = build_trainer(scene, work_dir / spec.name, spec.preset, iterations=spec.iterations,
+                            model=spec.model_overrides, train=spec.train_overrides, threads=spec.threads)
+    res = run_timed(trainer, "renders", progress=sys.stderr.isatty()).result
+    planned = case_configs(spec.preset, iterations=spec.iterations, train=spec.train_overrides)[1].iterations
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return {"name": spec.name, "preset": spec.preset, "iterations": t.iterations,
+    return {"name": spec.name, "preset": spec.preset, "iterations": planned,
             "frames": scene.num_frames, "cameras": len(scene.cameras), "test_cameras": scene.test_cameras,
             "width": scene.cameras[0].width, "height": scene.cameras[0].height,
             "keyframes": trainer.model.num_keyframes, "segments": trainer.model.num_segments,
@@ -108,20 +95,19 @@ def run_one(spec: RunSpec, cache_dir: Path, work_dir: Path) -> dict:
             "scene_seconds": t_data, "psnr": res["eval"]["psnr"], "ssim": res["eval"]["ssim"],
             "eval_views": res["eval"]["views"], "peak_rss_mb": peak_kb / 1024.0,
             "model_overrides": spec.model_overrides, "torch_threads": torch.get_num_threads(),
-            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-            "load_average": list(os.getloadavg())}  # 1, 5, 15 min at the end of the run
+            "date": utc_now(), "load_average": list(os.getloadavg())}  # 1, 5, 15 min at the end of the run
 
 
 def run_subprocess(spec: RunSpec, args: BenchArgs) -> dict:
-    spec_json = json.dumps(spec.__dict__)
-    cmd = [sys.executable, __file__, "--child", spec_json, str(args.cache_dir), str(args.work_dir)]
+    from _harness import last_line, run_child
+
+    cmd = [sys.executable, __file__, "--child", json.dumps(spec.__dict__), str(args.cache_dir), str(args.work_dir)]
     print(f"[bench] {spec.name}: {spec.preset}, {spec.iterations} it, {spec.scene_frames} frames, "
           f"{spec.model_overrides}", flush=True)
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        print(proc.stderr[-3000:], file=sys.stderr)
-        return {"name": spec.name, "error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"}
-    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    r, stderr = run_child(cmd)
+    if r is None:
+        print(stderr[-3000:], file=sys.stderr)
+        return {"name": spec.name, "error": last_line(stderr)}
     print(f"[bench]   PSNR {r['psnr']:.2f} SSIM {r['ssim']:.4f} train {r['train_seconds']:.0f}s "
           f"peak RSS {r['peak_rss_mb']:.0f} MB anchors {r['anchors']}", flush=True)
     return r

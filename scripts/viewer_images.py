@@ -1,5 +1,6 @@
-"""The README's player pictures: a screenshot of the real player window with a camera path
-being edited, the path file, and a strip of frames that atgs-render makes from that file.
+"""The player pictures of the README and docs/viewer.md: a screenshot of the real player window
+with a camera path being edited, the path file, and a strip of frames that atgs-render makes
+from that file.
 
     python scripts/viewer_images.py            # runs itself under xvfb-run when there is no display
 
