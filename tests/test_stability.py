@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -146,6 +147,13 @@ def test_geometry_extremes_forward_backward_finite(case: str, backend: str) -> N
         model.anchor_log_scale[:] = math.log(1e4)  # huge Gaussians, offsets up to ~1e4 ...
         _small_scale(model, slice(0, None, 2))  # ... and huge Gaussians at their anchors
     elif case == "camera inside":  # a large Gaussian around the camera centre
+        # a free viewpoint (the player's), halfway between cam00 and the scene: the rig cameras'
+        # own centres are inside their clearance (atgs.model.clearance), which drops such Gaussians
+        eye = 0.5 * cam.center + 0.5 * model.anchor_mu.median(0).values.double().numpy()
+        w2c = cam.w2c.copy()
+        w2c[:3, 3] = -cam.R @ eye
+        cam = replace(cam, name="free", w2c=w2c)
+        assert model.clearance.outside(torch.from_numpy(eye).float()[None]).all()
         model.anchor_mu[:3] = torch.from_numpy(cam.center).float()
         model.anchor_log_scale[:3, 3:] = math.log(2.0)
         _small_scale(model, slice(0, 3))
