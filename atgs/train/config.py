@@ -3,7 +3,9 @@
 Every field is a command-line flag of ``atgs-train`` (tyro): ``--train.*`` here, ``--model.*`` in
 :class:`atgs.model.config.ModelConfig`. :func:`preset` maps a preset name to a (model, train)
 pair: ``paper`` uses the paper's sizes (GPU scale), the ``cpu-*`` presets trade quality for
-speed on a small CPU, ``tiny`` is for tests.
+speed on a small CPU, ``tiny`` is for tests. Each config checks its values when built
+(:mod:`atgs.config_checks`); the settings that count steps follow the step count by the rule of
+:mod:`atgs.train.step_schedule`.
 """
 
 from __future__ import annotations

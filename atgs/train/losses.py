@@ -2,7 +2,8 @@
 offset regulariser, depth distortion, depth smoothness and free-space opacity, not in the paper).
 
 SSIM is :func:`atgs.eval.metrics.ssim` (11x11 Gaussian window, 'same' padding as 3DGS), so
-training and evaluation share one implementation and one Gaussian-window helper.
+training and evaluation share one implementation and one Gaussian-window helper. Which of them a
+step adds, with which weight, is :mod:`atgs.train.loss_terms`'s list.
 """
 
 from __future__ import annotations
