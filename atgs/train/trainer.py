@@ -251,6 +251,9 @@ class Trainer:
     # --- one optimisation step ---------------------------------------------------------------
     @_in_run_threads
     def train_step(self) -> StepResult:
+        """One step: ``views_per_step`` frames, each decoded once and rendered from
+        ``cameras_per_frame`` training cameras, their mean loss back-propagated; then the sparse
+        and dense updates and, when due, densification."""
         cfg, model = self.cfg, self.model
         q = model.cfg.gaussians_per_anchor
         self.dense_opt.zero_grad(set_to_none=True)
@@ -295,16 +298,7 @@ class Trainer:
                 if s.leaf.grad is not None:
                     grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
         if bad:
-            self.skipped += 1
-            self.bad_in_row += 1
-            self.dense_opt.zero_grad(set_to_none=True)
-            if self.exposure is not None:
-                self.exposure.opt.zero_grad(set_to_none=True)
-            if self.bad_in_row > cfg.max_bad_steps:
-                raise NonFiniteError(f"{self.bad_in_row} consecutive steps had a non-finite loss or Gaussians "
-                                     f"(step {self.step}); lower the learning rates or resume from the last checkpoint")
-            self.step += 1
-            return StepResult(float("nan"), float("nan"), 0, True)
+            return self._skip_step()
         self.bad_in_row = 0
         for m in set(segments):
             self.grid_visits[m] += 1
@@ -321,6 +315,19 @@ class Trainer:
         values = torch.cat([torch.stack(losses).double(), torch.stack(psnrs).double()]).tolist()
         n = len(losses)
         return StepResult(float(np.mean(values[:n])), float(np.mean(values[n:])), n_gauss // n, False)
+
+    def _skip_step(self) -> StepResult:
+        """A step with non-finite Gaussians or loss changes nothing; too many in a row stop the run."""
+        self.skipped += 1
+        self.bad_in_row += 1
+        self.dense_opt.zero_grad(set_to_none=True)
+        if self.exposure is not None:
+            self.exposure.opt.zero_grad(set_to_none=True)
+        if self.bad_in_row > self.cfg.max_bad_steps:
+            raise NonFiniteError(f"{self.bad_in_row} consecutive steps had a non-finite loss or Gaussians "
+                                 f"(step {self.step}); lower the learning rates or resume from the last checkpoint")
+        self.step += 1
+        return StepResult(float("nan"), float("nan"), 0, True)
 
     def _apply_sparse(self, grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]]) -> None:
         tables = self.model.sparse_tensors()
