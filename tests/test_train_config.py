@@ -88,6 +88,15 @@ def test_iterations_and_a_budget_that_lands_on_the_same_steps_train_the_same_sch
     assert (saved["iterations"], saved["densify"]["interval"], saved["eval_every"]) == (1000, 50, 500)
 
 
+def test_the_raw_fields_follow_the_rules_of_iterations_and_minutes():
+    a = parse(["--preset", "cpu", "--train.iterations", "60", "--train.minutes", "0"])
+    assert a.iterations == 60 and a.train.minutes == 0 and a.train.lr.warmup_steps == 2, "no budget: a step count"
+    b = parse(["--preset", "cpu", "--train.iterations", "60", "--train.minutes", "3"])
+    assert b.iterations is None and b.train.minutes == 3, "a budget given with it wins"
+    with pytest.raises(ConfigError, match="--iterations and --train.minutes 3 were both given"):
+        parse(["--preset", "cpu", "--iterations", "60", "--train.minutes", "3"])
+
+
 def test_schedule_flags_given_are_kept_at_any_step_count():
     a = parse(["--preset", "cpu", "--iterations", "4000", "--train.eval-every", "100",
                "--train.densify.interval=30"])

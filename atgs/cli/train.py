@@ -99,8 +99,10 @@ def parse(argv: list[str]) -> TrainArgs:
     given = given_flags(argv, "--train.")
     pinned = tuple(s for s in SCHEDULE_SETTINGS if s in given and s not in args.train.fixed_schedule)
     args.train = replace(args.train, fixed_schedule=args.train.fixed_schedule + pinned)
-    budget_given = args.minutes is not None or "minutes" in given
-    if args.iterations is None and "iterations" in given and not budget_given:
+    budget = args.minutes if args.minutes is not None else args.train.minutes if "minutes" in given else 0.0
+    if args.iterations is not None and budget > 0:
+        raise ConfigError(f"--iterations and --train.minutes {budget:g} were both given; pass one")
+    if args.iterations is None and "iterations" in given and not budget > 0:
         args.iterations = args.train.iterations  # without a budget, the raw field is a step count too
     if args.iterations is not None:
         args.train = schedule_for(replace(args.train, minutes=0.0), args.iterations)
