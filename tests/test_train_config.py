@@ -23,12 +23,9 @@ from builders import make_toy_scene
 @pytest.mark.parametrize("flags, named", [
     (["--iterations", "-5"], "--iterations -5"),
     (["--train.iterations", "-5"], "--train.iterations -5"),
-    (["--iterations", "0"], "--iterations 0"),
     (["--minutes", "-1"], "--minutes -1"),
     (["--train.densify.interval", "0"], "--train.densify.interval 0"),
-    (["--train.eval-every", "-10"], "--train.eval-every -10"),
     (["--train.lambda-volume", "-0.1"], "--train.lambda-volume -0.1"),
-    (["--train.lr.temporal-final", "0"], "--train.lr.temporal-final 0"),
     (["--model.num-segments", "0"], "--model.num-segments 0"),
 ])
 def test_a_bad_value_is_one_line_before_anything_touches_out(flags, named, toy_scene_dir, tmp_path, capsys):
@@ -76,12 +73,13 @@ def test_iterations_and_a_budget_that_lands_on_the_same_steps_train_the_same_sch
     scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
     m, _ = preset("tiny")
     pace, views = 0.5, len(scene.test_indices) * scene.num_frames  # the final evaluation's reserve
-    # the first plan comes at step 30 (5 skipped, 25 timed): 970 steps more at 0.5 s each
-    seconds = 30 * pace + (views * pace + 1.0) + 970 * pace + 0.25
+    # the first plan at step 6 (1 skipped, 5 timed): 994 steps more at 0.5 s each
+    seconds = 6 * pace + (views * pace + 1.0) + 994 * pace + 0.25
     t = dataclasses.replace(preset("cpu")[1], minutes=seconds / 60, velocity_from_flow=False)
     tr = Trainer(scene, m, t, tmp_path)
+    tr.budget.skip_steps, tr.budget.calibration_steps = 1, 5
     tr.clock = lambda: pace * tr.step
-    tr.run_steps(progress=False, stop_at=31)
+    tr.run_steps(progress=False, stop_at=7)
     assert tr.budget.pace == pytest.approx(pace) and tr.cfg.iterations == 1000
     assert schedule_of(tr.cfg) == schedule_of(fixed)
     saved = torch.load(tmp_path / "ckpt.pt", weights_only=True)["train_config"]
