@@ -6,7 +6,8 @@ traceback and exits with code 2. Each layer subclasses it: ``atgs.data.errors.Da
 ``atgs.checkpoint.CheckpointError``, ``atgs.eval.evaluate.EvalError``,
 ``atgs.viewer.errors.ViewerError``, ``atgs.headless_gl.HeadlessGLError``,
 ``atgs.train.trainer.NonFiniteError``, ``atgs.io.gaussian_ply.GaussianPlyError``,
-``atgs.export.ExportError``, ``atgs.device.DeviceError`` and :class:`OutputError` below.
+``atgs.export.ExportError``, ``atgs.device.DeviceError``, ``atgs.config_checks.ConfigError`` and
+:class:`OutputError` below.
 """
 
 from __future__ import annotations

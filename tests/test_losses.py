@@ -120,3 +120,30 @@ def test_depth_distortion_of_a_render_matches_its_gaussians():
         px = [t[y:y + 1, x:x + 1].reshape(1) for t in (out.alpha, out.depth, out.depth_sq)]
         got = float(depth_distortion(*px, unit=1.0)) / float(px[0])
         assert abs(got - math.log1p(var)) < 2e-3, backend
+
+
+def test_the_trainer_loss_is_the_weighted_sum_of_the_active_terms(tmp_path):
+    """atgs.train.loss_terms: a weight of 0 leaves its term out; the others are weighted and
+    summed in their order."""
+    from atgs.render import rasterize_gaussians
+    from atgs.train.config import preset
+    from atgs.train.losses import image_loss
+    from atgs.train.trainer import Trainer
+    from builders import make_toy_scene
+
+    scene = make_toy_scene(num_frames=4, num_cameras=4, width=32, height=24, keyframes=2)
+    m, t = preset("tiny")
+    t.lambda_volume, t.lambda_distortion = 0.0, 0.3
+    tr = Trainer(scene, m, t, tmp_path)
+    ci = tr.train_idx[0]
+    cam, gt = tr.cams[ci], tr.images.get(ci, 0)
+    with torch.no_grad():
+        dec = tr.model.decode_frame(0, [cam], track=False)
+        out = rasterize_gaussians(dec.gaussians, cam)
+        terms = tr.loss_terms(dec, out, gt)
+        total = tr.compute_loss(dec, out, gt)
+    assert list(terms) == ["image", "offset", "distortion", "depth_smooth"], "volume (0) and free space (0) are off"
+    assert float(terms["image"]) == pytest.approx(float(image_loss(out.image, gt, t.lambda_ssim)))
+    assert float(terms["distortion"]) == pytest.approx(
+        0.3 * float(depth_distortion(out.alpha, out.depth, out.depth_sq, tr.model.voxel_size)))
+    assert float(total) == pytest.approx(sum(float(v) for v in terms.values()))

@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from atgs.cli.train import main as train_main
-from atgs.train.budget import FREEZE_FRACTION, ScheduleBase, TimeBudget, rescale_schedule
+from atgs.train.budget import FREEZE_FRACTION, TimeBudget
 from atgs.train.config import preset
+from atgs.train.step_schedule import schedule_for, schedule_of
 from atgs.train.trainer import Trainer
 from builders import make_toy_scene
 
@@ -37,7 +38,7 @@ def test_the_plan_ends_on_time_for_any_pace(profile: str) -> None:
              "doubles": lambda s: 0.2 * (1 + min(s, 1500) / 1500),  # the model grows during densification
              "halves": lambda s: 0.4 / (1 + min(s, 1500) / 1500),
              "jump": lambda s: 0.2 if s < 800 else 0.5}
-    b = TimeBudget(seconds, ScheduleBase.of(preset("cpu")[1]))
+    b = TimeBudget(seconds)
     steps, used, plans = simulate(b, paces[profile], 5000)
     reserve = b.reserve()
     assert plans, "the first plan replaces the preset's step count"
@@ -49,21 +50,24 @@ def test_the_plan_ends_on_time_for_any_pace(profile: str) -> None:
 
 
 def test_out_of_time_ends_at_once() -> None:
-    b = TimeBudget(10.0, ScheduleBase.of(preset("cpu")[1]))
+    b = TimeBudget(10.0)
     steps, used, _ = simulate(b, lambda s: 0.2 if s < 30 else 5.0, 5000)  # suddenly 25x slower
     assert used <= 10.0 + 5.0 and steps == 31  # the step that crossed the limit is the last
 
 
-def test_rescaled_schedule_is_proportional_and_never_drifts() -> None:
+def test_the_schedule_is_sized_from_the_step_count_and_never_drifts() -> None:
+    """Each re-sizing starts from the rule, not from the last re-sizing, so rounding never drifts;
+    what the step count does not size stays the preset's."""
     _, cfg = preset("cpu")
-    base = ScheduleBase.of(cfg)
     for n in (777, 12_345, 5000, 3):
-        rescale_schedule(cfg, base, n)
+        cfg = schedule_for(cfg, n)
     assert cfg.iterations == 3 and cfg.densify.start >= 1 and cfg.densify.interval >= 1
-    rescale_schedule(cfg, base, 10_000)  # from the base each time: exactly twice the preset's
+    cfg = schedule_for(cfg, 10_000)
+    assert schedule_of(cfg) == schedule_of(preset("cpu", iterations=10_000)[1])
+    # the rule of the CPU presets (docs/training.md): densify from N/20 every N/60 steps, warm up
+    # over N/30, evaluate every N/4 and save every N/6 steps, above their floors
     assert (cfg.iterations, cfg.densify.start, cfg.densify.interval, cfg.lr.warmup_steps, cfg.eval_every,
-            cfg.save_every) == (10_000, 2 * base.densify_start, 2 * base.densify_interval,
-                                2 * base.warmup_steps, 2 * base.eval_every, 2 * base.save_every)
+            cfg.save_every) == (10_000, 10_000 // 20, 10_000 // 60, 10_000 // 30, 10_000 // 4, 10_000 // 6)
     assert cfg.densify.stop_fraction == preset("cpu")[1].densify.stop_fraction
 
 
@@ -79,15 +83,15 @@ def _budget_trainer(scene, out, minutes: float) -> Trainer:
 def test_the_scene_flow_set_up_is_paid_from_the_budget(tmp_path, monkeypatch) -> None:
     """Starting the anchors' velocities from optical flow takes set-up time (tens of seconds on the
     built-in scene): a --minutes budget counts it as used before the first step."""
-    import atgs.train.trainer as trainer_module
+    import atgs.train.scene_setup as scene_setup
 
-    real = trainer_module.initial_velocities
+    real = scene_setup.initial_velocities
 
     def slow(*args, **kwargs):
         time.sleep(0.3)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(trainer_module, "initial_velocities", slow)
+    monkeypatch.setattr(scene_setup, "initial_velocities", slow)
     scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
     m, t = preset("tiny")
     on = Trainer(scene, m, dataclasses.replace(t, minutes=1.0), tmp_path / "on")
@@ -104,7 +108,7 @@ def test_trainer_fills_the_budget_and_resume_counts_the_time_used(tmp_path) -> N
     assert res["seconds_per_step"] == pytest.approx(0.5)
     assert abs(tr.step - (30.0 - reserve) / 0.5) <= 2, (tr.step, reserve)  # not the preset's 40 steps
     assert tr.cfg.iterations == tr.step and res["seconds_used"] == pytest.approx(0.5 * tr.step)
-    assert tr.cfg.densify.interval == max(1, round(preset("tiny")[1].densify.interval * tr.step / 40))
+    assert tr.cfg.densify.interval == schedule_for(preset("tiny")[1], tr.step).densify.interval
     ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=True)
     assert ck["trainer"]["budget"]["used"] == pytest.approx(0.5 * tr.step)
     assert ck["train_config"]["minutes"] == 0.5
@@ -216,7 +220,7 @@ def test_an_evaluation_is_not_read_as_a_slow_step() -> None:
     def run(report_overhead: bool) -> tuple[int, float, TimeBudget]:
         # re-planning after every step: the alignment the real run hit (a plan right after the
         # evaluation, over an interval of one step)
-        b = TimeBudget(240.0, ScheduleBase.of(preset("cpu")[1]), reserve_views=40, replan_seconds=0.5)
+        b = TimeBudget(240.0, reserve_views=40, replan_seconds=0.5)
         step, used, overhead, planned = 0, 0.0, 0.0, 5000
         while step < planned:
             used += 0.5

@@ -10,23 +10,22 @@ run's first checkpoint (atgs.train.run_dir); Ctrl-C saves a checkpoint that ``--
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 import sys
-from typing import Literal
 
 import tyro
 
-from atgs.config_dict import to_dict
+from atgs.config_checks import ConfigError, at_least, check_fields
 from atgs.device import DeviceName, auto_fallback_note, device_description, resolve_device
-from atgs.errors import OutputError, UserError
+from atgs.errors import OutputError
 from atgs.io.cache import cache_dir
 from atgs.data.rig_check import sparse_rig_warning
 from atgs.io.cli import Interrupted, run_cli, stop_on_sigint
 from atgs.model.config import ModelConfig
-from atgs.train.config import TrainConfig, preset
+from atgs.train.config import PRESET_NAMES, PresetName, TrainConfig, preset
+from atgs.train.step_schedule import SCHEDULE_SETTINGS, schedule_for
 
-PresetName = Literal["cpu-fast", "cpu", "cpu-accurate", "paper", "tiny"]
 PROG = "atgs-train"
 
 
@@ -39,8 +38,8 @@ class TrainArgs:
     preset: PresetName = "cpu"
     """Configuration preset (fast -> accurate: cpu-fast, cpu, cpu-accurate; paper = GPU sizes)."""
     iterations: int | None = None
-    """Run exactly this many training steps (rescales the preset's schedule; no time budget);
-    with --resume: the new total."""
+    """Run exactly this many training steps (the schedule sized to them, atgs.train.step_schedule;
+    no time budget); with --resume: the new total. --train.iterations alone means the same."""
     minutes: float | None = None
     """Training time budget: the number of steps is sized from the measured step time and
     re-sized as the model grows, so that training (with its final evaluation) ends on time.
@@ -64,6 +63,13 @@ class TrainArgs:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
+    def __post_init__(self) -> None:
+        if self.iterations is not None and self.minutes is not None:
+            raise ConfigError("--iterations and --minutes were both given; pass one (--iterations N runs exactly "
+                              "N steps, --minutes M sizes the steps to M minutes)")
+        check_fields(self, "--", {"iterations": at_least(1, "a step count"),
+                                  "minutes": at_least(0, "a time budget", "0 runs the preset's fixed step count")})
+
 
 def _scan(argv: list[str], flag: str) -> str | None:
     """Value of ``--flag X`` / ``--flag=X`` (read before tyro so that presets set defaults)."""
@@ -75,24 +81,33 @@ def _scan(argv: list[str], flag: str) -> str | None:
     return None
 
 
+def given_flags(argv: list[str], prefix: str) -> set[str]:
+    """Flags under ``prefix`` given on the command line, as they follow it with '-' for '_'
+    (``--train.lr.warmup_steps=9`` -> "lr.warmup-steps")."""
+    return {a[len(prefix):].split("=", 1)[0].replace("_", "-") for a in argv if a.startswith(prefix)}
+
+
 def parse(argv: list[str]) -> TrainArgs:
+    """The arguments, with the preset's values as defaults and the step count's schedule: a step
+    count (--iterations, or --train.iterations without a budget) sizes the schedule by the one
+    rule (atgs.train.step_schedule), except the schedule flags given, which are kept at any step
+    count (also when a --minutes budget re-sizes it)."""
     name = _scan(argv, "--preset") or "cpu"
-    it = _scan(argv, "--iterations")
-    # The raw field --train.iterations means the same as --iterations (a step count, no budget),
-    # unless a budget is asked for too: without this the preset's budget re-sized it silently.
-    raw_it = _scan(argv, "--train.iterations")
-    from_raw = (it is None and raw_it is not None and _scan(argv, "--minutes") is None
-                and _scan(argv, "--train.minutes") is None)
-    if from_raw:
-        it = raw_it
-    try:
-        m, t = preset(name, int(it) if it is not None and it.lstrip("-").isdigit() else None)
-    except ValueError:
-        m, t = preset("cpu")  # tyro reports the bad value below
-    args = tyro.cli(TrainArgs, default=TrainArgs(preset=name if name in PresetName.__args__ else "cpu",
-                                                 model=m, train=t), args=argv)
-    if from_raw and args.iterations is None:
-        args.iterations = args.train.iterations
+    model, train = preset(name if name in PRESET_NAMES else "cpu")  # tyro reports an unknown name
+    args = tyro.cli(TrainArgs, default=TrainArgs(preset=name if name in PRESET_NAMES else "cpu",
+                                                 model=model, train=train), args=argv)
+    given = given_flags(argv, "--train.")
+    pinned = tuple(s for s in SCHEDULE_SETTINGS if s in given and s not in args.train.fixed_schedule)
+    args.train = replace(args.train, fixed_schedule=args.train.fixed_schedule + pinned)
+    budget = args.minutes if args.minutes is not None else args.train.minutes if "minutes" in given else 0.0
+    if args.iterations is not None and budget > 0:
+        raise ConfigError(f"--iterations and --train.minutes {budget:g} were both given; pass one")
+    if args.iterations is None and "iterations" in given and not budget > 0:
+        args.iterations = args.train.iterations  # without a budget, the raw field is a step count too
+    if args.iterations is not None:
+        args.train = schedule_for(replace(args.train, minutes=0.0), args.iterations)
+    if args.minutes is not None:
+        args.train = replace(args.train, minutes=args.minutes)
     return args
 
 
@@ -111,11 +126,7 @@ def load_scene(args: TrainArgs):
 
 def explicit_model_flags(argv: list[str]) -> set[str]:
     """Model knobs given on the command line, as dotted field names ("hash.log2_table_size")."""
-    names = set()
-    for a in argv:
-        if a.startswith("--model."):
-            names.add(a[len("--model."):].split("=", 1)[0].replace("-", "_"))
-    return names
+    return {name.replace("-", "_") for name in given_flags(argv, "--model.")}
 
 
 def apply_auto(args: TrainArgs, scene, explicit: set[str]) -> None:
@@ -143,31 +154,24 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     if note is not None:
         print(f"{PROG}: {note}; see docs/gpu.md", flush=True)
     ckpt = args.out / "ckpt.pt"
-    if args.iterations is not None and args.minutes is not None:
-        raise UserError("--iterations and --minutes were both given; pass one (--iterations N runs exactly "
-                        "N steps, --minutes M sizes the steps to M minutes)")
-    if args.minutes is not None and args.minutes < 0:
-        raise UserError(f"--minutes {args.minutes}: must be >= 0 (0 runs the preset's fixed step count)")
     if args.resume:
         if not ckpt.is_file():
             raise OutputError(f"--resume: {ckpt} not found; start without --resume")
         trainer = Trainer.resume(load_scene(args), ckpt, args.out, iterations=args.iterations, minutes=args.minutes,
                                  device=device)
+        trainer.run.stage_config({"device": str(device)})  # config.json keeps the run's preset and data
         print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} on {device_description(device)}")
         return trainer
     if ckpt.exists() and not args.overwrite:
         raise OutputError(f"{ckpt} already exists; pass --resume to continue it, --overwrite to start over, "
                           "or choose another --out")
-    if args.iterations is not None:
-        args.train.iterations, args.train.minutes = args.iterations, 0.0
-    if args.minutes is not None:
-        args.train.minutes = args.minutes
     scene = load_scene(args)
     if args.auto:
         apply_auto(args, scene, explicit)
     trainer = Trainer(scene, args.model, args.train, args.out, device=device, progress=args.progress)
+    # config.json: these, and the configuration of each checkpoint (what ran; atgs.train.run_dir)
     trainer.run.stage_config({"preset": args.preset, "data": str(args.data) if args.data else None,
-                              "device": str(device), "model": to_dict(args.model), "train": to_dict(args.train)})
+                              "device": str(device)})
     m = trainer.model
     print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
           f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras, "
@@ -221,10 +225,9 @@ def exposure_summary(exposure: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     process = argv is None  # the process's entry point (console script or python -m)
     argv = sys.argv[1:] if argv is None else argv
-    args = parse(argv)
 
-    def body() -> None:
-        run(args, explicit_model_flags(argv))
+    def body() -> None:  # a bad flag is a one-line error too (atgs.config_checks)
+        run(parse(argv), explicit_model_flags(argv))
 
     return run_cli(PROG, body, process=process)
 

@@ -9,6 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from atgs.config_checks import above, at_least, between, check_fields, one_of
+
+AnchorLayout = Literal["split", "per-keyframe"]
+
 
 @dataclass
 class HashGridConfig:
@@ -23,6 +27,15 @@ class HashGridConfig:
     max_time_resolution: int = 32
     mlp_hidden: int = 128
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        check_fields(self, "--model.hash.", {
+            "levels": at_least(1), "features_per_level": at_least(1), "log2_table_size": between(1, 40),
+            "base_resolution": at_least(1), "growth": above(0), "max_time_resolution": at_least(1),
+            "mlp_hidden": at_least(1)})
+
 
 @dataclass
 class ModelConfig:
@@ -34,7 +47,7 @@ class ModelConfig:
     # "split": content seen at most keyframes is static, modelled once by always-active anchors,
     # and only moving content gets anchors per keyframe; "per-keyframe": every keyframe's points
     # become that keyframe's anchors (the paper).
-    anchor_layout: Literal["split", "per-keyframe"] = "split"
+    anchor_layout: AnchorLayout = "split"
     static_fraction: float = 0.5  # split: a cell is static if seen at >= this fraction of keyframes
     static_voxel_factor: float = 1.0  # split: voxel of the static anchors relative to the per-keyframe one
     static_keyframe0: bool = True  # per-keyframe: keyframe 0's anchors are always active (authors' code)
@@ -75,3 +88,20 @@ class ModelConfig:
     """Per-keyframe anchors move away from their keyframe with a learned velocity."""
     smoothing_3d: float = 0.0
     """Mip-Splatting's 3D filter: variance in squared pixels of the finest training view (0.2 there; 0: off)."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Refuse a value outside its range (:mod:`atgs.config_checks`); also the hash grid's."""
+        check_fields(self, "--model.", {
+            "feature_dim": at_least(1), "gaussians_per_anchor": at_least(1), "num_keyframes": at_least(0),
+            "window": at_least(0), "anchor_layout": one_of(AnchorLayout), "static_fraction": between(0, 1),
+            "static_voxel_factor": above(0), "num_segments": at_least(1), "frames_per_segment": at_least(0),
+            "spatial_resolution": at_least(1), "bbox_padding": at_least(0),
+            "hidden_opacity": at_least(1), "hidden_cov": at_least(1), "hidden_color": at_least(1),
+            "hidden_offset": at_least(1), "voxel_size": at_least(0, note="0 = automatic"),
+            "max_anchors_per_keyframe": at_least(0, note="0 = no cap"), "random_anchors": at_least(0),
+            "opacity_threshold": between(0, 1, high_open=True), "camera_clearance": at_least(0, note="0 = off"),
+            "fade_width": above(0), "smoothing_3d": at_least(0, note="0 = off")})
+        self.hash.validate()

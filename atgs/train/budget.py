@@ -3,9 +3,10 @@
 A fixed step count wastes a user's time either way: the same preset finished the built-in scene
 in 16 minutes and a smaller capture in 3. With a budget, the number of steps is sized from the
 measured step time, and re-sized while training, since densification grows the model and with
-it the step time. The whole schedule (warm-up, densification window and interval, learning-rate
-decay, periodic evaluation and checkpoints, final pruning) is stretched over the steps the budget
-affords, so a run always ends with a complete schedule, on time. (If the pace drops sharply late
+it the step time. The trainer sizes the whole schedule (warm-up, densification window and interval,
+learning-rate decay, periodic evaluation and checkpoints, final pruning) to the steps the budget
+affords by the rule every step count follows (atgs.train.step_schedule: a budget that lands on N
+steps trains as ``--iterations N`` would), so a run always ends with a complete schedule, on time. (If the pace drops sharply late
 in the run, the run ends when the time is up, with its final pruning.)
 
 What is measured: wall time of the training steps, periodic evaluations and checkpoints of this
@@ -23,46 +24,13 @@ Runs with a budget are not bit-reproducible (their length depends on the machine
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 # Re-sizing stops once this fraction of the planned steps is done: the learning rates are then
 # far into their decay and moving the end would bend it visibly. The last steps run as planned
 # unless time runs out, which ends the run at once (with its final pruning).
 FREEZE_FRACTION = 0.9
 MIN_STEPS = 10
-
-
-@dataclass(frozen=True)
-class ScheduleBase:
-    """The iteration-dependent part of a TrainConfig at the preset's own step count; every
-    re-sizing scales it from here (not from the last re-sizing, so rounding never drifts)."""
-
-    iterations: int
-    densify_start: int
-    densify_interval: int
-    warmup_steps: int
-    eval_every: int
-    save_every: int
-
-    @classmethod
-    def of(cls, cfg) -> "ScheduleBase":
-        return cls(cfg.iterations, cfg.densify.start, cfg.densify.interval, cfg.lr.warmup_steps,
-                   cfg.eval_every, cfg.save_every)
-
-
-def rescale_schedule(cfg, base: ScheduleBase, iterations: int) -> None:
-    """Set ``cfg`` (a TrainConfig) to ``iterations`` steps with every interval scaled alike."""
-    f = iterations / base.iterations
-
-    def scaled(v: int) -> int:
-        return 0 if v <= 0 else max(1, round(v * f))
-
-    cfg.iterations = int(iterations)
-    cfg.densify.start = scaled(base.densify_start)
-    cfg.densify.interval = scaled(base.densify_interval)
-    cfg.lr.warmup_steps = scaled(base.warmup_steps)
-    cfg.eval_every = scaled(base.eval_every)
-    cfg.save_every = scaled(base.save_every)
 
 
 @dataclass
@@ -75,7 +43,6 @@ class TimeBudget:
     plans use the pace since the previous one."""
 
     seconds: float
-    base: ScheduleBase
     used: float = 0.0  # seconds spent before this session (restored on resume)
     overhead: float = 0.0  # of which periodic evaluations and checkpoints (restored on resume)
     calibration_steps: int = 25
@@ -138,14 +105,13 @@ class TimeBudget:
     # --- checkpoints ---------------------------------------------------------------------------
     def state_dict(self, used: float, overhead: float = 0.0) -> dict:
         return {"seconds": float(self.seconds), "used": float(used), "overhead": float(overhead),
-                "base": asdict(self.base),
                 "pace": float(self._pace), "overhead_per_step": float(self._overhead_per_step)}
 
     @classmethod
     def resumed(cls, state: dict, seconds: float) -> "TimeBudget":
-        """The budget of a resumed run: ``seconds`` in all (the time used before counts)."""
-        b = cls(seconds=seconds, base=ScheduleBase(**state["base"]), used=float(state["used"]),
-                overhead=float(state.get("overhead", 0.0)))
+        """The budget of a resumed run: ``seconds`` in all (the time used before counts). (Older
+        checkpoints also hold the schedule the budget used to scale from: not needed any more.)"""
+        b = cls(seconds=seconds, used=float(state["used"]), overhead=float(state.get("overhead", 0.0)))
         b._pace = float(state.get("pace", 0.0))
         b._overhead_per_step = float(state.get("overhead_per_step", 0.0))
         return b

@@ -3,15 +3,25 @@
 Every field is a command-line flag of ``atgs-train`` (tyro): ``--train.*`` here, ``--model.*`` in
 :class:`atgs.model.config.ModelConfig`. :func:`preset` maps a preset name to a (model, train)
 pair: ``paper`` uses the paper's sizes (GPU scale), the ``cpu-*`` presets trade quality for
-speed on a small CPU, ``tiny`` is for tests.
+speed on a small CPU, ``tiny`` is for tests. Each config checks its values when built
+(:mod:`atgs.config_checks`); the settings that count steps follow the step count by the rule of
+:mod:`atgs.train.step_schedule`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import dataclass, field, replace
+from typing import Literal, get_args
 
+from atgs.config_checks import ConfigError, above, at_least, between, check_fields, each, one_of
 from atgs.model.config import HashGridConfig, ModelConfig
+from atgs.train.step_schedule import SCHEDULE_SETTINGS, ScheduleSetting, schedule_for
+
+PresetName = Literal["cpu-fast", "cpu", "cpu-accurate", "paper", "tiny"]
+PRESET_NAMES: tuple[str, ...] = get_args(PresetName)
+VolumeReduction = Literal["sum", "mean", "mean-voxel"]
+CameraExposure = Literal["auto", "on", "off"]
+LOSS_WEIGHT = at_least(0, "a loss weight", "0 = off")
 
 
 @dataclass
@@ -29,6 +39,16 @@ class DensifyConfig:
     max_anchors: int = 200_000
     # After the last step, drop anchors that never contributed since densification stopped.
     final_prune: bool = True
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        check_fields(self, "--train.densify.", {
+            "start": at_least(0), "stop_fraction": between(0, 1), "interval": at_least(1),
+            "grad_threshold": at_least(0), "levels": at_least(1), "init_factor": at_least(1),
+            "hierarchy_factor": at_least(1), "success_threshold": at_least(0), "min_opacity": at_least(0),
+            "max_anchors": at_least(0)})
 
 
 @dataclass
@@ -63,6 +83,21 @@ class LRConfig:
     warmup_start: float = 0.1
     """Factor of the learning rates at the first step (see warmup-steps)."""
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        rate = at_least(0, "a learning rate")
+        # the temporal grids' rates decay log-linearly (atgs.train.schedule): 0 has no logarithm
+        decaying = above(0, "a learning rate that decays log-linearly")
+        check_fields(self, "--train.lr.", {
+            "anchor_feature": rate, "spatial_grid": rate, "anchor_scaling": rate, "offset_init": rate,
+            "offset_final": rate, "opacity_init": rate, "opacity_final": rate, "cov": rate,
+            "color_init": rate, "color_final": rate, "temporal_init": decaying, "temporal_final": decaying,
+            "temporal_mlp_init": decaying, "temporal_mlp_final": decaying, "anchor_velocity": rate,
+            "anchor_fade": rate, "moving_anchors": above(0, "a factor on learning rates"), "exposure": rate,
+            "warmup_steps": at_least(0), "warmup_start": between(0, 1)})
+
 
 @dataclass
 class TrainConfig:
@@ -81,7 +116,7 @@ class TrainConfig:
     # "sum" (paper), "mean" (authors' code), or "mean-voxel": the mean of prod(scale / voxel),
     # free of the scene's units (atgs.train.losses.volume_loss; measured in docs/training.md,
     # "Random anchors, the volume loss and the offset regulariser on a real capture").
-    volume_reduction: str = "sum"
+    volume_reduction: VolumeReduction = "sum"
     # Not in the paper: keeps each Gaussian within `offset_free` voxels of its anchor (a squared
     # hinge, atgs.train.losses.offset_loss); 0 = off. Measured in docs/training.md (same section
     # as the volume loss).
@@ -124,7 +159,7 @@ class TrainConfig:
     # viewer render the training cameras' average exposure. "auto": on when the gains measured
     # from the keyframe points before training differ from 1 by more than `exposure_threshold`
     # (the resolved "on"/"off" is saved with the run). Measured in docs/training.md.
-    camera_exposure: Literal["auto", "on", "off"] = "off"
+    camera_exposure: CameraExposure = "off"
     exposure_threshold: float = 0.03
     exposure_start_measured: bool = True  # learned gains start at the measured ones (else at 1)
     # Not in the paper: DropGaussian (atgs.train.dropout). Each step hides a random fraction of the
@@ -141,8 +176,36 @@ class TrainConfig:
     save_every: int = 1000
     image_cache_mb: int = 1024  # uint8 LRU cache of training images
     seed: int = 0
-    threads: int = 0  # torch threads; 0 = leave torch's default
-    render_backend: str = "auto"
+    threads: int = 0  # torch threads while the trainer works (restored after); 0 = torch's default
+    render_backend: str = "auto"  # one of atgs.render.BACKENDS
+    fixed_schedule: tuple[ScheduleSetting, ...] = SCHEDULE_SETTINGS
+    """Schedule settings kept as given at any step count; the others are sized from the step count
+    (--iterations, or the steps a --minutes budget affords) by atgs.train.step_schedule. paper: all
+    of them; the CPU presets: none. atgs-train adds the ones given as flags."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Refuse a value outside its range (:mod:`atgs.config_checks`), nested configs included."""
+        from atgs.render.api import BACKENDS  # (the renderer owns its backends; imported when checked)
+
+        check_fields(self, "--train.", {
+            "iterations": at_least(1, "a step count"), "minutes": at_least(0, "a time budget", "0 = none"),
+            "views_per_step": at_least(1), "cameras_per_frame": at_least(1), "resolution_scale": above(0),
+            "lambda_ssim": between(0, 1, "the weight of SSIM against L1"), "lambda_volume": LOSS_WEIGHT,
+            "volume_reduction": one_of(VolumeReduction), "lambda_offset": LOSS_WEIGHT, "offset_free": at_least(0),
+            "lambda_distortion": LOSS_WEIGHT, "lambda_depth_smooth": LOSS_WEIGHT, "depth_smooth_edge": at_least(0),
+            "lambda_free_space": LOSS_WEIGHT, "background": each(between(0, 1)),
+            "camera_exposure": one_of(CameraExposure), "exposure_threshold": at_least(0),
+            "drop_gaussians": between(0, 1, "a fraction of the Gaussians", high_open=True),
+            "grad_clip": at_least(0, note="0 = off"), "adam_eps": at_least(0), "max_bad_steps": at_least(0),
+            "eval_every": at_least(0, note="0 = off"), "eval_max_frames": at_least(1),
+            "save_every": at_least(0, note="0 = off"), "image_cache_mb": at_least(0),
+            "threads": at_least(0, note="0 = torch's default"), "render_backend": one_of(BACKENDS),
+            "fixed_schedule": each(one_of(SCHEDULE_SETTINGS))})
+        self.lr.validate()
+        self.densify.validate()
 
 
 def _cpu_model(**kw) -> ModelConfig:
@@ -171,11 +234,9 @@ CPU_GROW_THRESHOLD = 4e-4
 
 
 def _cpu_train(iterations: int, grow_threshold: float = DensifyConfig.grad_threshold, **kw) -> TrainConfig:
-    d = DensifyConfig(start=max(100, iterations // 20), interval=max(50, iterations // 60),
-                      grad_threshold=grow_threshold)
-    lr = LRConfig(warmup_steps=max(1, iterations // 30))
-    base = dict(iterations=iterations, densify=d, lr=lr, eval_every=max(500, iterations // 4),
-                save_every=max(500, iterations // 6),
+    base = dict(densify=DensifyConfig(grad_threshold=grow_threshold),
+                # the schedule follows the step count (atgs.train.step_schedule)
+                fixed_schedule=(),
                 # the paper's sum over Gaussians in world units shrank Gaussians on a real capture;
                 # the mean in voxel units: +0.6 / +2.7 dB there, +0.07 dB built in (docs/training.md)
                 volume_reduction="mean-voxel", lambda_volume=0.01,
@@ -189,7 +250,7 @@ def _cpu_train(iterations: int, grow_threshold: float = DensifyConfig.grad_thres
                 # off on the built-in scene, whose cameras are exposed alike (docs/training.md)
                 camera_exposure="auto")
     base.update(kw)
-    return TrainConfig(**base)
+    return schedule_for(TrainConfig(**base), iterations)
 
 
 def preset(name: str, iterations: int | None = None, minutes: float | None = None
@@ -198,24 +259,13 @@ def preset(name: str, iterations: int | None = None, minutes: float | None = Non
 
     The CPU presets train for a time budget (``train.minutes``: cpu-fast 5, cpu 20, cpu-accurate
     60), their step count sized from the measured step time; ``paper`` runs a fixed 30,000 steps.
-    ``iterations`` fixes the step count instead (no budget) and rescales the iteration-dependent
-    schedule (warm-up, densification, eval/save intervals); ``minutes`` sets the budget."""
+    ``iterations`` fixes the step count instead (no budget), its schedule sized by
+    :func:`~atgs.train.step_schedule.schedule_for`; ``minutes`` sets the budget."""
     model, train = _preset(name)
     if iterations is not None:
-        if iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {iterations}")
-        train.minutes = 0.0
-        if iterations != train.iterations:
-            if name == "paper":
-                train.iterations = iterations
-            else:
-                fresh = _cpu_train(iterations, grow_threshold=train.densify.grad_threshold)
-                train.iterations, train.densify, train.lr = iterations, fresh.densify, fresh.lr
-                train.eval_every, train.save_every = fresh.eval_every, fresh.save_every
+        train = schedule_for(replace(train, minutes=0.0), iterations)
     if minutes is not None:
-        if minutes < 0:
-            raise ValueError(f"minutes must be >= 0, got {minutes}")
-        train.minutes = float(minutes)
+        train = replace(train, minutes=float(minutes))
     return model, train
 
 
@@ -246,7 +296,4 @@ def _preset(name: str) -> tuple[ModelConfig, TrainConfig]:
                            hidden_opacity=16, hidden_cov=16, hidden_color=16, hidden_offset=16,
                            random_anchors=0),
                 _cpu_train(40, eval_every=0, save_every=0, threads=1))
-    raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESET_NAMES)}")
-
-
-PRESET_NAMES = ("cpu-fast", "cpu", "cpu-accurate", "paper", "tiny")
+    raise ConfigError(f"--preset {name!r}: use one of {', '.join(PRESET_NAMES)}")

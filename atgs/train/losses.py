@@ -2,23 +2,24 @@
 offset regulariser, depth distortion, depth smoothness and free-space opacity, not in the paper).
 
 SSIM is :func:`atgs.eval.metrics.ssim` (11x11 Gaussian window, 'same' padding as 3DGS), so
-training and evaluation share one implementation and one Gaussian-window helper.
+training and evaluation share one implementation and one Gaussian-window helper. Which of them a
+step adds, with which weight, is :mod:`atgs.train.loss_terms`'s list.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, get_args
 
 import torch
 
 from atgs.eval.metrics import psnr as _psnr
 from atgs.eval.metrics import ssim
-
+from atgs.train.config import VolumeReduction
 
 if TYPE_CHECKING:
     from atgs.free_space import FreeSpace
 
-VOLUME_REDUCTIONS = ("sum", "mean", "mean-voxel")
+VOLUME_REDUCTIONS = get_args(VolumeReduction)
 
 
 def volume_loss(scales: torch.Tensor, reduction: str = "sum", voxel: float = 1.0) -> torch.Tensor:

@@ -1,7 +1,7 @@
 """The files of a training run in its output directory, and when they change.
 
     OUT/ckpt.pt         the resumable checkpoint (atomic)
-    OUT/config.json     preset, data and the full configuration of a fresh run (atomic)
+    OUT/config.json     preset, data, device and the configuration of the last checkpoint (atomic)
     OUT/train_log.csv   one row per step, up to the last checkpoint
     OUT/result.json     the final summary (atomic)
     OUT/eval/           the final evaluation (atgs.eval, atomic)
@@ -12,13 +12,16 @@ start leaves an existing run byte-identical. The first checkpoint commits the ru
 is written and train_log.csv is rewritten to hold the rows this run continues from (a resumed
 run keeps the old rows up to its checkpoint's step) and the new ones; a fresh run that replaces
 an earlier run (``--overwrite``) also drops that run's result.json and eval/. Later checkpoints append the rows logged since, so the log
-always ends at the step of ckpt.pt or later.
+always ends at the step of ckpt.pt or later. config.json is rewritten with every checkpoint from
+the configuration it holds, so it says what ran: the schedule a time budget sized, the background
+and camera exposure resolved from the scene (a resumed run keeps the preset and data it names).
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import json
 import shutil
 from pathlib import Path
 
@@ -35,22 +38,27 @@ class RunDir:
         self.resume_step = resume_step
         self.replaces_run = resume_step is None and self.ckpt_path.exists()
         self.committed = False
-        self._config: dict | None = None
+        # config.json less the configuration: None writes no config.json (a run started in code)
+        self._header: dict | None = self._old_header() if resume_step is not None else None
         self._rows: list[dict] = []
 
     @property
     def ckpt_path(self) -> Path:
         return self.out / "ckpt.pt"
 
-    def stage_config(self, config: dict) -> None:
-        """config.json of a fresh run, written with the first checkpoint."""
-        self._config = config
+    def stage_config(self, header: dict) -> None:
+        """What config.json holds besides the configuration (preset, data, device), written with
+        each checkpoint; a resumed run's entries update the file's."""
+        self._header = {**(self._header or {}), **header}
 
     def log(self, row: dict) -> None:
         self._rows.append(row)
 
     def save_checkpoint(self, payload: dict) -> Path:
         save_checkpoint(self.ckpt_path, payload)
+        if self._header is not None:
+            write_json_atomic(self.out / "config.json", {**self._header, "model": payload["model_config"],
+                                                         "train": payload["train_config"]})
         if self.committed:
             self._append_rows()
         else:
@@ -69,8 +77,6 @@ class RunDir:
         if self.replaces_run:
             (self.out / "result.json").unlink(missing_ok=True)
             shutil.rmtree(self.out / "eval", ignore_errors=True)
-        if self._config is not None:
-            write_json_atomic(self.out / "config.json", self._config)
         write_text_atomic(log, _csv_text(kept + self._rows, header=True))
         self._rows.clear()
         self.committed = True
@@ -80,6 +86,13 @@ class RunDir:
             with open(self.out / "train_log.csv", "a", newline="") as fh:
                 fh.write(_csv_text(self._rows, header=False))
             self._rows.clear()
+
+    def _old_header(self) -> dict | None:
+        try:
+            old = json.loads((self.out / "config.json").read_text())
+        except (OSError, ValueError):  # none (a run started in code) or unreadable: not rewritten
+            return None
+        return {k: v for k, v in old.items() if k not in ("model", "train")} if isinstance(old, dict) else None
 
     def _old_rows(self, log: Path) -> list[dict]:
         """Rows of the log being continued, up to the resumed checkpoint's step (a run killed

@@ -1,16 +1,23 @@
-"""The training loop: balanced view sampling, sparse/dense Adam, schedules, densification,
-robustness to non-finite values, periodic evaluation (through atgs.eval), checkpoints and resume.
-What is written to the output directory, and when, is :class:`atgs.train.run_dir.RunDir`'s job.
+"""The training loop: balanced view sampling, sparse/dense Adam, densification, robustness to
+non-finite values, periodic evaluation (through atgs.eval), checkpoints and resume.
+
+What the trainer needs around the loop lives next to it, one module each: the set-up from the
+scene (``scene_setup``), the loss terms (``loss_terms``), the learning rates (``schedule``), the
+schedule's sizing to a step count (``step_schedule``), the time budget (``budget``) and the files
+of the output directory (``run_dir``).
 
 Device: the model, optimizer states, densification statistics, image cache and everything a
 step creates live on ``device``; rasterization goes through ``atgs.render`` (gsplat for CUDA
 tensors). The random generator stays on the CPU, so a seed draws the same views, backgrounds and
-growth candidates on every device, and checkpoints hold CPU tensors."""
+growth candidates on every device, and checkpoints hold CPU tensors. torch's thread count is the
+run's (``--train.threads``) while the trainer works and is restored when it returns."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
+import functools
 import math
 from pathlib import Path
 import time
@@ -23,32 +30,31 @@ from atgs.cameras import Camera
 from atgs.checkpoint import CheckpointError, model_from_checkpoint, read_checkpoint, save_checkpoint
 from atgs.config_dict import from_dict, to_dict
 from atgs.data.scene import resize_frame
-from atgs.device import DeviceError
 from atgs.errors import UserError
-from atgs.free_space import FreeSpace
-from atgs.model.anchors import STATIC
-from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded
+from atgs.model.atgs_model import ATGSModel, Decoded
 from atgs.model.config import ModelConfig
 from atgs.model.culling import REFRESH_STEPS as REACH_REFRESH_STEPS
 from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
 from atgs.render import rasterize_gaussians, warm_up
 from atgs.render.environment import EnvironmentMap
+from atgs.threads import torch_threads
 from atgs.timeline import evenly_spaced
-from atgs.train.background import resolve_background
+from atgs.train.budget import TimeBudget
 from atgs.train.config import TrainConfig
-from atgs.train.budget import ScheduleBase, TimeBudget, rescale_schedule
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.generalisation import evaluation_gap_warning
-from atgs.train.scene_flow import grey_of, initial_velocities
-from atgs.train.losses import (VOLUME_REDUCTIONS, depth_distortion, depth_smoothness, free_space_loss, image_loss,
-                               offset_loss, psnr, volume_loss)
+from atgs.train.loss_terms import LossInputs, total_loss, weighted_terms
+from atgs.train.losses import psnr
 from atgs.train.optim import SparseAdam
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
-from atgs.train.schedule import exp_decay, warmup
+from atgs.train.scene_setup import (check_backend, free_space_of, model_from_scene, settings_from_scene,
+                                    velocities_from_flow)
+from atgs.train.schedule import dense_lrs, sparse_lr
+from atgs.train.step_schedule import schedule_for
 
 
 class SceneData(Protocol):
@@ -81,12 +87,6 @@ class SceneData(Protocol):
     def image_uint8(self, cam_index: int, frame: int) -> np.ndarray: ...
 
 
-def _bounds(scene: SceneData) -> torch.Tensor | None:
-    b = scene.bounds
-    # on the CPU: the model is initialised there and moved afterwards
-    return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32), device="cpu").reshape(2, 3)
-
-
 class NonFiniteError(UserError, RuntimeError):
     """Training diverged (too many non-finite steps in a row); the message names the fix."""
 
@@ -99,122 +99,116 @@ class StepResult:
     skipped: bool
 
 
-def free_space_of(scene: SceneData, cams: list[Camera], device: torch.device) -> FreeSpace:
-    """The space ``cams`` prove empty: in front of the scene's measured keyframe points (not its
-    fill; all keyframes at once, so anything a moving object occupies at one keyframe stays
-    non-empty) and its motion points."""
-    pts = np.asarray(scene.points, np.float64)
-    pts = pts[np.asarray(scene.measured_points, bool)]
-    motion = np.asarray(scene.motion_points, np.float64).reshape(-1, 3)
-    return FreeSpace.of(cams, np.concatenate([pts, motion]), device=device)
-
-
-def check_backend(device: torch.device, backend: str) -> None:
-    """Refuse a ``--train.render-backend`` that cannot rasterize tensors on ``device``."""
-    if backend == "cpu" and device.type != "cpu":
-        raise DeviceError(f"--train.render-backend cpu rasterizes CPU tensors only, but training runs on {device}; "
-                          "use --train.render-backend auto, or --device cpu")
-    if backend == "cuda" and device.type != "cuda":
-        raise DeviceError("--train.render-backend cuda needs CUDA tensors; use --device cuda, "
-                          "or --train.render-backend auto")
+def _in_run_threads(method: Callable) -> Callable:
+    """Run a Trainer method with the run's torch thread count (--train.threads), then restore
+    torch's (nested calls keep it)."""
+    @functools.wraps(method)
+    def wrapper(self: "Trainer", *args, **kwargs):
+        with self.run_threads():
+            return method(self, *args, **kwargs)
+    return wrapper
 
 
 class Trainer:
     def __init__(self, scene: SceneData, model_cfg: ModelConfig, cfg: TrainConfig, out_dir: str | Path,
                  model: ATGSModel | None = None, device: torch.device | str = "cpu", progress: bool = True) -> None:
         """``device``: where training runs (``atgs.device.resolve_device`` picks it for the CLI);
-        a given ``model`` is moved there. ``progress``: a bar for the set-up's longer steps."""
-        self.device = torch.device(device)
-        check_backend(self.device, cfg.render_backend)
-        if cfg.views_per_step < 1 or cfg.cameras_per_frame < 1:
-            raise UserError(f"--train.views-per-step {cfg.views_per_step} and --train.cameras-per-frame "
-                            f"{cfg.cameras_per_frame}: both must be >= 1")
-        if cfg.volume_reduction not in VOLUME_REDUCTIONS:
-            raise UserError(f"--train.volume-reduction {cfg.volume_reduction!r}: use one of {', '.join(VOLUME_REDUCTIONS)}")
-        for flag, weight in (("lambda-distortion", cfg.lambda_distortion), ("lambda-depth-smooth", cfg.lambda_depth_smooth),
-                             ("lambda-free-space", cfg.lambda_free_space)):
-            if weight < 0:
-                raise UserError(f"--train.{flag} {weight}: a loss weight, use >= 0 (0 = off)")
-        if not cfg.lr.moving_anchors > 0:
-            raise UserError(f"--train.lr.moving-anchors {cfg.lr.moving_anchors}: a factor on learning rates, use > 0")
-        if not 0 <= cfg.drop_gaussians < 1:
-            raise UserError(f"--train.drop-gaussians {cfg.drop_gaussians}: a fraction of the Gaussians, use 0 <= rate < 1")
-        environment = None if model is None else model.environment  # (a resumed run keeps its own)
-        if cfg.background_from_images:  # resolved once; the checkpoint carries the colour and the map
-            colour, environment = resolve_background(scene, list(scene.train_indices),
-                                                     cfg.background_by_direction and not cfg.random_background)
-            cfg = replace(cfg, background=colour)
-        self.measured_exposure: np.ndarray | None = None  # (train cameras, 3) when "auto" measured it
-        if cfg.camera_exposure not in ("auto", "on", "off"):
-            raise UserError(f"--train.camera-exposure {cfg.camera_exposure!r}: use auto, on or off")
-        if cfg.camera_exposure == "auto":  # resolved once, like the background
-            self.measured_exposure = measure_scene_exposure(scene)
-            spread = float(np.nanmax(np.abs(np.log(self.measured_exposure)), initial=0.0))
-            cfg = replace(cfg, camera_exposure="on" if spread > cfg.exposure_threshold else "off")
-        self.scene, self.model_cfg, self.cfg = scene, model_cfg, cfg
-        self.out = Path(out_dir)
-        self.run = RunDir(self.out)
-        if cfg.threads > 0:
-            torch.set_num_threads(cfg.threads)
-        s = cfg.resolution_scale
-        self.cams = [c.scaled(s) if s != 1.0 else c for c in scene.cameras]
+        a given ``model`` is moved there. ``progress``: a bar for the set-up's longer steps.
+        The set-up, in order (each step one method below):"""
+        self.scene, self.device, self.out = scene, torch.device(device), Path(out_dir)
         self.train_idx, self.test_idx = list(scene.train_indices), list(scene.test_indices)
-        self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
-        fresh_model = model is None
-        if model is None:  # built on the CPU (the same initialisation on every device), then moved
-            model = ATGSModel.from_points(
-                model_cfg, torch.as_tensor(np.asarray(scene.points, dtype=np.float32), device="cpu"),
-                torch.as_tensor(np.asarray(scene.point_keyframes, dtype=np.int64), device="cpu"), list(scene.keyframes),
-                scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in self.train_idx],
-                seed=cfg.seed, bounds=_bounds(scene),
-                motion_points=torch.as_tensor(np.asarray(scene.motion_points, dtype=np.float32), device="cpu"),
-                motion_point_keyframes=torch.as_tensor(np.asarray(scene.motion_point_keyframes, dtype=np.int64),
-                                                       device="cpu"),
-                motion_keyframes=list(scene.motion_keyframes))
+        self._check(cfg, model_cfg)
+        # (with torch's own thread count, as these always ran: their sums are part of the run)
+        self._resolve_scene_settings(cfg, None if model is None else model.environment)
+        self.run = RunDir(self.out)
+        with self.run_threads():
+            self._set_up_views()
+            self._set_up_model(model_cfg, model)
+            self._set_up_optimizers()
+            self._set_up_step_state()
+            self._set_up_images_and_exposure()
+            self._set_up_loss_inputs()
+            self._build_kernels()
+            self._set_up_budget()
+            self._start_velocities(fresh_model=model is None, progress=progress)
+
+    # --- set-up ------------------------------------------------------------------------------
+    def _check(self, cfg: TrainConfig, model_cfg: ModelConfig) -> None:
+        """Refuse bad settings before any work (fields may have been set after construction)."""
+        cfg.validate()
+        model_cfg.validate()
+        check_backend(self.device, cfg.render_backend)
+
+    def _resolve_scene_settings(self, cfg: TrainConfig, environment: EnvironmentMap | None) -> None:
+        """Background and camera exposure from the scene, once for the run (scene_setup)."""
+        self.cfg, self._environment, self.measured_exposure = settings_from_scene(self.scene, cfg, environment)
+
+    def run_threads(self) -> AbstractContextManager:
+        """torch's thread count of this run's work (--train.threads), restored afterwards."""
+        return torch_threads(self.cfg.threads) if self.cfg.threads > 0 else nullcontext()
+
+    def _set_up_views(self) -> None:
+        """Training cameras at the training resolution, and the generator every draw comes from."""
+        s = self.cfg.resolution_scale
+        self.cams = [c.scaled(s) if s != 1.0 else c for c in self.scene.cameras]
+        self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
+        self.gen = torch.Generator(device="cpu").manual_seed(self.cfg.seed)
+
+    def _set_up_model(self, model_cfg: ModelConfig, model: ATGSModel | None) -> None:
+        """A new model from the scene (on the CPU, then moved) or the given one, on the device."""
+        if model is None:
+            model = model_from_scene(self.scene, model_cfg, self.train_idx, self.cfg.seed)
         self.model = model.to(self.device)
-        self.model_cfg = model_cfg = self.model.cfg  # a loaded model may have switched features off
-        self.model.test_camera_names = list(scene.test_cameras)
-        self.model.background = tuple(float(c) for c in cfg.background)
-        self.model.environment = environment
+        self.model_cfg = self.model.cfg  # a loaded model may have switched features off
+        self.model.test_camera_names = list(self.scene.test_cameras)
+        self.model.background = tuple(float(c) for c in self.cfg.background)
+        self.model.environment = self._environment
         # measured before the first culled decode (atgs.model.culling): unknown reach culls nothing
         self.model.refresh_reach()
-        self.sparse_opt = SparseAdam(model.sparse_tensors(), eps=cfg.adam_eps)
-        dec = model.decoder
+
+    def _set_up_optimizers(self) -> None:
+        """Sparse Adam for the tables (rows a step touches), dense Adam for the decoder heads."""
+        self.sparse_opt = SparseAdam(self.model.sparse_tensors(), eps=self.cfg.adam_eps)
+        dec = self.model.decoder
         self.dense_opt = torch.optim.Adam(
-            [{"params": list(getattr(dec, h).parameters()), "name": h} for h in dec.HEADS], lr=0.0, eps=cfg.adam_eps)
-        self.stats = DensifyStats.zeros(model.num_anchors, model_cfg.gaussians_per_anchor, self.device)
-        self.sampler = SegmentSampler(model.timeline, self.train_idx, self.gen)
-        self.grid_visits = torch.zeros(model.num_segments, dtype=torch.int64, device=self.device)
-        self.step = 0
-        self.bad_in_row = 0
-        self.skipped = 0
-        self.final_pruned = 0
-        self.images = ImageCache(self._load_image, cfg.image_cache_mb, self.device)
-        self.exposure = (CameraExposure(len(self.train_idx), cfg.lr.exposure, self.device)
-                         if cfg.camera_exposure == "on" else None)
-        if self.exposure is not None and cfg.exposure_start_measured:  # (resume loads its own state)
+            [{"params": list(getattr(dec, h).parameters()), "name": h} for h in dec.HEADS], lr=0.0,
+            eps=self.cfg.adam_eps)
+
+    def _set_up_step_state(self) -> None:
+        """What a checkpoint carries besides the model and optimizers."""
+        self.stats = DensifyStats.zeros(self.model.num_anchors, self.model_cfg.gaussians_per_anchor, self.device)
+        self.sampler = SegmentSampler(self.model.timeline, self.train_idx, self.gen)
+        self.grid_visits = torch.zeros(self.model.num_segments, dtype=torch.int64, device=self.device)
+        self.step = self.bad_in_row = self.skipped = self.final_pruned = 0
+
+    def _set_up_images_and_exposure(self) -> None:
+        """The training-image cache, and the learned per-camera exposure when it is on."""
+        self.images = ImageCache(self._load_image, self.cfg.image_cache_mb, self.device)
+        self.exposure = (CameraExposure(len(self.train_idx), self.cfg.lr.exposure, self.device)
+                         if self.cfg.camera_exposure == "on" else None)
+        if self.exposure is not None and self.cfg.exposure_start_measured:  # (resume loads its own state)
             if self.measured_exposure is None:
-                self.measured_exposure = measure_scene_exposure(scene)
+                self.measured_exposure = measure_scene_exposure(self.scene)
             self.exposure.start_from(self.measured_exposure)
-        self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
-        # what the training cameras prove empty, from the measured keyframe and motion points
-        self.free_space = free_space_of(scene, [self.cams[i] for i in self.train_idx], self.device) \
-            if cfg.lambda_free_space > 0 else None
-        self.fixed_background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        # compile the rasterizer now (gsplat's CUDA kernels take minutes on first use), and the
-        # grids' CPU kernels (the sparse optimizer built its own above), not in the first step,
-        # where the time budget would pay for them
-        warm_up(self.device, cfg.render_backend)
+
+    def _set_up_loss_inputs(self) -> None:
+        """What the loss terms need besides a view: the space the training cameras prove empty
+        (only for --train.lambda-free-space) and the background colour."""
+        self.free_space = (free_space_of(self.scene, [self.cams[i] for i in self.train_idx], self.device)
+                           if self.cfg.lambda_free_space > 0 else None)
+        self.fixed_background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
+
+    def _build_kernels(self) -> None:
+        """Compile the rasterizer now (gsplat's CUDA kernels take minutes on first use), and the
+        grids' CPU kernels (the sparse optimizer built its own), not in the first step, where a
+        time budget would pay for them."""
+        warm_up(self.device, self.cfg.render_backend)
         grid_kernels(self.model.hash.table, self.model.hash.backend)
-        # --minutes: the step count is sized from the measured pace (atgs.train.budget)
-        self.budget = (TimeBudget(60.0 * cfg.minutes, ScheduleBase.of(cfg), reserve_views=self.final_views())
-                       if cfg.minutes > 0 else None)
-        self.scene_flow_stats: dict | None = None
-        if fresh_model and cfg.velocity_from_flow and model_cfg.anchor_velocity:
-            t0 = time.perf_counter()
-            self._velocities_from_flow(progress)
-            if self.budget is not None:  # set-up the budget pays for: it counts as time used
-                self.budget.used += time.perf_counter() - t0
+
+    def _set_up_budget(self) -> None:
+        """--minutes: the step count is sized from the measured pace (atgs.train.budget)."""
+        self.budget = (TimeBudget(60.0 * self.cfg.minutes, reserve_views=self.final_views())
+                       if self.cfg.minutes > 0 else None)
         self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
         self._session_start: float | None = None  # clock() when run_steps began
         self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
@@ -222,34 +216,19 @@ class Trainer:
         self._planned_once = False
         self.warnings: list[str] = []  # said during the run (atgs.train.generalisation), also in the result
 
+    def _start_velocities(self, fresh_model: bool, progress: bool) -> None:
+        """A new model's anchor velocities from optical flow: set-up a budget pays for."""
+        self.scene_flow_stats: dict | None = None
+        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity:
+            t0 = time.perf_counter()
+            self.scene_flow_stats = velocities_from_flow(self.model, self.scene, self.train_idx, progress)
+            if self.budget is not None:  # it counts as time used
+                self.budget.used += time.perf_counter() - t0
+
     # --- data -------------------------------------------------------------------------------
     def _load_image(self, cam: int, frame: int) -> np.ndarray:
         c = self.cams[cam]
         return resize_frame(self.scene.image_uint8(cam, frame), c.width, c.height)
-
-    def _velocities_from_flow(self, progress: bool = True) -> None:
-        """Start the per-keyframe anchors' velocities from the training images' optical flow
-        (atgs.train.scene_flow); anchors it cannot measure keep 0."""
-        m = self.model
-        if m.num_keyframes < 2 or not bool((m.anchor_keyframe >= 0).any()) or len(self.train_idx) < 2:
-            return
-        cams = [self.scene.cameras[i] for i in self.train_idx]
-        bar = progress_bar(m.num_keyframes, "scene flow", unit="keyframe", enabled=progress)
-
-        def grey(ci: int, f: int) -> torch.Tensor:
-            return grey_of(self.scene.image_uint8(self.train_idx[ci], f))
-
-        def step(k: int, total: int) -> None:
-            bar.update(k - bar.n)
-
-        with torch.no_grad():
-            vel, stats = initial_velocities(m.anchor_mu.cpu(), m.anchor_keyframe.cpu(), m.voxel_size,
-                                            m.timeline.keyframe_frames(), m.num_frames, cams, grey,
-                                            progress=step)
-            m.anchor_velocity.copy_(vel.to(m.anchor_velocity.device))
-        bar.update(bar.total - bar.n)
-        bar.close()
-        self.scene_flow_stats = stats
 
     def _background(self) -> "torch.Tensor | EnvironmentMap":
         """A random colour per step, else the run's background by direction or its colour."""
@@ -257,66 +236,32 @@ class Trainer:
             return torch.rand(3, generator=self.gen, device=self.gen.device).to(self.device)
         return self.model.environment or self.fixed_background
 
-    # --- learning rates -----------------------------------------------------------------------
+    # --- learning rates (atgs.train.schedule) ---------------------------------------------------
     def _expected_visits(self) -> int:
         segs = max(1, len(self.sampler.segments))
         return max(1, self.cfg.iterations * self.cfg.views_per_step // segs)
 
     def dense_lrs(self, step: int) -> dict[str, float]:
-        lr, n = self.cfg.lr, self.cfg.iterations
-        w = warmup(step, lr.warmup_steps, lr.warmup_start)
-        return {"offset": w * exp_decay(lr.offset_init, lr.offset_final, step, n),
-                "opacity": w * exp_decay(lr.opacity_init, lr.opacity_final, step, n),
-                "cov": w * lr.cov,
-                "color": w * exp_decay(lr.color_init, lr.color_final, step, n)}
+        return dense_lrs(self.cfg.lr, step, self.cfg.iterations)
 
     def sparse_lr(self, name: str, rows: torch.Tensor, step: int) -> float | torch.Tensor:
-        lr = self.cfg.lr
-        w = warmup(step, lr.warmup_steps, lr.warmup_start)
-        if lr.moving_anchors != 1.0 and name in ANCHOR_TABLES:  # per row: static anchors keep w
-            moving = self.model.anchor_keyframe[rows] != STATIC
-            w = torch.where(moving, w * lr.moving_anchors, w).float()
-        if name == "anchor_feature":
-            return w * lr.anchor_feature
-        if name == "anchor_log_scale":
-            return w * lr.anchor_scaling
-        if name == "spatial":
-            return w * lr.spatial_grid
-        if name == "anchor_velocity":
-            return w * lr.anchor_velocity * self.model.extent
-        if name == "anchor_fade":
-            return w * lr.anchor_fade
-        # temporal grids: each decays with its own visit count
-        # (one rate per grid, then one per row: the hash tables have ~10^5 rows a step)
-        p = (self.grid_visits.double() / self._expected_visits()).clamp(0, 1)
-        if name == "hash":
-            a, b = lr.temporal_init * self.model.extent, lr.temporal_final * self.model.extent
-        else:
-            a, b = lr.temporal_mlp_init, lr.temporal_mlp_final
-        per_grid = (w * torch.exp(math.log(a) * (1 - p) + math.log(b) * p)).float()
-        return per_grid[rows // (self.model.hash.levels * self.model.hash.table_size) if name == "hash" else rows]
+        return sparse_lr(self.cfg.lr, name, rows, step, self.model, self.grid_visits, self._expected_visits())
+
+    # --- the loss (atgs.train.loss_terms) ---------------------------------------------------------
+    def loss_terms(self, dec: Decoded, out, gt: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Each active term of one view's loss, weighted, by name."""
+        return weighted_terms(LossInputs(dec, out, gt, self.model, self.cfg, self.free_space))
+
+    def compute_loss(self, dec: Decoded, out, gt: torch.Tensor) -> torch.Tensor:
+        """One view's loss: the sum of :meth:`loss_terms`."""
+        return total_loss(self.loss_terms(dec, out, gt))
 
     # --- one optimisation step ---------------------------------------------------------------
-    def compute_loss(self, dec: Decoded, out, gt: torch.Tensor) -> torch.Tensor:
-        cfg = self.cfg
-        loss = image_loss(out.image, gt, cfg.lambda_ssim)
-        if cfg.lambda_volume > 0:
-            loss = loss + cfg.lambda_volume * volume_loss(dec.gaussians.scales, cfg.volume_reduction,
-                                                             self.model.voxel_size)
-        if cfg.lambda_offset > 0:
-            loss = loss + cfg.lambda_offset * offset_loss(dec.offsets(self.model.anchor_mu), self.model.voxel_size,
-                                                          cfg.offset_free)
-        if cfg.lambda_distortion > 0:
-            loss = loss + cfg.lambda_distortion * depth_distortion(out.alpha, out.depth, out.depth_sq,
-                                                                   self.model.voxel_size)
-        if cfg.lambda_depth_smooth > 0:
-            loss = loss + cfg.lambda_depth_smooth * depth_smoothness(out.alpha, out.depth, gt, cfg.depth_smooth_edge)
-        if cfg.lambda_free_space > 0 and self.free_space is not None:
-            loss = loss + cfg.lambda_free_space * free_space_loss(dec.gaussians.opacities, dec.gaussians.means,
-                                                                  self.free_space)
-        return loss
-
+    @_in_run_threads
     def train_step(self) -> StepResult:
+        """One step: ``views_per_step`` frames, each decoded once and rendered from
+        ``cameras_per_frame`` training cameras, their mean loss back-propagated; then the sparse
+        and dense updates and, when due, densification."""
         cfg, model = self.cfg, self.model
         q = model.cfg.gaussians_per_anchor
         self.dense_opt.zero_grad(set_to_none=True)
@@ -361,16 +306,7 @@ class Trainer:
                 if s.leaf.grad is not None:
                     grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
         if bad:
-            self.skipped += 1
-            self.bad_in_row += 1
-            self.dense_opt.zero_grad(set_to_none=True)
-            if self.exposure is not None:
-                self.exposure.opt.zero_grad(set_to_none=True)
-            if self.bad_in_row > cfg.max_bad_steps:
-                raise NonFiniteError(f"{self.bad_in_row} consecutive steps had a non-finite loss or Gaussians "
-                                     f"(step {self.step}); lower the learning rates or resume from the last checkpoint")
-            self.step += 1
-            return StepResult(float("nan"), float("nan"), 0, True)
+            return self._skip_step()
         self.bad_in_row = 0
         for m in set(segments):
             self.grid_visits[m] += 1
@@ -387,6 +323,19 @@ class Trainer:
         values = torch.cat([torch.stack(losses).double(), torch.stack(psnrs).double()]).tolist()
         n = len(losses)
         return StepResult(float(np.mean(values[:n])), float(np.mean(values[n:])), n_gauss // n, False)
+
+    def _skip_step(self) -> StepResult:
+        """A step with non-finite Gaussians or loss changes nothing; too many in a row stop the run."""
+        self.skipped += 1
+        self.bad_in_row += 1
+        self.dense_opt.zero_grad(set_to_none=True)
+        if self.exposure is not None:
+            self.exposure.opt.zero_grad(set_to_none=True)
+        if self.bad_in_row > self.cfg.max_bad_steps:
+            raise NonFiniteError(f"{self.bad_in_row} consecutive steps had a non-finite loss or Gaussians "
+                                 f"(step {self.step}); lower the learning rates or resume from the last checkpoint")
+        self.step += 1
+        return StepResult(float("nan"), float("nan"), 0, True)
 
     def _apply_sparse(self, grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]]) -> None:
         tables = self.model.sparse_tensors()
@@ -439,6 +388,7 @@ class Trainer:
         """The frames of periodic and final evaluation: ``eval_max_frames`` evenly spaced."""
         return evenly_spaced(self.model.num_frames, max(1, self.cfg.eval_max_frames))
 
+    @_in_run_threads
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
                  resolution_scale: float | None = None, images_per_camera: int | None = None) -> dict:
         """PSNR and SSIM on the test cameras (or the first training camera, with its learned
@@ -473,6 +423,7 @@ class Trainer:
         """Views the final evaluation renders: every frame of each test camera."""
         return len(self.test_idx or self.train_idx[:1]) * self.model.num_frames
 
+    @_in_run_threads
     def final_evaluation(self, out: Path | None) -> dict:
         """What ``atgs-eval`` reports by default (every frame of the test cameras at full
         resolution, three comparison images per camera; LPIPS aside), so the figure that
@@ -515,8 +466,8 @@ class Trainer:
                device: torch.device | str = "cpu") -> "Trainer":
         """Continue the run of checkpoint ``path`` on ``device`` (any: checkpoints hold CPU tensors
         and the optimizer and densification state move with the model). ``iterations``: a new
-        total step count (and no time budget); ``minutes``: a new total time budget (the time
-        already used counts)."""
+        total step count (and no time budget; the schedule sized to it as ``--iterations`` sizes
+        it); ``minutes``: a new total time budget (the time already used counts)."""
         data = read_checkpoint(path)
         if data.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
@@ -526,9 +477,9 @@ class Trainer:
         # checkpoints lack the flag and would otherwise switch to the mean colour mid-run
         cfg.background_from_images = False
         if iterations is not None:
-            cfg.iterations, cfg.minutes = iterations, 0.0
+            cfg = schedule_for(replace(cfg, minutes=0.0), iterations)
         if minutes is not None:
-            cfg.minutes = minutes
+            cfg = replace(cfg, minutes=minutes)
         if int(data["num_frames"]) != scene.num_frames:
             raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
@@ -552,7 +503,7 @@ class Trainer:
             tr.budget.reserve_views = tr.final_views()
             left = tr.budget.steps_left()
             if left is not None:  # provisional plan at the last pace; re-planned after calibration
-                rescale_schedule(cfg, tr.budget.base, max(tr.step, tr.step + left))
+                tr.cfg = schedule_for(tr.cfg, max(1, tr.step + left))
         return tr
 
     # --- time budget -------------------------------------------------------------------------------
@@ -574,7 +525,7 @@ class Trainer:
         if n is None:
             return
         first = self.budget.pace > 0 and self._planned_once is False
-        rescale_schedule(self.cfg, self.budget.base, max(n, self.step))
+        self.cfg = schedule_for(self.cfg, max(n, self.step))  # as --iterations would size it
         if self.step >= n and self.cfg.densify.final_prune:  # out of time: the run ends at this step
             self._final_prune(int(self.cfg.densify.stop_fraction * self.cfg.iterations))
         bar.total = n
@@ -594,62 +545,82 @@ class Trainer:
             result["eval"] = self.final_evaluation(self.out / "eval" if final_renders else None)
         return result
 
+    @_in_run_threads
     def run_steps(self, progress: bool = True, stop_at: int | None = None,
                   should_stop: Callable[[], bool] | None = None) -> dict:
         """Train until ``cfg.iterations`` with periodic evaluation and checkpoints, then save
         ``ckpt.pt``. It stops early, as if killed there (checkpoint written,
         ``result["stopped_early"]`` = the step), at step ``stop_at`` or after the step at which
-        ``should_stop()`` turns true (Ctrl-C)."""
-        cfg = self.cfg
+        ``should_stop()`` turns true (Ctrl-C). (``self.cfg`` is read afresh every step: a time
+        budget re-sizes its schedule.)"""
         t0 = self._session_start = self.clock()
         start = self.step
-        bar = progress_bar(cfg.iterations, "atgs-train", unit="step", enabled=progress, initial=start)
-        ema_loss = ema_psnr = None
+        bar = progress_bar(self.cfg.iterations, "atgs-train", unit="step", enabled=progress, initial=start)
+        ema = _Ema()
         # steps of the last evaluation and save: a time budget may resize the intervals mid-run,
         # so "due" is "an interval has passed", not "the step is a multiple of it"
-        last_eval = start - start % cfg.eval_every if cfg.eval_every > 0 else start
-        last_save = start - start % cfg.save_every if cfg.save_every > 0 else start
+        self._last_eval = start - start % self.cfg.eval_every if self.cfg.eval_every > 0 else start
+        self._last_save = start - start % self.cfg.save_every if self.cfg.save_every > 0 else start
         try:
-            while (self.step < (cfg.iterations if stop_at is None else min(stop_at, cfg.iterations))
+            while (self.step < (self.cfg.iterations if stop_at is None else min(stop_at, self.cfg.iterations))
                    and not (should_stop is not None and should_stop())):
                 r = self.train_step()
                 if not r.skipped and math.isfinite(r.loss):
-                    ema_loss = r.loss if ema_loss is None else 0.9 * ema_loss + 0.1 * r.loss
-                    ema_psnr = r.psnr if ema_psnr is None else 0.9 * ema_psnr + 0.1 * r.psnr
+                    ema.add(r.loss, r.psnr)
                 row = {"step": self.step, "loss": f"{r.loss:.6f}", "psnr": f"{r.psnr:.3f}",
                        "anchors": self.model.num_anchors, "gaussians": r.gaussians,
                        "seconds": f"{self.clock() - t0:.2f}", "skipped": self.skipped,
                        "eval_psnr": "", "eval_ssim": ""}
-                if cfg.eval_every > 0 and self.step - last_eval >= cfg.eval_every and self.step < cfg.iterations:
-                    last_eval = self.step
-                    t_eval = self.clock()
-                    ev = self.evaluate()
-                    self._overhead += self.clock() - t_eval  # not step time: the budget's pace excludes it
-                    row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
-                    warning = evaluation_gap_warning(self.step, ev["psnr"], ema_psnr, ev["on_test_cameras"])
-                    if warning is not None and not self.warnings:  # once a run: the log has every figure
-                        self.warnings.append(warning)
-                        bar.write(warning)
+                self._evaluate_if_due(row, ema.psnr, bar)
                 self.run.log(row)
-                if cfg.save_every > 0 and self.step - last_save >= cfg.save_every and self.step < cfg.iterations:
-                    last_save = self.step
-                    t_save = self.clock()
-                    self.save()
-                    self._overhead += self.clock() - t_save
+                self._save_if_due()
                 bar.update(1)
                 self._follow_budget(bar)
-                if self.step % 5 == 0 or self.step == cfg.iterations:
-                    bar.set_postfix(loss=f"{ema_loss or float('nan'):.4f}", psnr=f"{ema_psnr or float('nan'):.2f}",
+                if self.step % 5 == 0 or self.step == self.cfg.iterations:
+                    bar.set_postfix(loss=f"{ema.loss or float('nan'):.4f}", psnr=f"{ema.psnr or float('nan'):.2f}",
                                     anchors=self.model.num_anchors, gs=r.gaussians, refresh=False)
         finally:
             bar.close()
         seconds = self.clock() - t0
         self._session_start = None
         self._used_before = self._used_before + seconds
-        stopped_early = self.step < cfg.iterations
+        stopped_early = self.step < self.cfg.iterations
         if self.step > start or not stopped_early:  # a stop before any step has nothing new to save
             self.save()
-        result = {"steps": self.step - start, "seconds": seconds, "anchors": self.model.num_anchors,
+        result = self._result(self.step - start, seconds)
+        if stopped_early:
+            result["stopped_early"] = self.step
+        return result
+
+    def _due(self, every: int, last: int) -> bool:
+        """An interval has passed since ``last``, and the run does not end at this step."""
+        return every > 0 and self.step - last >= every and self.step < self.cfg.iterations
+
+    def _evaluate_if_due(self, row: dict, ema_psnr: float | None, bar) -> None:
+        """The periodic evaluation (into the log ``row``), and the warning it may raise once."""
+        if not self._due(self.cfg.eval_every, self._last_eval):
+            return
+        self._last_eval = self.step
+        t_eval = self.clock()
+        ev = self.evaluate()
+        self._overhead += self.clock() - t_eval  # not step time: the budget's pace excludes it
+        row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
+        warning = evaluation_gap_warning(self.step, ev["psnr"], ema_psnr, ev["on_test_cameras"])
+        if warning is not None and not self.warnings:  # once a run: the log has every figure
+            self.warnings.append(warning)
+            bar.write(warning)
+
+    def _save_if_due(self) -> None:
+        if not self._due(self.cfg.save_every, self._last_save):
+            return
+        self._last_save = self.step
+        t_save = self.clock()
+        self.save()
+        self._overhead += self.clock() - t_save
+
+    def _result(self, steps: int, seconds: float) -> dict:
+        """What run_steps returns (and atgs-train writes to result.json, with the evaluation)."""
+        result = {"steps": steps, "seconds": seconds, "anchors": self.model.num_anchors,
                   "skipped": self.skipped, "final_pruned": self.final_pruned}
         if self.budget is not None:
             result["budget_seconds"] = self.budget.seconds
@@ -664,6 +635,16 @@ class Trainer:
             result["scene_flow"] = dict(self.scene_flow_stats)
         if self.warnings:
             result["warnings"] = list(self.warnings)
-        if stopped_early:
-            result["stopped_early"] = self.step
         return result
+
+
+class _Ema:
+    """Running averages of the training loss and PSNR for the progress bar (0.9 decay)."""
+
+    def __init__(self) -> None:
+        self.loss: float | None = None
+        self.psnr: float | None = None
+
+    def add(self, loss: float, psnr: float) -> None:
+        self.loss = loss if self.loss is None else 0.9 * self.loss + 0.1 * loss
+        self.psnr = psnr if self.psnr is None else 0.9 * self.psnr + 0.1 * psnr

@@ -1,0 +1,75 @@
+"""The training loss of one view as a list of terms: the image loss and the regularisers, each
+with its weight flag. A term with weight 0 is off (not computed); the loss is the weighted sum
+of the others, in the order of :data:`LOSS_TERMS`. The functions themselves are in
+:mod:`atgs.train.losses`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+import functools
+import operator
+from typing import TYPE_CHECKING
+
+import torch
+
+from atgs.train.losses import depth_distortion, depth_smoothness, free_space_loss, image_loss, offset_loss, volume_loss
+
+if TYPE_CHECKING:
+    from atgs.free_space import FreeSpace
+    from atgs.model.atgs_model import ATGSModel, Decoded
+    from atgs.render.types import RasterOutput
+    from atgs.train.config import TrainConfig
+
+
+@dataclass(frozen=True)
+class LossInputs:
+    """What a term reads: one rendered view, its training image and the decode it came from."""
+
+    dec: "Decoded"
+    out: "RasterOutput"
+    gt: torch.Tensor
+    model: "ATGSModel"
+    cfg: "TrainConfig"
+    free_space: "FreeSpace | None"  # None unless --train.lambda-free-space > 0
+
+
+@dataclass(frozen=True)
+class LossTerm:
+    name: str
+    weight: Callable[["TrainConfig"], float]  # from the config; 0 = off
+    value: Callable[[LossInputs], "torch.Tensor | None"]  # None: nothing to compute it from
+
+
+LOSS_TERMS: tuple[LossTerm, ...] = (
+    # (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM): the paper's, always on
+    LossTerm("image", lambda cfg: 1.0, lambda i: image_loss(i.out.image, i.gt, i.cfg.lambda_ssim)),
+    LossTerm("volume", lambda cfg: cfg.lambda_volume,
+             lambda i: volume_loss(i.dec.gaussians.scales, i.cfg.volume_reduction, i.model.voxel_size)),
+    LossTerm("offset", lambda cfg: cfg.lambda_offset,
+             lambda i: offset_loss(i.dec.offsets(i.model.anchor_mu), i.model.voxel_size, i.cfg.offset_free)),
+    LossTerm("distortion", lambda cfg: cfg.lambda_distortion,
+             lambda i: depth_distortion(i.out.alpha, i.out.depth, i.out.depth_sq, i.model.voxel_size)),
+    LossTerm("depth_smooth", lambda cfg: cfg.lambda_depth_smooth,
+             lambda i: depth_smoothness(i.out.alpha, i.out.depth, i.gt, i.cfg.depth_smooth_edge)),
+    LossTerm("free_space", lambda cfg: cfg.lambda_free_space,
+             lambda i: None if i.free_space is None
+             else free_space_loss(i.dec.gaussians.opacities, i.dec.gaussians.means, i.free_space)),
+)
+
+
+def weighted_terms(inputs: LossInputs) -> dict[str, torch.Tensor]:
+    """Each active term times its weight, by name, in the order of :data:`LOSS_TERMS`."""
+    terms = {}
+    for term in LOSS_TERMS:
+        weight = term.weight(inputs.cfg)
+        if weight > 0:
+            value = term.value(inputs)
+            if value is not None:
+                terms[term.name] = weight * value
+    return terms
+
+
+def total_loss(terms: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The sum of :func:`weighted_terms`, added in their order (the image term is always one)."""
+    return functools.reduce(operator.add, terms.values())
