@@ -27,7 +27,7 @@ from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
 from atgs.model.smoothing import filter_variance, sampling_rates, smooth
-from atgs.model.motion import MIN_FADE, MOTION_TABLES, fade_weight, initial_fade, keyframe_distance, max_fade_width
+from atgs.model.anchor_motion import MIN_FADE, MOTION_TABLES, fade_weight, initial_fade, keyframe_distance, max_fade_width
 from atgs.model.random_anchors import random_anchor_points
 from atgs.render.environment import EnvironmentMap
 from atgs.timeline import Timeline
@@ -125,7 +125,7 @@ class ATGSModel:
         self.anchor_keyframe = anchors.keyframe.long()
         self.anchor_feature = torch.zeros(self.num_anchors, d, device=self.anchor_mu.device)
         self.anchor_log_scale = anchors.log_scale.float().clone()
-        # anchor motion (atgs.model.motion): velocity per keyframe interval, log fade width
+        # anchor motion (atgs.model.anchor_motion): velocity per keyframe interval, log fade width
         self.anchor_velocity = torch.zeros(self.num_anchors, 3, device=self.anchor_mu.device)
         self.anchor_fade = torch.full((self.num_anchors, 1), self.initial_fade(), device=self.anchor_mu.device)
         # how far each anchor's Gaussians reach (atgs.model.culling): measured by the decodes

@@ -200,7 +200,7 @@ class InferenceCache:
             win = self._window_for(model, c, f)
             active, mu, scale_off, scale_base = win.active, win.mu, win.scale_off, win.scale_base
             sel = None
-            if model.has_motion:  # anchor motion (atgs.model.motion), as in ATGSModel._decode
+            if model.has_motion:  # anchor motion (atgs.model.anchor_motion), as in ATGSModel._decode
                 dist, fade = model.fade_of(f, active)
                 if model.cfg.temporal_fade:
                     sel = (fade >= model.fade_cut()).nonzero().squeeze(1)
