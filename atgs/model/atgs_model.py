@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 import math
+import sys
 
 import numpy as np
 import torch
@@ -30,6 +31,7 @@ from atgs.model.smoothing import filter_variance, sampling_rates, smooth
 from atgs.model.anchor_motion import MIN_FADE, MOTION_TABLES, fade_weight, initial_fade, keyframe_distance, max_fade_width
 from atgs.model.random_anchors import random_anchor_points
 from atgs.render.environment import EnvironmentMap
+from atgs.seen_space import fallback_points
 from atgs.timeline import Timeline
 
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
@@ -511,19 +513,12 @@ class ATGSModel:
         return model
 
 
-FALLBACK_POINTS = 4000
-
-
 def _fallback_points(cameras: list[Camera], num_keyframes: int, split: bool, seed: int
                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points in the space seen by at least two cameras (atgs.data.mvs.fill), static with the
-    split layout, else repeated at every keyframe; a warning says so."""
-    import sys
-
-    from atgs.data.mvs.fill import fallback_points
-
+    """Points in the space seen by at least two cameras (atgs.seen_space), static with the split
+    layout, else repeated at every keyframe; a warning says so."""
     # CPU, like the scene's points that from_points receives
-    pts = torch.as_tensor(fallback_points(cameras, FALLBACK_POINTS, seed), dtype=torch.float32, device="cpu")
+    pts = torch.as_tensor(fallback_points(cameras, seed=seed), dtype=torch.float32, device="cpu")
     print(f"warning: the scene has no points (points.ply is empty); starting from {len(pts)} points filling "
           "the space the cameras see", file=sys.stderr)
     if split:
