@@ -84,9 +84,9 @@ def faded_and_moved(means: torch.Tensor, opacities: torch.Tensor, weights: torch
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """The Gaussians (means (A, q, 3), opacities (A, q)) of A anchors with fade ``weights`` (A,)
     and, if given, ``velocity`` (A, 3) at keyframe ``distance`` (A,): (means moved by
-    ``distance * velocity``, opacities times the weights, each Gaussian's shift (A * q, 3) or None)."""
+    ``distance * velocity``, opacities times the weights, that shift (A, q, 3) or None)."""
     opacities = opacities * weights[:, None]
     if velocity is None:
         return means, opacities, None
     shift = (velocity * distance[:, None])[:, None, :].expand(-1, means.shape[1], -1)
-    return means + shift, opacities, shift.reshape(-1, 3)
+    return means + shift, opacities, shift

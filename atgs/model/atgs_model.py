@@ -424,8 +424,10 @@ class ATGSModel:
         q = self.cfg.gaussians_per_anchor
         anchor_ids = active[:, None].expand(-1, q).reshape(-1)
         slot_ids = torch.arange(q, device=active.device).repeat(active.numel())
+        shift = None if shift is None else shift.reshape(-1, 3)  # a copy: only training needs it
         if keep is not None:
             anchor_ids, slot_ids = anchor_ids.index_select(0, keep), slot_ids.index_select(0, keep)
+            shift = None if shift is None else shift.index_select(0, keep)
         return Decoded(gaussians, anchor_ids, slot_ids, active, raw, m, sparse, shift)
 
     def _decode_cached(self, f: int, m: int, tau: float) -> Gaussians:
@@ -454,9 +456,9 @@ class ATGSModel:
         cut. ``raw``: the heads' Gaussians of anchors ``active`` at frame f (``dist``: their
         keyframe distances if known); ``rows_of(table, ids)``: rows of a motion table (a tracked
         leaf in training). Returns (``raw`` smoothed, which keeps the unfaded values for the
-        densify statistics; the drawn Gaussians; their indices among all A x q, None: all; their
-        velocity shift, None without one). The order of the operations is part of training's
-        numerics (autograd sums gradients in it): keep it when adding a step."""
+        densify statistics; the drawn Gaussians; their indices among all A x q, None: all; the
+        velocity shift (A, q, 3) of all A x q, None without one). The order of the operations is
+        part of training's numerics (autograd sums gradients in it): keep it when adding a step."""
         var = self.smoothing_variance()
         if var is not None:
             scales, opacities = smooth(raw.scales, raw.opacities, var.index_select(0, active))
@@ -475,7 +477,6 @@ class ATGSModel:
             # index_select, not p[keep]: forward and backward (index_add_ instead of an
             # accumulating index_put_) take half the time on the CPU
             parts = [p.index_select(0, keep) for p in parts]
-            shift = None if shift is None else shift.index_select(0, keep)
         return raw, Gaussians(*parts), keep, shift
 
     def kept_gaussians(self, means: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor | None:
