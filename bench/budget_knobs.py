@@ -68,7 +68,7 @@ CASES: dict[str, tuple[str, dict, dict]] = {
     "w7-mean": ("W=7, mean image colour as background", {"window": 7, **NO_MOTION, **NO_CARVE}, MEAN_BG),
     "w3-mean": ("W=3, mean image colour as background", {"window": 3, **NO_MOTION, **NO_CARVE}, MEAN_BG),
     "w1-mean": ("W=1, mean image colour as background", {"window": 1, **NO_MOTION, **NO_CARVE}, MEAN_BG),
-    # anchor motion (atgs.model.motion), over the mean colour
+    # anchor motion (atgs.model.anchor_motion), over the mean colour
     "w7-fade": ("W=7, mean colour, anchors fade with their keyframe distance",
                 {"window": 7, "temporal_fade": True, "anchor_velocity": False, **NO_CARVE}, MEAN_BG),
     "w7-fade-velocity": ("W=7, mean colour, anchors fade and move (velocity), random anchors not carved",

@@ -1,4 +1,4 @@
-"""Anchor motion (atgs.model.motion): per-anchor fade in time and velocity.
+"""Anchor motion (atgs.model.anchor_motion): per-anchor fade in time and velocity.
 
 References: the fade and the displacement written out by hand from the module's formulas, the
 gradients of both checked against finite differences of the decoded Gaussians, the cached decode
@@ -15,7 +15,7 @@ import torch
 import atgs
 from atgs.checkpoint import read_checkpoint, save_checkpoint
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.motion import MIN_FADE, fade_weight, initial_fade, keyframe_distance, max_fade_width
+from atgs.model.anchor_motion import MIN_FADE, fade_weight, initial_fade, keyframe_distance, max_fade_width
 from atgs.timeline import Timeline
 from atgs.train.config import preset
 from atgs.train.trainer import Trainer

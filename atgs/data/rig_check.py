@@ -29,7 +29,7 @@ EXPECTED = ("a synthetic 4-camera rig 90 degrees apart gave about 14 dB on its h
 def neighbour_angle_deg(cams: Sequence[Camera]) -> float:
     """Median over the cameras of the angle to the nearest other camera, seen from the point
     where the optical axes meet (the angle between optical axes for parallel rigs)."""
-    from atgs.data.mvs.views import meeting_depth
+    from atgs.seen_space import meeting_depth
 
     if len(cams) < 2:
         return 180.0

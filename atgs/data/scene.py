@@ -353,7 +353,7 @@ def compute_bounds(points: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
     else:
         c = np.array([cam.center for cam in cameras])
         if len(cameras) >= 2:
-            from atgs.data.mvs.fill import fallback_points
+            from atgs.seen_space import fallback_points
 
             c = np.concatenate([c, fallback_points(cameras, 2000)])
         lo, hi = np.percentile(c, 1, axis=0), np.percentile(c, 99, axis=0)

@@ -1,5 +1,12 @@
 """ATGSModel: time-conditioned anchors + F_s + F_T,m + decoder -> Gaussians at time t.
 
+One decode, two ways of gathering its inputs. Training (:meth:`ATGSModel.decode_frame`) reads the
+rows of the anchors it decodes as autograd leaves and decodes only those that may reach its
+cameras; inference (:meth:`ATGSModel.gaussians_at`, the player, evaluation and export) takes
+them from caches (atgs.model.fast_decode). Both then run the same code: the heads' activations
+(atgs.model.decoder.gaussians_from_heads) and :meth:`ATGSModel._drawn` (3D smoothing, temporal
+fade, velocity shift, the kept-Gaussians cut).
+
 Large tables (anchor features and scales, F_s, the hash tables, the per-segment temporal MLPs)
 are plain tensors updated row-sparsely by :class:`atgs.train.optim.SparseAdam`; a tracked
 decode returns the leaves of the rows it touched. The decoder MLPs are an ``nn.Module``.
@@ -10,32 +17,36 @@ A model is built on the CPU (the same initialisation whatever the device) and mo
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 import math
+import sys
+from typing import get_args, get_type_hints
 
 import numpy as np
 import torch
 
 from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
+from atgs.model.anchor_motion import (MIN_FADE, MOTION_TABLES, fade_weight, faded_and_moved, initial_fade,
+                                      keyframe_distance, max_fade_width)
 from atgs.model.anchors import STATIC, AnchorInit, anchor_voxel_size, init_anchors, split_static
 from atgs.model.clearance import CameraClearance, clearance_radius
 from atgs.model.config import ModelConfig
 from atgs.model.culling import AnchorReach, gaussian_reach, visible_anchors
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
-from atgs.model.fast_decode import InferenceCache
+from atgs.model.fast_decode import DecodeTables, InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
-from atgs.model.smoothing import filter_variance, sampling_rates, smooth
-from atgs.model.motion import MIN_FADE, MOTION_TABLES, fade_weight, initial_fade, keyframe_distance, max_fade_width
 from atgs.model.random_anchors import random_anchor_points
+from atgs.model.smoothing import filter_variance, sampling_rates, smooth
 from atgs.render.environment import EnvironmentMap
+from atgs.seen_space import fallback_points
 from atgs.timeline import Timeline
 
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
 ANCHOR_TABLES = ("anchor_feature", "anchor_log_scale") + MOTION_TABLES
 TEMPORAL_MLP = ("tmlp_w1", "tmlp_b1", "tmlp_w2", "tmlp_b2")
-ANCHOR_LAYOUTS = ("split", "per-keyframe")
+ANCHOR_LAYOUTS: tuple[str, ...] = get_args(get_type_hints(ModelConfig)["anchor_layout"])  # its Literal
 
 
 @dataclass
@@ -125,7 +136,7 @@ class ATGSModel:
         self.anchor_keyframe = anchors.keyframe.long()
         self.anchor_feature = torch.zeros(self.num_anchors, d, device=self.anchor_mu.device)
         self.anchor_log_scale = anchors.log_scale.float().clone()
-        # anchor motion (atgs.model.motion): velocity per keyframe interval, log fade width
+        # anchor motion (atgs.model.anchor_motion): velocity per keyframe interval, log fade width
         self.anchor_velocity = torch.zeros(self.num_anchors, 3, device=self.anchor_mu.device)
         self.anchor_fade = torch.full((self.num_anchors, 1), self.initial_fade(), device=self.anchor_mu.device)
         # how far each anchor's Gaussians reach (atgs.model.culling): measured by the decodes
@@ -271,6 +282,16 @@ class ATGSModel:
         """Anchors whose fade is below this are not decoded (their Gaussians cannot show)."""
         return max(MIN_FADE, float(self.cfg.opacity_threshold))
 
+    def faded_in(self, f: int, anchors: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """(positions in ``anchors`` (global ids) of those whose fade at frame f reaches
+        :meth:`fade_cut`, their keyframe distances); (None, None) without ``temporal_fade``:
+        every anchor shows. Both decodes skip the others."""
+        if not self.cfg.temporal_fade:
+            return None, None
+        dist, w = self.fade_of(f, anchors)
+        shown = (w >= self.fade_cut()).nonzero().squeeze(1)
+        return shown, dist.index_select(0, shown)
+
     def smoothing_variance(self) -> torch.Tensor | None:
         """(A,) variance of each anchor's 3D smoothing filter (atgs.model.smoothing) from the
         training cameras (the model's cameras less ``test_camera_names``); None when off. Cached
@@ -291,15 +312,15 @@ class ATGSModel:
         return self.timeline.window_at(t)
 
     def gaussians_at(self, t: float) -> Gaussians:
-        """All Gaussians at normalized time t (clamped to [0, 1]); cached fast path
+        """All Gaussians at normalized time t (clamped to [0, 1]); the cached inference decode
         (atgs.model.fast_decode), equal to the training decode up to float32 round-off."""
         f = self.timeline.frame_at(t)
         m, tau = self.timeline.segment_at(t)
-        return self.inference_cache.decode(self, f, m, tau)
+        return self._decode_cached(f, m, tau)
 
     def gaussians_at_frame(self, f: int) -> Gaussians:
         tl = self.timeline
-        return self.inference_cache.decode(self, f, tl.segment_of_frame(f), tl.local_time_of_frame(f))
+        return self._decode_cached(f, tl.segment_of_frame(f), tl.local_time_of_frame(f))
 
     def gaussians_at_frame_reference(self, f: int) -> Gaussians:
         """The uncached decode of frame f (the training path without autograd), for tests."""
@@ -359,17 +380,18 @@ class ATGSModel:
 
     def _decode(self, f: int, m: int, tau: float, camera: Camera | Sequence[Camera] | None, track: bool,
                 only: torch.Tensor | None = None) -> Decoded:
+        """The training decode: the active anchors (of ``only``, and that may reach ``camera``)
+        faded in at frame f, their inputs gathered from the tables (with ``track``, as sparse
+        leaves for the optimizer), the decoder, then :meth:`_drawn`."""
         mask = self.active_anchors(f)
         if only is not None:
             mask &= only
         if camera is not None and self.cfg.frustum_cull:
             mask = self.visible_anchors(f, [camera] if isinstance(camera, Camera) else list(camera), mask)
         active = mask.nonzero().squeeze(1)
-        dist = None  # keyframe distances of the active anchors, once computed
-        if self.cfg.temporal_fade:  # anchors faded out at this frame cannot show: skip them
-            dist, w = self.fade_of(f, active)
-            shown = (w >= self.fade_cut()).nonzero().squeeze(1)
-            active, dist = active.index_select(0, shown), dist.index_select(0, shown)
+        shown, dist = self.faded_in(f, active)  # anchors faded out at this frame cannot show: skip them
+        if shown is not None:
+            active = active.index_select(0, shown)
         sparse: list[SparseLeaf] = []
 
         def rows_of(name: str, rows: torch.Tensor) -> torch.Tensor:
@@ -397,25 +419,56 @@ class ATGSModel:
         w1, b1, w2, b2 = (rows_of(n, seg)[0] for n in TEMPORAL_MLP)
         ft = torch.relu((h * inside) @ w1 + b1) @ w2 + b2
         fw = torch.cat([fa, ft], dim=1)
-        raw = self.decoder(fw, mu, log_scale)
-        var = self.smoothing_variance()
-        if var is not None:
-            scales, opacities = smooth(raw.scales, raw.opacities, var.index_select(0, active))
-            raw = DecodedGaussians(raw.means, raw.quats, scales, opacities, raw.colors)
+        raw, gaussians, keep, shift = self._drawn(f, active, dist, self.decoder(fw, mu, log_scale), rows_of)
         self.reach.record(active, gaussian_reach(raw.means.detach(), raw.scales.detach(), mu))
         q = self.cfg.gaussians_per_anchor
         anchor_ids = active[:, None].expand(-1, q).reshape(-1)
         slot_ids = torch.arange(q, device=active.device).repeat(active.numel())
-        means, opac = raw.means, raw.opacities  # raw keeps the unfaded values (densify statistics)
-        shift = None
+        shift = None if shift is None else shift.reshape(-1, 3)  # a copy: only training needs it
+        if keep is not None:
+            anchor_ids, slot_ids = anchor_ids.index_select(0, keep), slot_ids.index_select(0, keep)
+            shift = None if shift is None else shift.index_select(0, keep)
+        return Decoded(gaussians, anchor_ids, slot_ids, active, raw, m, sparse, shift)
+
+    def _decode_cached(self, f: int, m: int, tau: float) -> Gaussians:
+        """The inference decode: every anchor of frame f's window that is faded in, its inputs and
+        the heads' outputs from the cache (atgs.model.fast_decode), then :meth:`_drawn`."""
+        cache = self.inference_cache
+        tables = DecodeTables(self.anchor_mu, self.anchor_keyframe, self.anchor_feature, self.anchor_log_scale,
+                              self.bbox_min, self.bbox_max, self.normalized_positions,
+                              self.spatial if self.cfg.use_spatial_grid else None, self.hash,
+                              (self.tmlp_w1, self.tmlp_b1, self.tmlp_w2, self.tmlp_b2), self.decoder,
+                              self.cfg.gaussians_per_anchor)
+        window = (self.timeline.window_of_frame(f), bool(self.cfg.static_keyframe0), self.cfg.anchor_layout)
+        with cache.lock, torch.no_grad():
+            win = cache.window(tables, window, lambda: self.active_anchors(f).nonzero().squeeze(1))
+            shown, dist = self.faded_in(f, win.active)
+            active, raw = cache.gather(tables, win, shown, m, tau)
+            _, gaussians, _, _ = self._drawn(f, active, dist, raw,
+                                             lambda name, rows: getattr(self, name).index_select(0, rows))
+            return gaussians
+
+    def _drawn(self, f: int, active: torch.Tensor, dist: torch.Tensor | None, raw: DecodedGaussians,
+               rows_of: Callable[[str, torch.Tensor], torch.Tensor]
+               ) -> tuple[DecodedGaussians, Gaussians, torch.Tensor | None, torch.Tensor | None]:
+        """The steps after the decoder heads, the same for both decodes: the 3D smoothing filter,
+        the temporal fade and the velocity shift (atgs.model.anchor_motion), the kept-Gaussians
+        cut. ``raw``: the heads' Gaussians of anchors ``active`` at frame f (``dist``: their
+        keyframe distances if known); ``rows_of(table, ids)``: rows of a motion table (a tracked
+        leaf in training). Returns (``raw`` smoothed, which keeps the unfaded values for the
+        densify statistics; the drawn Gaussians; their indices among all A x q, None: all; the
+        velocity shift (A, q, 3) of all A x q, None without one). The order of the operations is
+        part of training's numerics (autograd sums gradients in it): keep it when adding a step."""
+        var = self.smoothing_variance()
+        if var is not None:
+            scales, opacities = smooth(raw.scales, raw.opacities, var.index_select(0, active))
+            raw = replace(raw, scales=scales, opacities=opacities)
+        means, opac, shift = raw.means, raw.opacities, None
         if self.has_motion:
             fade = rows_of("anchor_fade", active) if self.cfg.temporal_fade else None
             d, w = self.fade_of(f, active, fade, distances=dist)
-            opac = opac * w[:, None]
-            if self.cfg.anchor_velocity:
-                shift = (rows_of("anchor_velocity", active) * d[:, None])[:, None, :].expand(-1, q, -1)
-                means = means + shift
-                shift = shift.reshape(-1, 3)
+            velocity = rows_of("anchor_velocity", active) if self.cfg.anchor_velocity else None
+            means, opac, shift = faded_and_moved(means, opac, w, velocity, d)
         opac = opac.reshape(-1)
         keep = self.kept_gaussians(means.detach().reshape(-1, 3), opac.detach())
         parts = [means.reshape(-1, 3), raw.quats.reshape(-1, 4), raw.scales.reshape(-1, 3), opac,
@@ -424,14 +477,11 @@ class ATGSModel:
             # index_select, not p[keep]: forward and backward (index_add_ instead of an
             # accumulating index_put_) take half the time on the CPU
             parts = [p.index_select(0, keep) for p in parts]
-            anchor_ids, slot_ids = anchor_ids.index_select(0, keep), slot_ids.index_select(0, keep)
-            shift = None if shift is None else shift.index_select(0, keep)
-        return Decoded(Gaussians(*parts), anchor_ids, slot_ids, active, raw, m, sparse, shift)
+        return raw, Gaussians(*parts), keep, shift
 
     def kept_gaussians(self, means: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor | None:
         """Indices of the decoded Gaussians that are drawn (None: all of them): above the opacity
-        threshold and outside the rig cameras' clearance. Both decodes (this one and
-        atgs.model.fast_decode) cut with it."""
+        threshold and outside the rig cameras' clearance (both decodes cut with it, in :meth:`_drawn`)."""
         mask = None
         if self.cfg.opacity_threshold > 0:
             mask = opacities > self.cfg.opacity_threshold
@@ -511,19 +561,12 @@ class ATGSModel:
         return model
 
 
-FALLBACK_POINTS = 4000
-
-
 def _fallback_points(cameras: list[Camera], num_keyframes: int, split: bool, seed: int
                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points in the space seen by at least two cameras (atgs.data.mvs.fill), static with the
-    split layout, else repeated at every keyframe; a warning says so."""
-    import sys
-
-    from atgs.data.mvs.fill import fallback_points
-
+    """Points in the space seen by at least two cameras (atgs.seen_space), static with the split
+    layout, else repeated at every keyframe; a warning says so."""
     # CPU, like the scene's points that from_points receives
-    pts = torch.as_tensor(fallback_points(cameras, FALLBACK_POINTS, seed), dtype=torch.float32, device="cpu")
+    pts = torch.as_tensor(fallback_points(cameras, seed=seed), dtype=torch.float32, device="cpu")
     print(f"warning: the scene has no points (points.ply is empty); starting from {len(pts)} points filling "
           "the space the cameras see", file=sys.stderr)
     if split:

@@ -78,8 +78,8 @@ class ModelConfig:
     camera_clearance: float = 0.02
     """No Gaussian within this fraction of the median camera-to-scene distance of any rig camera
     (its own housing, which it never sees; atgs.model.clearance). 0: off."""
-    # Anchor motion (atgs.model.motion) and the 3D smoothing filter (atgs.model.smoothing): not in
-    # the paper; docs/model.md. Checkpoints from before the motion tables load with motion off.
+    # Anchor motion (atgs.model.anchor_motion) and the 3D smoothing filter (atgs.model.smoothing):
+    # not in the paper; docs/model.md. Checkpoints from before the motion tables load with motion off.
     temporal_fade: bool = False
     """Per-keyframe anchors fade with their distance in time to their keyframe (learned width, capped: no popping)."""
     fade_width: float = 0.6

@@ -1,11 +1,20 @@
-"""Gaussian decoder F_*: four two-layer MLPs on f_w (SPEC section 1 table)."""
+"""Gaussian decoder F_*: four two-layer MLPs on f_w and their output activations (SPEC section 1 table).
+
+:func:`gaussians_from_heads` turns the heads' outputs into Gaussians; the decoder's forward and
+the cached inference decode (atgs.model.fast_decode, which evaluates the same heads in a
+factored form) both call it.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import nn
+
+Heads = Callable[[str], torch.Tensor]
+"""A head's name (GaussianDecoder.HEADS) -> its output (A, q * width) on the decoded anchors."""
 
 
 def mlp(n_in: int, hidden: int, n_out: int) -> nn.Sequential:
@@ -23,6 +32,23 @@ class DecodedGaussians:
     colors: torch.Tensor  # (A, q, 3)
 
 
+def gaussians_from_heads(head: Heads, q: int, mu: torch.Tensor, offset_scale: torch.Tensor,
+                         base_scale: torch.Tensor) -> DecodedGaussians:
+    """The q Gaussians of each of A anchors at ``mu`` (A, 3) from the heads' outputs: opacity and
+    colour are sigmoids, scale ``exp(v[3:]) * sigmoid(.)``, rotation the normalized quaternion,
+    mean ``mu + offset * exp(v[:3])``; ``offset_scale`` = exp(v[:3]) and ``base_scale`` =
+    exp(v[3:]) come as (A, 1, 3). The heads are evaluated in the order of HEADS."""
+    a = mu.shape[0]
+    opac = torch.sigmoid(head("opacity")).view(a, q)
+    cov = head("cov").view(a, q, 7)
+    scales = base_scale * torch.sigmoid(cov[..., :3])
+    quats = nn.functional.normalize(cov[..., 3:], dim=-1)
+    colors = torch.sigmoid(head("color")).view(a, q, 3)
+    offsets = head("offset").view(a, q, 3)
+    means = mu[:, None, :] + offsets * offset_scale
+    return DecodedGaussians(means, quats, scales, opac, colors)
+
+
 class GaussianDecoder(nn.Module):
     HEADS = ("opacity", "cov", "color", "offset")
 
@@ -36,12 +62,6 @@ class GaussianDecoder(nn.Module):
         self.offset = mlp(in_dim, hidden_offset, 3 * q)
 
     def forward(self, fw: torch.Tensor, mu: torch.Tensor, log_scale: torch.Tensor) -> DecodedGaussians:
-        a, q = fw.shape[0], self.q
-        opac = torch.sigmoid(self.opacity(fw)).view(a, q)
-        cov = self.cov(fw).view(a, q, 7)
-        scales = torch.exp(log_scale[:, None, 3:]) * torch.sigmoid(cov[..., :3])
-        quats = nn.functional.normalize(cov[..., 3:], dim=-1)
-        colors = torch.sigmoid(self.color(fw)).view(a, q, 3)
-        offsets = self.offset(fw).view(a, q, 3)
-        means = mu[:, None, :] + offsets * torch.exp(log_scale[:, None, :3])
-        return DecodedGaussians(means, quats, scales, opac, colors)
+        """Gaussians of anchors with features ``fw`` (A, 2D), positions ``mu`` and log scales v (A, 6)."""
+        return gaussians_from_heads(lambda name: getattr(self, name)(fw), self.q, mu,
+                                    torch.exp(log_scale[:, None, :3]), torch.exp(log_scale[:, None, 3:]))

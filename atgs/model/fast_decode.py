@@ -1,7 +1,11 @@
-"""Fast inference decode (``gaussians_at`` / ``gaussians_at_frame``, no autograd, no camera).
+"""The inference decode's gather (``gaussians_at`` / ``gaussians_at_frame``: no autograd, no
+camera): each decoded anchor's inputs to the decoder heads and the heads' outputs, from caches.
 
-Only the local time tau changes between frames, so everything that depends on the anchors alone
-is computed once per parameter state and kept:
+Both decodes share everything after the heads (ATGSModel._drawn: smoothing, fade, velocity, the
+kept-Gaussians cut) and the heads' activations (atgs.model.decoder.gaussians_from_heads); what
+differs is how they gather. Training reads the rows of the anchors it decodes as autograd
+leaves, every step anew. Here only the local time tau changes between frames, so everything that
+depends on the anchors alone is computed once per parameter state and kept:
 
 - per anchor: ``inside``, ``exp(v)``, ``f_a + f_s`` and the spatial part of every hash level's
   corner slots with its trilinear weights;
@@ -13,32 +17,53 @@ is computed once per parameter state and kept:
   of two such slices), built lazily and kept in a memory-bounded LRU.
 
 A frame then costs two cached slices per level, the small per-segment MLP, one matmul for the
-time half of the stacked first layers, and the four heads' second layers. The cache is keyed on
-the identity and in-place version counter (``Tensor._version``) of every tensor it was built
-from, so a checkpoint load, an optimizer step (in-place ``index_copy_`` / Adam) or an anchor
-edit (new tensors) invalidates it. Results equal the training path (``ATGSModel._decode``) up to
-float32 summation order; tests/test_model_decode_speed_equivalence.py checks this.
+time half of the stacked first layers, and the four heads' second layers. The cache reads only
+:class:`DecodeTables` (it knows nothing else of the model) and is keyed on the identity and
+in-place version counter (``Tensor._version``) of every tensor it was built from, so a
+checkpoint load, an optimizer step (in-place ``index_copy_`` / Adam) or an anchor edit (new
+tensors) invalidates it. Results equal the training decode up to float32 summation order;
+tests/test_model_decode_speed_equivalence.py checks this, and tests/test_model_decode_reference.py
+checks both decodes against a float64 reference.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 import threading
-from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
-from atgs.gaussians import Gaussians
-from atgs.model.decoder import GaussianDecoder
-from atgs.model.smoothing import smooth
-
-if TYPE_CHECKING:  # pragma: no cover
-    from atgs.model.atgs_model import ATGSModel
+from atgs.model.decoder import DecodedGaussians, GaussianDecoder, gaussians_from_heads
+from atgs.model.grids import HashGrid4D, SpatialGrid
 
 # Bytes of hash-slice cache kept per model (at least two slices per level are always kept).
 SLICE_CACHE_BYTES = 256 * 2**20
+
+
+@dataclass(frozen=True)
+class DecodeTables:
+    """What the inference decode reads of a model (ATGSModel builds it for each decode)."""
+
+    mu: torch.Tensor  # (N, 3) anchor positions
+    keyframe: torch.Tensor  # (N,) anchor keyframes (they decide each window's anchors)
+    feature: torch.Tensor  # (N, D) f_a
+    log_scale: torch.Tensor  # (N, 6) v
+    bbox_min: torch.Tensor  # the grids' box, through ``normalized``
+    bbox_max: torch.Tensor
+    normalized: Callable[[torch.Tensor], torch.Tensor]  # positions -> grid coordinates in [0, 1]^3
+    spatial: SpatialGrid | None  # F_s (None: off)
+    hash: HashGrid4D
+    temporal_mlp: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]  # w1, b1, w2, b2 per segment
+    decoder: nn.Module
+    q: int  # Gaussians per anchor
+
+    def anchor_tensors(self) -> list[torch.Tensor]:
+        """The tensors the per-anchor cache is built from."""
+        grids = [self.hash.table] + ([self.spatial.table] if self.spatial is not None else [])
+        return [self.mu, self.keyframe, self.feature, self.log_scale, self.bbox_min, self.bbox_max, *grids]
 
 
 def _key(tensors: list[torch.Tensor]) -> list[tuple[torch.Tensor, int]]:
@@ -75,11 +100,11 @@ class _Features:
     partial: list[torch.Tensor]  # per level (N, 8) int64 spatial part of the hash slots
     weights: list[torch.Tensor]  # per level (N, 8) trilinear weights
     slices: "OrderedDict[tuple[int, int, int], torch.Tensor]"  # (m, level, vertex) -> (N, F)
-    windows: "OrderedDict[tuple, _Window]"  # keyframe window -> its active anchors' rows
+    windows: "OrderedDict[Hashable, Window]"  # keyframe window -> its active anchors' rows
 
 
 @dataclass
-class _Window:
+class Window:
     """Rows of the anchors active in one keyframe window (frames of a window share them)."""
 
     active: torch.Tensor  # (A,) int64
@@ -102,47 +127,42 @@ class _Heads:
 
 
 class InferenceCache:
-    """Per-model cache of the time-invariant decode quantities (thread safe)."""
+    """Per-model cache of the time-invariant decode quantities. A decode holds ``lock`` from
+    :meth:`window` to the end of its use of :meth:`gather`'s result (thread safe)."""
 
     def __init__(self, slice_cache_bytes: int = SLICE_CACHE_BYTES) -> None:
         self.slice_cache_bytes = int(slice_cache_bytes)
-        self._lock = threading.Lock()
+        self.lock = threading.Lock()
         self._features: _Features | None = None
         self._heads: _Heads | None = None
 
     def clear(self) -> None:
-        with self._lock:
+        with self.lock:
             self._features, self._heads = None, None
 
     # --- cached quantities -------------------------------------------------------------------
-    def _feature_tensors(self, model: "ATGSModel") -> list[torch.Tensor]:
-        return [model.anchor_mu, model.anchor_feature, model.anchor_log_scale, model.anchor_keyframe,
-                model.spatial.table, model.hash.table, model.bbox_min, model.bbox_max,
-                model.anchor_velocity, model.anchor_fade]
-
-    def _features_for(self, model: "ATGSModel") -> _Features:
-        key = _key(self._feature_tensors(model))
+    def _features_for(self, t: DecodeTables) -> _Features:
+        key = _key(t.anchor_tensors())
         c = self._features
         if c is not None and _same(c.key, key):
             return c
-        mu = model.anchor_mu
-        xn = model.normalized_positions(mu)
-        inside = ((xn >= 0) & (xn <= 1)).all(1, keepdim=True).to(mu.dtype)
-        fa = model.anchor_feature
-        if model.cfg.use_spatial_grid:
-            fa = fa + model.spatial.query(xn, False)[0]
+        xn = t.normalized(t.mu)
+        inside = ((xn >= 0) & (xn <= 1)).all(1, keepdim=True).to(t.mu.dtype)
+        fa = t.feature
+        if t.spatial is not None:
+            fa = fa + t.spatial.query(xn, False)[0]
         partial, weights = [], []
-        for lv in range(model.hash.levels):
-            p, w = model.hash.spatial_slots(xn, lv)
+        for lv in range(t.hash.levels):
+            p, w = t.hash.spatial_slots(xn, lv)
             partial.append(p.contiguous())
             weights.append(w.contiguous())
-        ls = model.anchor_log_scale
+        ls = t.log_scale
         c = _Features(key, inside, fa.contiguous(), torch.exp(ls[:, :3]), torch.exp(ls[:, 3:]),
                       partial, weights, OrderedDict(), OrderedDict())
         self._features, self._heads = c, None
         return c
 
-    def _slice(self, model: "ATGSModel", c: _Features, m: int, lv: int, vertex: int) -> torch.Tensor:
+    def _slice(self, hg: HashGrid4D, c: _Features, m: int, lv: int, vertex: int) -> torch.Tensor:
         """Trilinear interpolation (N, F) of the time slice ``vertex`` of level lv, grid m, zero
         for anchors outside the box."""
         k = (m, lv, vertex)
@@ -150,7 +170,6 @@ class InferenceCache:
         if s is not None:
             c.slices.move_to_end(k)
             return s
-        hg = model.hash
         rows = hg.combine_time(c.partial[lv], lv, vertex, m)
         feats = hg.table.index_select(0, rows.reshape(-1)).view(*rows.shape, hg.features)
         s = torch.bmm(c.weights[lv][:, None, :], feats).squeeze(1) * c.inside
@@ -161,22 +180,8 @@ class InferenceCache:
             c.slices.popitem(last=False)
         return s
 
-    def _window_for(self, model: "ATGSModel", c: _Features, f: int) -> _Window:
-        k = (model.timeline.window_of_frame(f), bool(model.cfg.static_keyframe0), model.cfg.anchor_layout)  # anchor_keyframe: c.key
-        w = c.windows.get(k)
-        if w is not None:
-            c.windows.move_to_end(k)
-            return w
-        active = model.active_anchors(f).nonzero().squeeze(1)
-        w = _Window(active, model.anchor_mu.index_select(0, active), c.scale_off.index_select(0, active),
-                    c.scale_base.index_select(0, active), None, None)
-        c.windows[k] = w
-        while len(c.windows) > 2:  # playback moves forward: the current and the previous window
-            c.windows.popitem(last=False)
-        return w
-
-    def _heads_for(self, model: "ATGSModel", c: _Features) -> _Heads | None:
-        layers = plain_heads(model.decoder)
+    def _heads_for(self, decoder: nn.Module, c: _Features) -> _Heads | None:
+        layers = plain_heads(decoder)
         if layers is None:
             return None
         key = _key([p for pair in layers for lin in pair for p in (lin.weight, lin.bias)])
@@ -192,60 +197,48 @@ class InferenceCache:
         self._heads = h
         return h
 
-    # --- decode ---------------------------------------------------------------------------
-    def decode(self, model: "ATGSModel", f: int, m: int, tau: float) -> Gaussians:
-        """The Gaussians of ``model._decode(f, m, tau, None, track=False)``."""
-        with self._lock, torch.no_grad():
-            c = self._features_for(model)
-            win = self._window_for(model, c, f)
-            active, mu, scale_off, scale_base = win.active, win.mu, win.scale_off, win.scale_base
-            sel = None
-            if model.has_motion:  # anchor motion (atgs.model.motion), as in ATGSModel._decode
-                dist, fade = model.fade_of(f, active)
-                if model.cfg.temporal_fade:
-                    sel = (fade >= model.fade_cut()).nonzero().squeeze(1)
-                    active, mu, dist, fade = (x.index_select(0, sel) for x in (active, mu, dist, fade))
-                    scale_off, scale_base = scale_off.index_select(0, sel), scale_base.index_select(0, sel)
-            hg = model.hash
-            parts = []
-            for lv in range(hg.levels):
-                v0, w0, w1 = hg.time_corners(tau, lv)
-                s0 = self._slice(model, c, m, lv, v0)
-                s1 = self._slice(model, c, m, lv, v0 + 1)
-                parts.append(torch.add(s0.index_select(0, active) * w0, s1.index_select(0, active), alpha=w1))
-            h = torch.cat(parts, dim=1)
-            ft = torch.addmm(model.tmlp_b1[m], h, model.tmlp_w1[m]).relu_()
-            ft = torch.addmm(model.tmlp_b2[m], ft, model.tmlp_w2[m])
-            heads = self._heads_for(model, c)
-            q = model.cfg.gaussians_per_anchor
-            a = active.numel()
-            if heads is None:  # custom decoder (e.g. reduced precision): run it as is
-                fw = torch.cat([c.fa.index_select(0, active), ft], dim=1)
-                raw = model.decoder(fw, mu, model.anchor_log_scale.index_select(0, active))
-                opac, scales, quats, colors, means = raw.opacities, raw.scales, raw.quats, raw.colors, raw.means
-            else:
-                if win.pre_of is not heads:
-                    win.pre, win.pre_of = torch.addmm(heads.b1, c.fa.index_select(0, win.active), heads.w_a), heads
-                pre = win.pre if sel is None else win.pre.index_select(0, sel)
-                hid = torch.addmm(pre, ft, heads.w_t).relu_()
-                outs = [torch.addmm(b2, x, w2t) for x, (w2t, b2) in
-                        zip(hid.split(heads.splits, dim=1), heads.second)]
-                opac = torch.sigmoid(outs[0]).view(a, q)
-                cov = outs[1].view(a, q, 7)
-                scales = scale_base[:, None, :] * torch.sigmoid(cov[..., :3])
-                quats = nn.functional.normalize(cov[..., 3:], dim=-1)
-                colors = torch.sigmoid(outs[2]).view(a, q, 3)
-                means = mu[:, None, :] + outs[3].view(a, q, 3) * scale_off[:, None, :]
-            var = model.smoothing_variance()
-            if var is not None:  # the 3D smoothing filter, as in ATGSModel._decode
-                scales, opac = smooth(scales, opac, var.index_select(0, active))
-            if model.has_motion:
-                opac = opac * fade[:, None]
-                if model.cfg.anchor_velocity:
-                    means = means + (model.anchor_velocity.index_select(0, active) * dist[:, None])[:, None, :]
-            out = [means.reshape(-1, 3), quats.reshape(-1, 4), scales.reshape(-1, 3), opac.reshape(-1),
-                   colors.reshape(-1, 3)]
-            keep = model.kept_gaussians(out[0], out[3])
-            if keep is not None:
-                out = [p.index_select(0, keep) for p in out]
-            return Gaussians(*out)
+    # --- the gather ------------------------------------------------------------------------------
+    def window(self, t: DecodeTables, key: Hashable, active_ids: Callable[[], torch.Tensor]) -> Window:
+        """The cached rows of the anchors of keyframe window ``key`` (``active_ids()``: their ids,
+        asked for when the window is not cached)."""
+        c = self._features_for(t)
+        w = c.windows.get(key)
+        if w is not None:
+            c.windows.move_to_end(key)
+            return w
+        active = active_ids()
+        w = Window(active, t.mu.index_select(0, active), c.scale_off.index_select(0, active),
+                   c.scale_base.index_select(0, active), None, None)
+        c.windows[key] = w
+        while len(c.windows) > 2:  # playback moves forward: the current and the previous window
+            c.windows.popitem(last=False)
+        return w
+
+    def gather(self, t: DecodeTables, win: Window, shown: torch.Tensor | None, m: int, tau: float
+               ) -> tuple[torch.Tensor, DecodedGaussians]:
+        """(ids, Gaussians as the decoder heads give them) of the anchors of ``win`` at rows
+        ``shown`` (None: all) in segment m at local time tau."""
+        c = self._features_for(t)
+        pick = (lambda x: x) if shown is None else (lambda x: x.index_select(0, shown))
+        active, mu, scale_off, scale_base = (pick(x) for x in (win.active, win.mu, win.scale_off, win.scale_base))
+        hg = t.hash
+        parts = []
+        for lv in range(hg.levels):
+            v0, w0, w1 = hg.time_corners(tau, lv)
+            s0 = self._slice(hg, c, m, lv, v0)
+            s1 = self._slice(hg, c, m, lv, v0 + 1)
+            parts.append(torch.add(s0.index_select(0, active) * w0, s1.index_select(0, active), alpha=w1))
+        h = torch.cat(parts, dim=1)
+        tw1, tb1, tw2, tb2 = t.temporal_mlp
+        ft = torch.addmm(tb1[m], h, tw1[m]).relu_()
+        ft = torch.addmm(tb2[m], ft, tw2[m])
+        heads = self._heads_for(t.decoder, c)
+        if heads is None:  # custom decoder (e.g. reduced precision): run it as is
+            fw = torch.cat([c.fa.index_select(0, active), ft], dim=1)
+            return active, t.decoder(fw, mu, t.log_scale.index_select(0, active))
+        if win.pre_of is not heads:
+            win.pre, win.pre_of = torch.addmm(heads.b1, c.fa.index_select(0, win.active), heads.w_a), heads
+        hid = torch.addmm(pick(win.pre), ft, heads.w_t).relu_()
+        outs = dict(zip(GaussianDecoder.HEADS, (torch.addmm(b2, x, w2t) for x, (w2t, b2) in
+                                                zip(hid.split(heads.splits, dim=1), heads.second))))
+        return active, gaussians_from_heads(outs.__getitem__, t.q, mu, scale_off[:, None, :], scale_base[:, None, :])

@@ -7,7 +7,7 @@ per anchor the accumulated opacity of its q Gaussians and how often it was decod
 Growing adds anchors at voxel centres (3 voxel levels) where the mean gradient is high and no
 anchor of the same keyframe exists; a new anchor inherits the keyframe of its parent and the
 element-wise max of its parents' features (and the mean of their velocities and fades,
-atgs.model.motion). Pruning removes anchors whose mean opacity stays below a threshold;
+atgs.model.anchor_motion). Pruning removes anchors whose mean opacity stays below a threshold;
 :func:`prune_final` removes, after the last step, the anchors that never contributed since
 densification stopped (never decoded in a training view, or always faint).
 """

@@ -1,7 +1,7 @@
 """Initial velocities of the per-keyframe anchors from the training images (scene flow).
 
-A per-keyframe anchor moves with a learned velocity (atgs.model.motion), which starts at 0. On the
-built-in large-motion scene the learned velocities ended at about 0.4x the true speeds after a
+A per-keyframe anchor moves with a learned velocity (atgs.model.anchor_motion), which starts at 0.
+On the built-in large-motion scene the learned velocities ended at about 0.4x the true speeds after a
 20-minute run (median 0.11 against 0.26 world units per keyframe interval): a velocity gets a
 gradient only away from its keyframe, and two neighbouring keyframes' anchors cross-fading in
 place explain the images nearly as well, so moving objects stay blurred. This module measures the

@@ -13,6 +13,7 @@ from PIL import Image
 from atgs.cameras import Camera
 from atgs.data.coverage import working_camera
 from atgs.data.errors import DataError
+from atgs.seen_space import layout_depth_range, median_baseline, meeting_depth
 
 # Source-camera choice: triangulation angles near PEAK_DEG are best; smaller angles give poor
 # depth resolution, larger ones distort the matching windows (Goesele et al. 2007, MVSNet).
@@ -80,31 +81,6 @@ def check_camera_layout(cams: Sequence[Camera], where: str = "cameras", held_out
                         "triangulated; the scene needs cameras at different positions")
 
 
-def meeting_depth(cam: Camera, cams: Sequence[Camera]) -> float | None:
-    """Depth along ``cam``'s axis of the point where the optical axes of ``cams`` meet (least
-    squares), where a converging rig (ring, dome, arc) puts its subject; None for parallel
-    front-facing rigs, or when that point is not well in front of ``cam``."""
-    c = np.array([x.center for x in cams])
-    d = np.array([x.forward for x in cams])
-    A = sum(np.eye(3) - np.outer(v, v) for v in d)
-    b = sum((np.eye(3) - np.outer(v, v)) @ p for v, p in zip(d, c))
-    w = np.linalg.eigvalsh(A)
-    if w[0] <= 0.05 * w[-1]:
-        return None
-    t = float((np.linalg.solve(A, b) - cam.center) @ cam.forward)
-    return t if t > 0.5 * _median_baseline(cams) else None
-
-
-def layout_depth_range(cam: Camera, cams: Sequence[Camera]) -> tuple[float, float]:
-    """Near/far of ``cam`` from the camera layout alone (no points): around the distance at which
-    the optical axes meet (rings, converging rigs), or many baselines (parallel front-facing rigs)."""
-    t = meeting_depth(cam, cams)
-    if t is not None:
-        return 0.25 * t, 4.0 * t
-    baseline = _median_baseline(cams)
-    return 0.5 * baseline, 200.0 * baseline
-
-
 def triangulable_depth_range(cam: Camera, cams: Sequence[Camera], n_side: int = 16, n_depth: int = 64,
                              min_share: float = 0.05) -> tuple[float, float] | None:
     """Near/far of ``cam`` from the camera layout alone: the depths along its rays where stereo can
@@ -118,7 +94,7 @@ def triangulable_depth_range(cam: Camera, cams: Sequence[Camera], n_side: int = 
     others = [c for c in cams if c is not cam and not np.allclose(c.center, cam.center)]
     if not others:
         return None
-    scale = _median_baseline(cams)
+    scale = median_baseline(cams)
     u = (np.arange(n_side) + 0.5) / n_side * cam.width
     v = (np.arange(n_side) + 0.5) / n_side * cam.height
     U, V = np.meshgrid(u, v)
@@ -139,14 +115,6 @@ def triangulable_depth_range(cam: Camera, cams: Sequence[Camera], n_side: int = 
         return None
     ok = np.nonzero(score >= min_share * score.max())[0]
     return 0.6 * float(depths[ok[0]]), 1.6 * float(depths[ok[-1]])
-
-
-def _median_baseline(cams: Sequence[Camera]) -> float:
-    """Median distance between camera centres (1 when they coincide: no scale to take)."""
-    c = np.array([x.center for x in cams])
-    base = np.linalg.norm(c[:, None] - c[None], axis=-1)
-    apart = base > 1e-9 * max(1.0, float(np.abs(c).max()))
-    return float(np.median(base[apart])) if apart.any() else 1.0
 
 
 def depth_ranges(cams: Sequence[Camera], points: np.ndarray | None, min_points: int = 20,

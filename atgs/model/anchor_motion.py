@@ -77,3 +77,16 @@ def fade_weight(log_width: torch.Tensor, distance: torch.Tensor, max_width: floa
     clamped to [MIN_FADE_WIDTH, ``max_width``] (:func:`max_fade_width`)."""
     w = torch.exp(log_width[:, 0]).clamp(min=MIN_FADE_WIDTH, max=max_width)
     return torch.exp(-0.5 * (distance / w) ** 2)
+
+
+def faded_and_moved(means: torch.Tensor, opacities: torch.Tensor, weights: torch.Tensor,
+                    velocity: torch.Tensor | None, distance: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The Gaussians (means (A, q, 3), opacities (A, q)) of A anchors with fade ``weights`` (A,)
+    and, if given, ``velocity`` (A, 3) at keyframe ``distance`` (A,): (means moved by
+    ``distance * velocity``, opacities times the weights, that shift (A, q, 3) or None)."""
+    opacities = opacities * weights[:, None]
+    if velocity is None:
+        return means, opacities, None
+    shift = (velocity * distance[:, None])[:, None, :].expand(-1, means.shape[1], -1)
+    return means + shift, opacities, shift

@@ -1,0 +1,131 @@
+"""The space the cameras see, from the cameras alone: depth ranges from the camera layout,
+samples in the intersection of the cameras' frusta, and the start points of a scene without any.
+
+Two users, so it sits beside both: atgs-prepare fills the pixels that stereo and SIFT leave
+uncovered with such samples, coloured from the images (atgs.data.mvs.fill), and a scene with no
+points at all starts from them (:func:`fallback_points`: the model's anchors in
+ATGSModel.from_points, the scene bounds in atgs.data.scene). Nothing here reads images or
+prepared data, so the model does not depend on data preparation.
+
+Samples lie on rays through a camera's pixels, at depths spread in inverse depth over the
+camera's near/far range; a sample is kept if it projects inside at least ``min_views`` cameras
+within their own near/far ranges (the intersection of the frusta), and its colour is the mean of
+its pixels in those cameras.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from atgs.cameras import Camera
+
+SAMPLES_PER_RAY = 16
+OVERSAMPLE = 8  # candidate samples per kept point: most samples lie outside the other frusta
+FALLBACK_POINTS = 4000  # start points of a scene without any
+
+
+def median_baseline(cams: Sequence[Camera]) -> float:
+    """Median distance between camera centres (1 when they coincide: no scale to take)."""
+    c = np.array([x.center for x in cams])
+    base = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    apart = base > 1e-9 * max(1.0, float(np.abs(c).max()))
+    return float(np.median(base[apart])) if apart.any() else 1.0
+
+
+def meeting_depth(cam: Camera, cams: Sequence[Camera]) -> float | None:
+    """Depth along ``cam``'s axis of the point where the optical axes of ``cams`` meet (least
+    squares), where a converging rig (ring, dome, arc) puts its subject; None for parallel
+    front-facing rigs, or when that point is not well in front of ``cam``."""
+    c = np.array([x.center for x in cams])
+    d = np.array([x.forward for x in cams])
+    A = sum(np.eye(3) - np.outer(v, v) for v in d)
+    b = sum((np.eye(3) - np.outer(v, v)) @ p for v, p in zip(d, c))
+    w = np.linalg.eigvalsh(A)
+    if w[0] <= 0.05 * w[-1]:
+        return None
+    t = float((np.linalg.solve(A, b) - cam.center) @ cam.forward)
+    return t if t > 0.5 * median_baseline(cams) else None
+
+
+def layout_depth_range(cam: Camera, cams: Sequence[Camera]) -> tuple[float, float]:
+    """Near/far of ``cam`` from the camera layout alone (no points): around the distance at which
+    the optical axes meet (rings, converging rigs), or many baselines (parallel front-facing rigs)."""
+    t = meeting_depth(cam, cams)
+    if t is not None:
+        return 0.25 * t, 4.0 * t
+    baseline = median_baseline(cams)
+    return 0.5 * baseline, 200.0 * baseline
+
+
+def seen_space_samples(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]], points: int,
+                       min_views: int, images: Sequence[np.ndarray] | None = None,
+                       masks: Sequence[np.ndarray | None] | None = None, seed: int = 0
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``points`` samples (N,3) float64 seen by at least ``min_views`` of ``cams`` within
+    their ``ranges`` (near, far), and colours (N,3) float32 in [0,1] (0.5 grey without images).
+
+    ``masks[i]`` (H_i,W_i bool, any resolution) marks the pixels of camera i whose rays may be
+    sampled (None: no rays from that camera; ``masks`` None: every pixel of every camera).
+    """
+    rng = np.random.default_rng(seed)
+    n = len(cams)
+    if n == 0 or points <= 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
+    masks = [np.ones((1, 1), bool)] * n if masks is None else list(masks)
+    active = [i for i in range(n) if masks[i] is not None and masks[i].any()]
+    if not active:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
+    rays_per_cam = max(1, int(np.ceil(points * OVERSAMPLE / SAMPLES_PER_RAY / len(active))))
+    X = np.concatenate([_ray_samples(cams[i], ranges[i], masks[i], rays_per_cam, rng) for i in active])
+    count = np.zeros(len(X), np.int64)
+    col_sum = np.zeros((len(X), 3))
+    for j, cam in enumerate(cams):
+        uv, z = cam.project(X)
+        near, far = ranges[j]
+        with np.errstate(invalid="ignore"):
+            seen = (z >= near) & (z <= far) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        count += seen
+        if images is not None:
+            img = np.asarray(images[j])
+            xi = np.clip(uv[seen, 0].astype(np.int64), 0, cam.width - 1)
+            yi = np.clip(uv[seen, 1].astype(np.int64), 0, cam.height - 1)
+            col_sum[seen] += img[yi, xi, :3] / 255.0
+    keep = count >= min_views
+    mean = col_sum / np.maximum(count, 1)[:, None]
+    X, mean = X[keep], mean[keep]
+    if len(X) > points:
+        sel = rng.choice(len(X), points, replace=False)
+        X, mean = X[sel], mean[sel]
+    colors = mean.astype(np.float32) if images is not None else np.full((len(X), 3), 0.5, np.float32)
+    return X, colors
+
+
+def _ray_samples(cam: Camera, near_far: tuple[float, float], mask: np.ndarray, rays: int,
+                 rng: np.random.Generator) -> np.ndarray:
+    """World points on ``rays`` random rays through the mask's pixels, SAMPLES_PER_RAY each,
+    jittered in inverse depth between near and far."""
+    ys, xs = np.nonzero(mask)
+    pick = rng.integers(0, len(xs), rays)
+    sx, sy = cam.width / mask.shape[1], cam.height / mask.shape[0]
+    u = (xs[pick] + rng.random(rays)) * sx
+    v = (ys[pick] + rng.random(rays)) * sy
+    near, far = near_far
+    t = (np.arange(SAMPLES_PER_RAY)[None] + rng.random((rays, SAMPLES_PER_RAY))) / SAMPLES_PER_RAY
+    depth = 1.0 / (1.0 / near + t * (1.0 / far - 1.0 / near))  # (rays, S)
+    dirs = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(rays)], 1)
+    pc = (dirs[:, None, :] * depth[..., None]).reshape(-1, 3)
+    return (pc - cam.t) @ cam.R
+
+
+def fallback_points(cams: Sequence[Camera], num_points: int = FALLBACK_POINTS, seed: int = 0) -> np.ndarray:
+    """Points for a scene without any: the space seen by at least two cameras (their depth ranges
+    from the camera layout), else by one; no images needed."""
+    cams = list(cams)
+    ranges = [layout_depth_range(c, cams) for c in cams]
+    for views in (2, 1):
+        pts, _ = seen_space_samples(cams, ranges, num_points, min(views, len(cams)), seed=seed)
+        if len(pts):
+            return pts
+    return pts
