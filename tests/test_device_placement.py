@@ -73,7 +73,9 @@ def test_the_check_catches_a_tensor_created_without_a_device(tmp_path, monkeypat
     import atgs.train.densify as densify
 
     scene = make_toy_scene(num_frames=5, num_cameras=4, width=32, height=24, keyframes=3)
-    tr = Trainer(scene, *_densifying_config(4), tmp_path)
+    # the CPU check: with device "auto" a GPU machine trains on CUDA, where the planted mistake
+    # did not raise (NVIDIA H200, torch 2.11, 2026-11-27)
+    tr = Trainer(scene, *_densifying_config(4), tmp_path, device="cpu")
     tr.train_step()
     real = densify.DensifyStats.record
 
