@@ -191,9 +191,9 @@ def main() -> None:
         for name in list(cfg.cases) + list(real):
             rows[name] = run_case(name, cfg, Path(real[name]) if name in real else None)
             ordered = [rows[c] for c in CASES if c in rows] + [r for c, r in rows.items() if c not in CASES]
-            publish({"rows": ordered}, cfg.out, table(ordered), cfg.docs, "rigs")  # after each case: hours of work
+            publish({**old, "rows": ordered}, cfg.out, table(ordered), cfg.docs, "rigs")  # after each case: hours of work
     ordered = [rows[c] for c in CASES if c in rows] + [r for c, r in rows.items() if c not in CASES]
-    publish({"rows": ordered}, cfg.out, table(ordered), cfg.docs, "rigs")
+    publish({**old, "rows": ordered}, cfg.out, table(ordered), cfg.docs, "rigs")  # keeps the file's note
 
 
 if __name__ == "__main__":
