@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # Sets up everything ATGS needs on a fresh machine; idempotent (a second run installs nothing).
 #   1. Debian/Ubuntu packages for headless OpenGL and the window test (Mesa OSMesa/EGL, Xvfb)
-#      and for compiling the CPU rasterizer (g++, Python headers): installed with apt-get when
-#      missing (as root, or through passwordless sudo); otherwise one line with the command to run.
+#      and for compiling the CPU rasterizer (g++, Python headers); with ATGS_TEST_SETUP=1 (set by
+#      scripts/test.sh) also what the web player's tests run in (Chromium, Node.js): installed
+#      with apt-get when missing (as root, or through passwordless sudo); otherwise one line with
+#      the command to run.
 #   2. .venv with torch: a CUDA build plus the optional gsplat rasterizer when an NVIDIA GPU is
 #      present, else a CPU build (torch==2.13.0; from a CPU wheel index if plain pip would pick a
 #      multi-GB CUDA build), then this package with its test extras.
 # Environment: PYTHON (interpreter, default python3), ATGS_SKIP_APT=1 (skip step 1),
 # ATGS_TORCH (a pip requirement for torch that overrides the choice, e.g. "torch==2.11.0"),
-# ATGS_CUDA=0|1 (force the CPU or the GPU set-up).
+# ATGS_CUDA=0|1 (force the CPU or the GPU set-up), ATGS_TEST_SETUP=1 (also what the tests need).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,6 +26,11 @@ command -v "$PY" >/dev/null || fail "no '$PY' on PATH; install Python 3.10 or ne
 missing_debs() {
   local need=(libosmesa6 libegl1 libgl1-mesa-dri xvfb xauth)
   command -v g++ >/dev/null || need+=(g++)
+  if [ "${ATGS_TEST_SETUP:-0}" = 1 ]; then
+    # the web player's tests: Debian's Chromium driven by Playwright, its JS unit tests by Node.js
+    need+=(chromium)
+    command -v node >/dev/null || need+=(nodejs)
+  fi
   # Python headers for the C++ rasterizer extension (only a system Python lacks them; pyenv/conda ship them)
   if ! "$PY" -c 'import os, sysconfig, sys; sys.exit(0 if os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")) else 1)'; then
     need+=("python3-dev")
