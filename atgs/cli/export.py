@@ -1,4 +1,5 @@
-"""``atgs-export CKPT --out DIR``: per-frame 3D Gaussian splatting PLY files of a checkpoint.
+"""``atgs-export CKPT --out DIR``: per-frame 3D Gaussian splatting PLY files of a checkpoint, or
+with ``--format web`` a folder a web browser plays (docs/web.md).
 
 Bad input gives one line on stderr and exit code 2 (atgs.io.cli); the output folder appears
 complete or not at all (see :mod:`atgs.export`)."""
@@ -8,17 +9,21 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import tyro
 
 from atgs.io.cli import run_cli
 
+if TYPE_CHECKING:
+    from atgs.web.export import WebExportResult
+
 
 @dataclass
 class ExportArgs:
     """Export a trained ATGS checkpoint as 3D Gaussian splatting PLY files, one per frame
-    (frame_000000.ply, ...), plus manifest.json (fps, frames, cameras)."""
+    (frame_000000.ply, ...), plus manifest.json (fps, frames, cameras); or with --format web as a
+    folder a web browser plays (index.html, player/, stream/; serve it with atgs-serve)."""
 
     ckpt: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CKPT")]
     """Checkpoint file written by atgs-train (ckpt.pt)."""
@@ -28,6 +33,10 @@ class ExportArgs:
     """Frames to export: start:stop[:step] (stop exclusive, e.g. 0:120:2) or a list (e.g. 0,30,60); default all."""
     min_opacity: float = 0.0
     """Drop Gaussians whose opacity is below this (e.g. 0.005 keeps files smaller)."""
+    format: Literal["ply", "web"] = "ply"
+    """ply: one 3DGS PLY file per frame; web: chunked, quantized frames and the browser player (docs/web.md)."""
+    chunk_frames: int = 8
+    """With --format web: frames per chunk file (1..65535); the player downloads a chunk at a time."""
     overwrite: bool = False
     """Replace an existing non-empty output folder (only once the new one is complete)."""
     progress: bool = True
@@ -38,14 +47,29 @@ def run(args: ExportArgs):
     from atgs.checkpoint import model_from_checkpoint, read_checkpoint
     from atgs.export import export_ply_sequence, parse_frames
     from atgs.io.atomic import check_output_dir
+    from atgs.web.export import check_chunk_frames, export_web
 
+    if args.format == "web":
+        check_chunk_frames(args.chunk_frames)
     check_output_dir(args.out, args.overwrite)
     ckpt = read_checkpoint(args.ckpt)  # validated; a missing or corrupt file is a one-line error
     model = model_from_checkpoint(ckpt, args.ckpt)
     frames = parse_frames(args.frames, model.num_frames)
     source = {"checkpoint": str(args.ckpt.resolve()), "step": ckpt.get("step")}
+    if args.format == "web":
+        return export_web(model, args.out, frames, chunk_frames=args.chunk_frames, min_opacity=args.min_opacity,
+                          overwrite=args.overwrite, source=source, progress=args.progress)
     return export_ply_sequence(model, args.out, frames, min_opacity=args.min_opacity, overwrite=args.overwrite,
                                source=source, progress=args.progress)
+
+
+def web_summary(res: WebExportResult) -> str:
+    """One line: what the web stream costs (its chunk files; the player's few files aside)."""
+    n, total, gaussian_frames = len(res.frames), res.stream_bytes, sum(res.gaussians)
+    return (f"atgs-export: wrote {n} frame{'s' if n != 1 else ''} ({gaussian_frames / max(n, 1):,.0f} Gaussians per "
+            f"frame) in {len(res.chunks)} chunk{'s' if len(res.chunks) != 1 else ''} to {res.out}: {total:,} bytes, "
+            f"{total / max(n, 1):,.0f} B per frame, {total / max(gaussian_frames, 1):.2f} B per Gaussian-frame; "
+            f"serve it with: atgs-serve {res.out}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> None:
         res = run(args)
         n = len(res.frames)
+        if args.format == "web":
+            print(web_summary(res))
+            return
         print(f"atgs-export: wrote {n} PLY file{'s' if n != 1 else ''} ({sum(res.gaussians):,} Gaussians) and "
               f"manifest.json to {res.out}")
 
