@@ -1,0 +1,418 @@
+// The player page: wires the stream, the view camera and the renderer to the controls of
+// index.html, plays the frames in time, and exposes the small test API (Player.api below).
+
+import { ViewCamera, fitIntrinsics, upDirection } from './camera.js';
+import { Renderer } from './renderer.js';
+import { Stream } from './stream.js';
+
+const SPEEDS = [0.25, 0.5, 1, 1.5, 2];
+const ORBIT_RADIANS_PER_PIXEL = 0.005;
+const ZOOM_PER_WHEEL_PIXEL = 0.001;
+
+/**
+ * The page's options from its URL parameters (docs/web.md):
+ * stream (folder, default "stream/"), frame (exported frame index, 0), camera (training camera
+ * index; default the first held-out one, else 0), paused=1, size=camera. A malformed value is
+ * reported in `error` (the player shows it) rather than thrown, so the page still comes up.
+ * @param {URLSearchParams} params
+ */
+export function pageOptions(params) {
+  let error = null;
+  const integer = (name) => {
+    if (!params.has(name)) return null;
+    const v = Number(params.get(name));
+    if (Number.isInteger(v) && v >= 0) return v;
+    error ??= `URL parameter ${name}=${params.get(name)} is not a non-negative integer`;
+    return null;
+  };
+  return {
+    stream: params.get('stream') || 'stream/',
+    frame: integer('frame') ?? 0,
+    camera: integer('camera'),
+    paused: params.get('paused') === '1',
+    cameraSize: params.get('size') === 'camera',
+    error,
+  };
+}
+
+function megabytes(bytes) {
+  return (bytes / 1e6).toFixed(bytes < 1e7 ? 2 : 1);
+}
+
+export class Player {
+  /**
+   * @param {Document} doc the page (index.html's elements by id)
+   * @param {ReturnType<typeof pageOptions>} options
+   */
+  constructor(doc, options) {
+    this.doc = doc;
+    this.options = options;
+    const $ = (id) => doc.getElementById(id);
+    this.el = {
+      canvas: $('view'), error: $('error'), status: $('status'), play: $('play'), scrub: $('scrub'),
+      readout: $('readout'), loop: $('loop'), speed: $('speed'), camera: $('camera'),
+      progress: $('progress'), progressText: $('progress-text'),
+    };
+    this.stream = null;
+    this.renderer = null;
+    this.view = null;
+    this.manifest = null;
+    this.error = null;              // the first error shown
+    this.stopped = false;           // after a fatal error: nothing more is drawn
+    this.playing = !options.paused;
+    this.position = options.frame;  // playback position in exported frames (fractional while playing)
+    this.frame = -1;                // the exported frame drawn last
+    this.buffering = false;
+    this.drawnKey = null;           // what the last draw showed (frame, camera version, canvas size)
+    this.forceDraw = false;
+    this.last = null;               // {chunk, local, view} of the last draw, for readPixels
+    this.framesDrawn = 0;
+    this.drawTimes = [];
+    this.firstFrameMs = null;
+    this.lastTick = null;
+    this.waiters = [];              // {test(frame), resolve, reject}: promises of the test API
+  }
+
+  /** Loads the stream and starts drawing; every failure ends in showError. */
+  async start() {
+    try {
+      if (this.options.error) throw new Error(this.options.error);
+      if (this.doc.location?.protocol === 'file:') {
+        throw new Error('this page was opened from a file: browsers refuse to load the stream that way; '
+          + 'serve the folder (atgs-serve DIR, or python -m http.server in it) and open its http:// address');
+      }
+      this.renderer = new Renderer(this.el.canvas);
+      this.stream = new Stream(this.options.stream, {
+        onProgress: (loaded, total) => this._showProgress(loaded, total),
+        // the manifest's failure also rejects open() below; a chunk's leaves the others playable
+        onError: (e, chunk) => { if (chunk !== undefined) this.showError(e.message, false); },
+      });
+      const manifest = await this.stream.open();
+      this.manifest = manifest;
+      this.renderer.configure(manifest);
+      this._setupControls(manifest);
+      this._setupView(manifest);
+      if (manifest.environment) await this._loadEnvironment(manifest.environment);
+      this._requestFrame(this.options.frame);
+      this.doc.defaultView.requestAnimationFrame((t) => this._tick(t));
+    } catch (e) {
+      this.showError(e.message);
+    }
+  }
+
+  /**
+   * Shows a one-line error (the first one stays). A fatal one (no manifest, no WebGL2, a bad URL
+   * parameter) stops the player; a chunk's does not: the frames of the other chunks still play,
+   * and playback stops where it reaches the broken chunk.
+   */
+  showError(message, fatal = true) {
+    if (!this.error) {
+      this.error = String(message).split('\n')[0];
+      this.el.error.textContent = this.error;
+      this.el.error.hidden = false;
+    }
+    if (fatal && !this.stopped) {
+      this.stopped = true;
+      this._halt(new Error(this.error));
+    }
+  }
+
+  // Stops playing and fails the test API's waiters: what they wait for cannot be drawn.
+  _halt(error) {
+    this.playing = false;
+    this.buffering = false;
+    this.el.status.textContent = '';
+    this._showPlaying();
+    for (const w of this.waiters) w.reject(error);
+    this.waiters = [];
+  }
+
+  // --- setup -----------------------------------------------------------------------------
+  _setupControls(manifest) {
+    const { play, scrub, loop, speed, camera } = this.el;
+    const n = manifest.frames.length;
+    if (this.options.frame >= n) throw new Error(`URL parameter frame=${this.options.frame}: the stream has ${n} frames (0..${n - 1})`);
+    scrub.max = String(n - 1);
+    scrub.addEventListener('input', () => this._requestFrame(Number(scrub.value)));
+    play.addEventListener('click', () => (this.playing ? this.pause() : this.play()));
+    loop.checked = true;
+    for (const s of SPEEDS) speed.add(new Option(`${s}x`, String(s), s === 1, s === 1));
+    camera.add(new Option('free', 'free'));
+    manifest.cameras.forEach((c, i) => camera.add(new Option(`${c.name}${c.held_out ? ' (held out)' : ''}`, String(i))));
+    camera.addEventListener('change', () => {
+      if (camera.value !== 'free') this.setCamera(Number(camera.value));
+    });
+    this.doc.addEventListener('keydown', (e) => {
+      if (e.key === ' ' && e.target === this.doc.body) {
+        e.preventDefault();
+        if (this.playing) this.pause(); else this.play();
+      }
+    });
+    this._showPlaying();
+  }
+
+  _setupView(manifest) {
+    const cams = manifest.cameras;
+    if (cams.length === 0) throw new Error(`${this.stream.url('manifest.json')} lists no cameras`);
+    const scene = manifest.scene ?? {};
+    this.view = new ViewCamera({ center: scene.center ?? [0, 0, 0], radius: scene.radius ?? 1, up: upDirection(cams) });
+    let index = this.options.camera;
+    if (index === null) index = Math.max(0, cams.findIndex((c) => c.held_out));
+    if (index >= cams.length) throw new Error(`URL parameter camera=${index}: the stream has ${cams.length} cameras (0..${cams.length - 1})`);
+    const canvas = this.el.canvas;
+    if (this.options.cameraSize) {
+      canvas.classList.add('camera-size');  // sized by setCamera
+    } else {
+      const fit = () => {
+        const dpr = this.doc.defaultView.devicePixelRatio || 1;
+        canvas.width = Math.max(1, Math.round(canvas.clientWidth * dpr));
+        canvas.height = Math.max(1, Math.round(canvas.clientHeight * dpr));
+      };
+      fit();
+      new ResizeObserver(fit).observe(canvas);
+    }
+    this.setCamera(index);
+    this._setupPointer(canvas);
+  }
+
+  _setupPointer(canvas) {
+    let drag = null;
+    canvas.addEventListener('contextmenu', (e) => e.preventDefault());
+    canvas.addEventListener('pointerdown', (e) => {
+      drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey };
+      canvas.setPointerCapture(e.pointerId);
+    });
+    canvas.addEventListener('pointermove', (e) => {
+      if (!drag) return;
+      const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+      drag.x = e.clientX;
+      drag.y = e.clientY;
+      if (drag.pan) {
+        // CSS pixels to canvas pixels, then the scene under the pointer follows it
+        const k = canvas.width / Math.max(1, canvas.clientWidth);
+        this.view.pan(dx * k, dy * k, this._intrinsics());
+      } else {
+        this.view.orbit(dx * ORBIT_RADIANS_PER_PIXEL, dy * ORBIT_RADIANS_PER_PIXEL);
+      }
+      this.el.camera.value = 'free';
+    });
+    const end = () => { drag = null; };
+    canvas.addEventListener('pointerup', end);
+    canvas.addEventListener('pointercancel', end);
+    canvas.addEventListener('wheel', (e) => {
+      e.preventDefault();
+      this.view.zoom(Math.exp(e.deltaY * ZOOM_PER_WHEEL_PIXEL));
+      this.el.camera.value = 'free';
+    }, { passive: false });
+  }
+
+  async _loadEnvironment(env) {
+    const where = this.stream.url(env.file);
+    let response;
+    try {
+      response = await fetch(where);
+    } catch (e) {
+      throw new Error(`could not fetch ${where} (${e.message})`);
+    }
+    if (!response.ok) throw new Error(`${where} is missing (HTTP ${response.status})`);
+    let image;
+    try {
+      image = await createImageBitmap(await response.blob(), { colorSpaceConversion: 'none', premultiplyAlpha: 'none' });
+    } catch (e) {
+      throw new Error(`${where} is not a readable image (${e.message})`);
+    }
+    this.renderer.setEnvironment(image, env.basis);
+  }
+
+  // --- playing ---------------------------------------------------------------------------
+  /** Start playing from the current frame. */
+  play() {
+    if (this.stopped || !this.manifest) return;
+    if (!this.el.loop.checked && Math.floor(this.position) >= this.manifest.frames.length - 1) this.position = 0;
+    this.playing = true;
+    this._showPlaying();
+  }
+
+  /** Stop at the current frame. */
+  pause() {
+    this.playing = false;
+    if (this.frame >= 0) this.position = this.frame;
+    this._showPlaying();
+  }
+
+  /**
+   * Show training camera i exactly: its pose, and its intrinsics fitted to the canvas (with
+   * size=camera the canvas takes the camera's pixel size, CSS size equal, no devicePixelRatio).
+   */
+  setCamera(i) {
+    if (!this.view) throw new Error('the stream is not loaded yet');
+    const cams = this.manifest.cameras;
+    if (!Number.isInteger(i) || i < 0 || i >= cams.length) throw new RangeError(`camera ${i}: the stream has ${cams.length} cameras`);
+    this.view.setTraining(cams[i], i);
+    this.el.camera.value = String(i);
+    if (this.options.cameraSize) {
+      const canvas = this.el.canvas;
+      canvas.width = cams[i].width;
+      canvas.height = cams[i].height;
+      canvas.style.width = `${canvas.width}px`;
+      canvas.style.height = `${canvas.height}px`;
+    }
+  }
+
+  _requestFrame(i) {
+    this.position = i;
+    this.forceDraw = true;
+    if (this.stream?.manifest) this.stream.setPlayhead(this.stream.locate(i).chunk);
+  }
+
+  _intrinsics() {
+    return fitIntrinsics(this.view.intrinsics, this.el.canvas.width, this.el.canvas.height);
+  }
+
+  _tick(now) {
+    const win = this.doc.defaultView;
+    if (this.stopped) return;
+    // seconds since the last tick, at most one: a hidden tab gets no ticks and must not jump on return
+    const dt = this.lastTick === null ? 0 : Math.min(1, (now - this.lastTick) / 1000);
+    this.lastTick = now;
+    const n = this.manifest.frames.length;
+    if (this.playing && !this.buffering) {
+      this.position += dt * this.manifest.fps * Number(this.el.speed.value);
+      if (this.position >= n) {
+        if (this.el.loop.checked) {
+          this.position %= n;
+        } else {
+          this.position = n - 1;
+          this.pause();
+        }
+      }
+    }
+    const want = Math.floor(this.position);
+    const { chunk: ci, local } = this.stream.locate(want);
+    if (ci !== this.stream.playhead) this.stream.setPlayhead(ci);  // load from here on
+    const chunk = this.stream.decodedNow(ci);
+    const broken = this.stream.failed.get(ci);
+    if (broken) {
+      if (this.playing || this.buffering || this.waiters.length) this._halt(broken);
+      this.position = want;
+    } else if (!chunk) {
+      // wait for the frame, never skip it: playback holds here until its chunk is decoded
+      this.buffering = true;
+      this.position = want;
+      this.stream.chunk(ci).then(() => { this.forceDraw = true; }, () => {});
+      this.el.status.textContent = this.framesDrawn ? 'buffering…' : 'loading…';
+    } else {
+      if (this.el.status.textContent) this.el.status.textContent = '';
+      this.buffering = false;
+      this._draw(want, chunk, local);
+      const chunks = this.manifest.chunks.length;
+      if (this.playing && chunks > 1 && (ci + 1 < chunks || this.el.loop.checked)) {
+        this.stream.chunk((ci + 1) % chunks).catch(() => {});  // inflate the next chunk before it is needed
+      }
+    }
+    win.requestAnimationFrame((t) => this._tick(t));
+  }
+
+  _draw(i, chunk, local) {
+    const canvas = this.el.canvas;
+    const key = `${i} ${this.view.version} ${canvas.width}x${canvas.height}`;
+    if (key === this.drawnKey && !this.forceDraw) return;
+    const view = { w2c: this.view.w2c, intr: this._intrinsics() };
+    this.renderer.draw(chunk, local, view);
+    this.last = { chunk, local, view: { w2c: Float64Array.from(view.w2c), intr: view.intr } };
+    this.drawnKey = key;
+    this.forceDraw = false;
+    this.frame = i;
+    this.framesDrawn++;
+    const now = performance.now();
+    if (this.firstFrameMs === null) this.firstFrameMs = now;
+    this.drawTimes.push(now);
+    while (this.drawTimes.length > 2 && now - this.drawTimes[0] > 2000) this.drawTimes.shift();
+    this._showFrame(i);
+    const pending = this.waiters;
+    this.waiters = pending.filter((w) => !w.test(i));
+    for (const w of pending) if (w.test(i)) w.resolve();
+  }
+
+  // --- controls --------------------------------------------------------------------------
+  _showPlaying() {
+    this.el.play.textContent = this.playing ? 'Pause' : 'Play';
+    this.el.play.setAttribute('aria-pressed', String(this.playing));
+  }
+
+  _showFrame(i) {
+    const m = this.manifest;
+    this.el.scrub.value = String(i);
+    this.el.readout.textContent = `frame ${i} / ${m.frames.length - 1} (model frame ${m.frames[i]}) · ${(i / m.fps).toFixed(2)} s`;
+  }
+
+  _showProgress(loaded, total) {
+    this.el.progress.max = Math.max(1, total);
+    this.el.progress.value = loaded;
+    this.el.progressText.textContent = loaded >= total ? `${megabytes(total)} MB loaded`
+      : `${megabytes(loaded)} / ${megabytes(total)} MB`;
+  }
+
+  _whenDrawn(test) {
+    if (this.stopped) return Promise.reject(new Error(this.error));
+    return new Promise((resolve, reject) => this.waiters.push({ test, resolve, reject }));
+  }
+
+  _drawFps() {
+    const t = this.drawTimes;
+    return t.length > 1 ? ((t.length - 1) * 1000) / (t[t.length - 1] - t[0]) : 0;
+  }
+
+  /**
+   * The test API, window.atgsPlayer (browser tests and bench/web.py use it):
+   * - whenFirstFrame(): Promise, resolved once the first frame is drawn (rejected on an error)
+   * - seek(i): Promise, resolved once exported frame i is drawn (waits for its chunk)
+   * - setCamera(i): show training camera i; returns a Promise resolved once it is drawn
+   * - play(), pause()
+   * - state(): {frame, frames, playing, buffering, camera (training index or null), loadedBytes,
+   *   totalBytes, framesDrawn, error, firstFrameMs (ms from navigation start to the first
+   *   drawn frame), drawFps (draws per second over the last 2 s)}
+   * - readPixels(): {width, height, encoding: 'base64', data}: the last drawn image (RGBA bytes,
+   *   top row first), drawn again and read back at once
+   */
+  api() {
+    return {
+      whenFirstFrame: () => (this.framesDrawn > 0 ? Promise.resolve() : this._whenDrawn(() => true)),
+      seek: (i) => {
+        const n = this.manifest?.frames.length;
+        if (n !== undefined && !(Number.isInteger(i) && i >= 0 && i < n)) {
+          return Promise.reject(new RangeError(`seek(${i}): the stream has ${n} frames`));
+        }
+        const done = this._whenDrawn((f) => f === i);
+        if (this.manifest) this._requestFrame(i);
+        else this.options.frame = i;
+        return done;
+      },
+      setCamera: (i) => {
+        this.setCamera(i);
+        return this._whenDrawn(() => true);
+      },
+      play: () => this.play(),
+      pause: () => this.pause(),
+      state: () => ({
+        frame: this.frame,
+        frames: this.manifest ? this.manifest.frames.length : 0,
+        playing: this.playing,
+        buffering: this.buffering,
+        camera: this.view ? this.view.trainingIndex : null,
+        loadedBytes: this.stream ? this.stream.loadedBytes : 0,
+        totalBytes: this.stream ? this.stream.totalBytes : 0,
+        framesDrawn: this.framesDrawn,
+        error: this.error,
+        firstFrameMs: this.firstFrameMs,
+        drawFps: this._drawFps(),
+      }),
+      readPixels: () => {
+        if (!this.last) throw new Error('nothing drawn yet');
+        const { chunk, local, view } = this.last;
+        this.renderer.draw(chunk, local, view);
+        return this.renderer.readPixels();
+      },
+    };
+  }
+}
