@@ -6,7 +6,7 @@ traceback and exits with code 2. Each layer subclasses it: ``atgs.data.errors.Da
 ``atgs.checkpoint.CheckpointError``, ``atgs.eval.evaluate.EvalError``,
 ``atgs.viewer.errors.ViewerError``, ``atgs.headless_gl.HeadlessGLError``,
 ``atgs.train.trainer.NonFiniteError``, ``atgs.io.gaussian_ply.GaussianPlyError``,
-``atgs.export.ExportError``, ``atgs.device.DeviceError``, ``atgs.config_checks.ConfigError`` and
+``atgs.export.ExportError``, ``atgs.web.server.ServeError``, ``atgs.device.DeviceError``, ``atgs.config_checks.ConfigError`` and
 :class:`OutputError` below.
 """
 

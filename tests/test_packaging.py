@@ -133,3 +133,20 @@ def test_shaders_are_found_through_the_atgs_namespace() -> None:
     names = sorted(p.name for p in files("atgs.shaders").iterdir() if p.name.endswith((".vert", ".frag", ".geom")))
     assert names == sorted(p.name for p in (REPO / "atgs" / "shaders").glob("*.*") if p.suffix in (".vert", ".frag", ".geom"))
     assert Path(sr.__file__).resolve().parent == REPO / "atgs" / "viewer"
+
+
+def test_the_wheel_ships_the_shaders_and_the_web_player(tmp_path) -> None:
+    """pip install ships every file the desktop and web players read at run time (package data)."""
+    import subprocess
+    import sys
+    import zipfile
+
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", str(REPO),
+                    "-w", str(tmp_path)], check=True, capture_output=True)
+    (wheel,) = tmp_path.glob("atgs-*.whl")
+    shipped = set(zipfile.ZipFile(wheel).namelist())
+    needed = [p for folder in ("atgs/web/player", "atgs/shaders") for p in (REPO / folder).iterdir()
+              if p.is_file() and p.suffix in (".js", ".html", ".css", ".vert", ".frag", ".geom")]
+    assert len(needed) > 10
+    missing = [str(p.relative_to(REPO)) for p in needed if str(p.relative_to(REPO)) not in shipped]
+    assert not missing

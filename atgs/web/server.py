@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import socket
+import sys
 from functools import partial
 from http import HTTPStatus
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
@@ -35,7 +36,14 @@ class WebFolderHandler(SimpleHTTPRequestHandler):
             super().log_request(code, size)
 
 
-class _Server6(ThreadingHTTPServer):
+class _QuietServer(ThreadingHTTPServer):
+    def handle_error(self, request, client_address) -> None:
+        """A browser that leaves a page mid-download closes its connections: not an error."""
+        if not isinstance(sys.exc_info()[1], (BrokenPipeError, ConnectionResetError)):
+            super().handle_error(request, client_address)
+
+
+class _Server6(_QuietServer):
     address_family = socket.AF_INET6
 
 
@@ -45,7 +53,7 @@ def make_server(folder: Path, host: str, port: int) -> ThreadingHTTPServer:
     if not 0 <= port <= 65535:
         raise ServeError(f"--port {port}: must be within 0..65535 (0 picks a free port)")
     handler = partial(WebFolderHandler, directory=str(Path(folder).resolve()))
-    server_class = _Server6 if ":" in host else ThreadingHTTPServer
+    server_class = _Server6 if ":" in host else _QuietServer
     try:
         return server_class((host, port), handler)
     except OSError as e:
