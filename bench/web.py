@@ -11,6 +11,7 @@ least 35 dB against atgs-render; the first frame within 2 s of opening the page 
 
 from __future__ import annotations
 
+import json
 import os
 import statistics
 import tempfile
@@ -83,9 +84,8 @@ def _export(ckpt: Path, out: Path, fmt: str, chunk_frames: int) -> float:
     return time.perf_counter() - t0
 
 
-def size_row(ckpt: Path, tmp: Path, chunk_frames: int, with_ply: bool) -> dict:
-    import json
-
+def size_row(ckpt: Path, tmp: Path, chunk_frames: int, with_ply: bool) -> tuple[dict, Path]:
+    """The web export's (and with ``with_ply`` the PLY export's) size; (row, the web folder)."""
     web = tmp / f"web-{len(list(tmp.glob('web-*')))}"
     web_s = _export(ckpt, web, "web", chunk_frames)
     man = json.loads((web / "stream" / "manifest.json").read_text())
@@ -103,29 +103,41 @@ def size_row(ckpt: Path, tmp: Path, chunk_frames: int, with_ply: bool) -> dict:
         row["ply_export_s"] = _export(ckpt, ply, "ply", chunk_frames)
         row["ply_bytes"] = _bytes(ply)
         row["ratio_to_ply"] = row["folder_bytes"] / row["ply_bytes"]
-    return row
+    return row, web
 
 
-def browser_rows(ckpt: Path, web: Path, cfg: BenchConfig, tmp: Path) -> dict:
-    import json
-
-    man = json.loads((web / "stream" / "manifest.json").read_text())
+def _views(man: dict, views: int) -> tuple[list[int], list[int], list[int]]:
+    """(the first held-out camera and the first training camera, the held-out ones, ``views``
+    evenly spaced exported frames)."""
     n = len(man["frames"])
     held = [i for i, c in enumerate(man["cameras"]) if c.get("held_out")]
     cams = (held[:1] or [0]) + [next(i for i, c in enumerate(man["cameras"]) if not c.get("held_out"))]
-    frames = sorted({round(k * (n - 1) / max(cfg.views - 1, 1)) for k in range(cfg.views)})
+    return cams, held, sorted({round(k * (n - 1) / max(views - 1, 1)) for k in range(views)})
+
+
+def compare_views(browser, url: str, ckpt: Path, man: dict, views: int, tmp: Path) -> list[dict]:
+    """PSNR of the page's canvas against atgs-view --headless, per camera and frame."""
+    cams, held, frames = _views(man, views)
+    rows = []
+    for cam in cams:
+        page = PlayerPage(browser, url, {"camera": cam, "paused": 1, "size": "camera"})
+        page.first_frame()
+        for i in frames:
+            page.seek(i)
+            got = page.pixels()
+            want = _desktop(ckpt, cam, man["frames"][i], tmp / f"d{cam}_{i}.png")
+            rows.append({"camera": man["cameras"][cam]["name"], "held_out": cam in held,
+                         "frame": man["frames"][i], "size": list(got.shape[1::-1]), "db": _psnr(got, want)})
+        page.close()
+    return rows
+
+
+def browser_rows(ckpt: Path, web: Path, cfg: BenchConfig, tmp: Path) -> dict:
+    man = json.loads((web / "stream" / "manifest.json").read_text())
+    cams, _, _ = _views(man, cfg.views)
     out: dict = {"psnr": [], "first_frame_s": []}
     with chromium() as browser, serving(web) as url:
-        for cam in cams:
-            page = PlayerPage(browser, url, {"camera": cam, "paused": 1, "size": "camera"})
-            page.first_frame()
-            for i in frames:
-                page.seek(i)
-                got = page.pixels()
-                want = _desktop(ckpt, cam, man["frames"][i], tmp / f"d{cam}_{i}.png")
-                out["psnr"].append({"camera": man["cameras"][cam]["name"], "held_out": cam in held,
-                                    "frame": man["frames"][i], "db": _psnr(got, want)})
-            page.close()
+        out["psnr"] = compare_views(browser, url, ckpt, man, cfg.views, tmp)
         for _ in range(cfg.loads):
             page = PlayerPage(browser, url, {"camera": cams[0], "paused": 1, "size": "camera"})
             page.first_frame()
@@ -156,16 +168,21 @@ def run(cfg: BenchConfig) -> dict:
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        main_row = size_row(cfg.checkpoint, tmp, cfg.chunk_frames, with_ply=True)
-        browser = browser_rows(cfg.checkpoint, tmp / "web-0", cfg, tmp)
-        extra = [size_row(c, tmp, cfg.chunk_frames, with_ply=False) for c in cfg.extra_checkpoints]
-        for row, name in zip(extra, cfg.extra_names):
-            row["name"] = name
-    psnrs = [p["db"] for p in browser["psnr"]]
-    return {"size": main_row, "extra": extra, "browser": browser,
+        main_row, web = size_row(cfg.checkpoint, tmp, cfg.chunk_frames, with_ply=True)
+        pages = browser_rows(cfg.checkpoint, web, cfg, tmp)
+        extra = []
+        for i, ckpt in enumerate(cfg.extra_checkpoints):
+            row, web = size_row(ckpt, tmp, cfg.chunk_frames, with_ply=False)
+            row["name"] = cfg.extra_names[i] if i < len(cfg.extra_names) else str(ckpt)
+            man = json.loads((web / "stream" / "manifest.json").read_text())
+            with chromium() as browser, serving(web) as url:
+                row["psnr"] = compare_views(browser, url, ckpt, man, 2, tmp)
+            extra.append(row)
+    psnrs = [p["db"] for p in pages["psnr"]]
+    return {"size": main_row, "extra": extra, "browser": pages,
             "summary": {"ratio_to_ply": main_row["ratio_to_ply"], "psnr_min_db": min(psnrs),
                         "psnr_median_db": statistics.median(psnrs),
-                        "first_frame_s_median": statistics.median(browser["first_frame_s"])},
+                        "first_frame_s_median": statistics.median(pages["first_frame_s"])},
             "machine": {"cpus": os.cpu_count(), "loadavg_before": list(load_before)}, **run_stamp()}
 
 
@@ -192,15 +209,16 @@ def markdown_table(r: dict) -> str:
         rows.append(f"| playback, canvas {p['canvas'][0]}x{p['canvas'][1]} | {p['draws_per_s']:.1f} frames drawn a "
                     f"second (video at {p['video_fps']:g} fps) | a floor |")
     for e in r["extra"]:
-        rows.append(f"| web export of {e.get('name', e['checkpoint'])} ({e['step']:,} steps) | {e['bytes_per_gaussian_frame']:.2f} B per Gaussian a frame, "
-                    f"{e['gaussians_per_frame_mean']:,.0f} Gaussians, {e['frames']} frame(s) | |")
+        db = [p["db"] for p in e["psnr"]]
+        rows.append(f"| web export of {e['name']} ({e['step']:,} steps) | "
+                    f"{e['bytes_per_gaussian_frame']:.2f} B per Gaussian a frame, {e['gaussians_per_frame_mean']:,.0f} "
+                    f"Gaussians, {e['frames']} frame(s); browser against atgs-view {min(db):.1f}-{max(db):.1f} dB "
+                    f"({len(db)} views at {e['psnr'][0]['size'][0]}x{e['psnr'][0]['size'][1]}) | |")
     return "\n".join(rows)
 
 
 def main(cfg: BenchConfig) -> None:
     if cfg.replot:
-        import json
-
         result = json.loads(cfg.out.read_text())
         publish(result, cfg.out, markdown_table(result), cfg.docs, "web")
         return
