@@ -36,6 +36,7 @@ from datetime import timedelta
 import math
 import os
 import re
+import time
 
 import numpy as np
 import torch
@@ -105,13 +106,14 @@ class Traffic:
     sparse_rows: int = 0  # rows of all tables this worker sent
     statistics: int = 0  # densification statistics, when densification or a checkpoint reads them
     tables: int = 0  # what a dense all-reduce of every sparse table would carry per step (last step)
+    seconds: float = 0.0  # in the step's exchange: packing, the two collectives (waiting included), merging
 
     def summary(self, world: int) -> dict:
         n = max(1, self.steps)
         return {"workers": world, "steps": self.steps,
                 "dense_bytes_per_step": self.dense / n, "sparse_bytes_per_step": self.sparse / n,
                 "sparse_rows_per_step": self.sparse_rows / n, "statistics_bytes_per_step": self.statistics / n,
-                "dense_tables_bytes_per_step": float(self.tables)}
+                "dense_tables_bytes_per_step": float(self.tables), "exchange_seconds_per_step": self.seconds / n}
 
 
 def _reason(error: BaseException) -> str:
@@ -206,6 +208,7 @@ class Workers:
         the sparse gradients merged in rank order), the dense parameters' ``.grad`` (summed) and
         ``reach`` (the largest measured). ``tables``: the model's sparse tables by name (the same
         order on every worker); ``stop``: this worker was asked to stop. Returns whether any was."""
+        t0 = time.perf_counter()
         names = list(tables) + [REACH]
         widths = [math.prod(t.shape[1:]) for t in tables.values()] + [1]
         local: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
@@ -218,6 +221,7 @@ class Workers:
         stop, counts = self._reduce_dense(views, dense, names, local, stop)
         self._gather_sparse(views, names, widths, tables, local, reach, counts)
         self.traffic.steps += 1
+        self.traffic.seconds += time.perf_counter() - t0
         self.traffic.tables = sum(t.numel() * t.element_size() for t in tables.values())
         return stop
 
