@@ -72,9 +72,10 @@ class TrainArgs:
     gradients summed (torch.distributed: gloo on the CPU, NCCL on CUDA; docs/training.md, "Several
     workers"). N > 1 runs torchrun's launcher here (as torchrun --nproc-per-node N -m
     atgs.cli.train would); --train.views-per-step must be at least N."""
-    worker_timeout: float = 600.0
-    """Seconds a worker waits for the others in a step's exchange before it stops (several
-    workers; rank 0's periodic evaluations must fit in it)."""
+    worker_timeout: float = 1800.0
+    """Seconds a worker waits for the others in an exchange before it stops (several workers;
+    rank 0's set-up of the velocities from optical flow and its periodic evaluations must fit in
+    it; a worker that dies is noticed at once)."""
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 

@@ -240,7 +240,8 @@ class Trainer:
     def _start_velocities(self, fresh_model: bool, progress: bool) -> None:
         """A new model's anchor velocities from optical flow: set-up a budget pays for."""
         self.scene_flow_stats: dict | None = None
-        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity:
+        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity and self.leads:
+            # (several workers: rank 0 measures them, _replicate hands them to the others)
             t0 = time.perf_counter()
             self.scene_flow_stats = velocities_from_flow(self.model, self.scene, self.train_idx, progress)
             if self.budget is not None:  # it counts as time used
