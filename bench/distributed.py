@@ -8,7 +8,8 @@ Cases (one after the other: the machine has 2 cores): "1x2" is one worker with t
 "2x1" two workers (``atgs-train --workers 2``) with one thread each. Both train preset ``cpu`` on
 the built-in scene with two views per step (the global batch both share) for a ``--minutes``
 budget, through atgs-train (so its final evaluation, every frame of the held-out camera, scores
-them). The anatomy times the parts of one worker's step in-process (one thread, the preset's
+them), without the velocities from optical flow (``--flow`` for them: their set-up would take
+most of a short budget here). The anatomy times the parts of one worker's step in-process (one thread, the preset's
 model at its start): the views (decode, render, backward), the rest (the sparse and dense updates,
 densification), and what the exchange of two workers costs. From these and the bytes per step,
 :func:`scaling_model` predicts a step on W workers (its assumptions are in the JSON and in
@@ -43,6 +44,9 @@ VIEWS = 2  # views per step, both cases
 class Distributed:
     cases: tuple[str, ...] = tuple(CASES)
     minutes: float = 3.0
+    flow: bool = False
+    """Velocities from optical flow at the start (a set-up of minutes here, counted in the budget:
+    off, so that the budget measures training)."""
     anatomy_steps: int = 30
     cache: Path = field(default_factory=cache_dir)
     work_dir: Path = Path("/tmp/atgs-bench-distributed")
@@ -55,7 +59,8 @@ def run_case(name: str, args: Distributed) -> dict:
     out = args.work_dir / name
     cmd = [sys.executable, "-m", "atgs.cli.train", "--out", str(out), "--overwrite", "--preset", "cpu",
            "--minutes", str(args.minutes), "--train.views-per-step", str(VIEWS), "--train.threads", str(threads),
-           "--workers", str(workers), "--no-progress", "--cache-dir", str(args.cache)]
+           "--workers", str(workers), "--no-progress", "--cache-dir", str(args.cache),
+           "--train.velocity-from-flow" if args.flow else "--train.no-velocity-from-flow"]
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
@@ -72,8 +77,8 @@ def run_case(name: str, args: Distributed) -> dict:
 
 def anatomy(scene, args: Distributed) -> dict:
     """Seconds of one worker's step (one thread, preset cpu at its start): its views and the rest."""
-    tr = build_trainer(scene, args.work_dir / "anatomy", "cpu", iterations=5000, train={"views_per_step": VIEWS},
-                       threads=1)
+    tr = build_trainer(scene, args.work_dir / "anatomy", "cpu", iterations=5000,
+                       train={"views_per_step": VIEWS, "velocity_from_flow": args.flow}, threads=1)
     spent = {"views": 0.0}
     learn = Trainer._learn_view
 
@@ -127,6 +132,7 @@ def main(args: Distributed) -> None:
     results["stamp"] = run_stamp()
     results["views_per_step"] = VIEWS
     results["minutes"] = args.minutes
+    results["velocity_from_flow"] = args.flow
     runs = results.setdefault("runs", {})
     for name in args.cases:
         runs[name] = run_case(name, args)
