@@ -231,6 +231,7 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
         return _train(args, explicit, workers)
     finally:
         if workers is not None:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)  # on the way out torchrun's SIGTERM is no news
             workers.close()
 
 

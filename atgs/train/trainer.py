@@ -4,7 +4,8 @@ non-finite values, periodic evaluation (through atgs.eval), checkpoints and resu
 What the trainer needs around the loop lives next to it, one module each: the set-up from the
 scene (``scene_setup``), the loss terms (``loss_terms``), the learning rates (``schedule``), the
 schedule's sizing to a step count (``step_schedule``), the time budget (``budget``) and the files
-of the output directory (``run_dir``).
+of the output directory (``run_dir``). Several workers training one run together: ``distributed``
+(each renders its share of a step's views; ``Trainer(workers=...)``).
 
 Device: the model, optimizer states, densification statistics, image cache and everything a
 step creates live on ``device``; rasterization goes through ``atgs.render`` (gsplat for CUDA
@@ -505,6 +506,7 @@ class Trainer:
 
     # --- checkpoints ----------------------------------------------------------------------------
     def checkpoint_payload(self) -> dict:
+        """What ``ckpt.pt`` holds (several workers: :meth:`save` sums the statistics first)."""
         m = self.model
         return {
             "model_config": to_dict(self.model_cfg), "train_config": to_dict(self.cfg),
