@@ -1,27 +1,34 @@
 """``atgs-train``: train ATGS on a prepared scene (or the built-in synthetic scene).
 
     atgs-train --data DIR --out DIR [--preset cpu-fast|cpu|cpu-accurate|paper] [--minutes M | --iterations N] [--resume]
-               [--device auto|cpu|cuda]
+               [--device auto|cpu|cuda] [--workers N]
 
 Every model/trainer knob is a flag (``--model.*``, ``--train.*``; see ``atgs-train --help``);
 flag defaults come from the chosen preset. Nothing in an existing ``--out`` changes before the new
 run's first checkpoint (atgs.train.run_dir); Ctrl-C saves a checkpoint that ``--resume`` continues.
+
+Several workers (atgs.train.distributed): ``torchrun --nproc-per-node N -m atgs.cli.train ...``
+with the same flags, or ``atgs-train --workers N``, which runs torchrun's launcher in this process.
+Rank 0 prints and writes the run's files; the others print only their errors.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+import logging
+import os
 from pathlib import Path
+import signal
 import sys
 
 import tyro
 
-from atgs.config_checks import ConfigError, at_least, check_fields
+from atgs.config_checks import ConfigError, above, at_least, check_fields
 from atgs.device import DeviceName, auto_fallback_note, device_description, resolve_device
 from atgs.errors import OutputError
 from atgs.io.cache import cache_dir
 from atgs.data.rig_check import sparse_rig_warning
-from atgs.io.cli import Interrupted, run_cli, stop_on_sigint
+from atgs.io.cli import EXIT_INTERRUPTED, Interrupted, _exit_now, run_cli, stop_on_sigint
 from atgs.model.config import ModelConfig
 from atgs.train.config import PRESET_NAMES, PresetName, TrainConfig, preset
 from atgs.train.step_schedule import SCHEDULE_SETTINGS, schedule_for
@@ -60,6 +67,15 @@ class TrainArgs:
     auto: bool = False
     """Measure the scene's motion and choose K, M, hash table size and spatial grid resolution
     from it (printed with the reasons); --model.* flags given explicitly still win."""
+    workers: int = 1
+    """Worker processes on this machine, each rendering its share of every step's views, their
+    gradients summed (torch.distributed: gloo on the CPU, NCCL on CUDA; docs/training.md, "Several
+    workers"). N > 1 runs torchrun's launcher here (as torchrun --nproc-per-node N -m
+    atgs.cli.train would); --train.views-per-step must be at least N."""
+    worker_timeout: float = 1800.0
+    """Seconds a worker waits for the others in an exchange before it stops (several workers;
+    rank 0's set-up of the velocities from optical flow and its periodic evaluations must fit in
+    it; a worker that dies is noticed at once)."""
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
@@ -68,7 +84,9 @@ class TrainArgs:
             raise ConfigError("--iterations and --minutes were both given; pass one (--iterations N runs exactly "
                               "N steps, --minutes M sizes the steps to M minutes)")
         check_fields(self, "--", {"iterations": at_least(1, "a step count"),
-                                  "minutes": at_least(0, "a time budget", "0 runs the preset's fixed step count")})
+                                  "minutes": at_least(0, "a time budget", "0 runs the preset's fixed step count"),
+                                  "workers": at_least(1, "a number of processes"),
+                                  "worker_timeout": above(0, "seconds")})
 
 
 def _scan(argv: list[str], flag: str) -> str | None:
@@ -144,8 +162,17 @@ def apply_auto(args: TrainArgs, scene, explicit: set[str]) -> None:
     args.model = apply_overrides(args.model, kept)
 
 
-def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
-    """The trainer of a new run (config staged for its first checkpoint) or of a resumed one.
+def resumed_checkpoint(args: TrainArgs) -> Path:
+    """``--out``'s ckpt.pt, which --resume continues."""
+    ckpt = args.out / "ckpt.pt"
+    if not ckpt.is_file():
+        raise OutputError(f"--resume: {ckpt} not found; start without --resume")
+    return ckpt
+
+
+def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None):
+    """The trainer of a new run (config staged for its first checkpoint) or of a resumed one, on
+    this process's place among ``workers`` (atgs.train.distributed.Workers; None: one process).
     Refuses, before any work, to start over a run that --out already holds."""
     from atgs.train.trainer import Trainer
 
@@ -153,14 +180,14 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     note = auto_fallback_note(args.device, device, need_gsplat=True)
     if note is not None:
         print(f"{PROG}: {note}; see docs/gpu.md", flush=True)
+    if workers is not None:
+        device = workers.device
     ckpt = args.out / "ckpt.pt"
     if args.resume:
-        if not ckpt.is_file():
-            raise OutputError(f"--resume: {ckpt} not found; start without --resume")
-        trainer = Trainer.resume(load_scene(args), ckpt, args.out, iterations=args.iterations, minutes=args.minutes,
-                                 device=device)
+        trainer = Trainer.resume(load_scene(args), resumed_checkpoint(args), args.out, iterations=args.iterations,
+                                 minutes=args.minutes, device=device, workers=workers)
         trainer.run.stage_config({"device": str(device)})  # config.json keeps the run's preset and data
-        print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} on {device_description(device)}")
+        print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} on {_where(device, workers)}")
         return trainer
     if ckpt.exists() and not args.overwrite:
         raise OutputError(f"{ckpt} already exists; pass --resume to continue it, --overwrite to start over, "
@@ -168,14 +195,14 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     scene = load_scene(args)
     if args.auto:
         apply_auto(args, scene, explicit)
-    trainer = Trainer(scene, args.model, args.train, args.out, device=device, progress=args.progress)
+    trainer = Trainer(scene, args.model, args.train, args.out, device=device, progress=args.progress, workers=workers)
     # config.json: these, and the configuration of each checkpoint (what ran; atgs.train.run_dir)
     trainer.run.stage_config({"preset": args.preset, "data": str(args.data) if args.data else None,
                               "device": str(device)})
     m = trainer.model
     print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
           f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras, "
-          f"on {device_description(device)}; "
+          f"on {_where(device, workers)}; "
           + (f"{args.train.minutes:g} min time budget" if args.train.minutes > 0 else f"{args.train.iterations} steps"))
     sparse = sparse_rig_warning([scene.cameras[i] for i in trainer.train_idx],
                                 ((getattr(scene, "coverage", None) or {}).get("views_per_pixel") or {}).get("mean"))
@@ -189,13 +216,33 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset()):
     return trainer
 
 
+def _where(device, workers) -> str:
+    """Where the run trains, for the start-up line."""
+    return device_description(device) + (f" x {workers.world} workers ({workers.backend})" if workers else "")
+
+
 def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
     """Train; the first Ctrl-C during the steps finishes the current one, saves ckpt.pt and raises
-    Interrupted. Then the final evaluation (a Ctrl-C there leaves the complete checkpoint)."""
-    trainer = make_trainer(args, explicit)
-    with stop_on_sigint(f"{PROG}: stopping after this step and saving a checkpoint (Ctrl-C again to abort)") as stop:
+    Interrupted. Then the final evaluation (a Ctrl-C there leaves the complete checkpoint).
+    Under torchrun (several workers) this process trains its share; rank 0 evaluates, writes and
+    raises Interrupted, the others return (``result["stopped_early"]`` after a Ctrl-C)."""
+    workers = join_workers(args)
+    try:
+        return _train(args, explicit, workers)
+    finally:
+        if workers is not None:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)  # on the way out torchrun's SIGTERM is no news
+            workers.close()
+
+
+def _train(args: TrainArgs, explicit: set[str], workers) -> dict:
+    trainer = make_trainer(args, explicit, workers)
+    notice = f"{PROG}: stopping after this step and saving a checkpoint (Ctrl-C again to abort)"
+    with stop_on_sigint(notice if trainer.leads else "") as stop:
         result = trainer.run_steps(progress=args.progress, should_stop=stop)
     ckpt = trainer.run.ckpt_path
+    if not trainer.leads:  # rank 0 evaluates, writes and says what happened
+        return result
     if "stopped_early" in result:
         if not result["steps"]:
             raise Interrupted(f"stopped before the first step; nothing was written to {args.out}")
@@ -222,14 +269,102 @@ def exposure_summary(exposure: dict) -> str:
             "training cameras' average, which held-out cameras and the viewer render")
 
 
+def join_workers(args: TrainArgs):
+    """Under torchrun (WORLD_SIZE > 1): this process's :class:`atgs.train.distributed.Workers`,
+    with SIGTERM (the launcher stopping the others when one failed) as a one-line stop and, off
+    rank 0, no progress and no stdout. None for one process."""
+    from atgs.train.distributed import WorkerLost, Workers
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return None
+    if args.workers not in (1, world):
+        raise ConfigError(f"--workers {args.workers} under a launcher that started {world} processes; pass one of them")
+    workers = Workers.from_env(resolve_device(args.device, need_gsplat=True), args.worker_timeout)
+
+    def stopped(signum: int, frame: object) -> None:
+        raise WorkerLost(f"worker {workers.rank}: stopped by the launcher (another worker failed or the run was "
+                         f"cancelled); {args.out / 'ckpt.pt'} holds the last checkpoint, --resume continues it")
+
+    signal.signal(signal.SIGTERM, stopped)
+    if not workers.leads:
+        args.progress = False
+        sys.stdout = open(os.devnull, "w")
+    return workers
+
+
+def launch_workers(argv: list[str], args: TrainArgs) -> int:
+    """``atgs-train --workers N``: torchrun's launcher in this process (a standalone rendezvous on
+    this machine) starts N workers that run atgs-train with the same flags. Settings N workers
+    cannot train are refused before any starts; a worker killed or failing ends the others
+    (torchrun) and this process with one line."""
+    os.environ.setdefault("LOGLEVEL", "CRITICAL")  # torchrun's log lines (modules loaded later read it)
+    from torch.distributed.elastic.multiprocessing.api import SignalException
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import get_args_parser, run as torchrun
+
+    from atgs.train.distributed import check_settings
+
+    for name in list(logging.root.manager.loggerDict):  # (and those loaded already): this process says what failed
+        if name.startswith("torch.distributed"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+
+    n = args.workers
+    cfg = args.train
+    if args.resume:  # the run's own settings
+        from atgs.checkpoint import read_checkpoint
+        from atgs.config_dict import from_dict
+
+        cfg = from_dict(TrainConfig, read_checkpoint(resumed_checkpoint(args))["train_config"])
+    check_settings(cfg.views_per_step, cfg.drop_gaussians, n)
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
+    launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}", "--module", "atgs.cli.train",
+                                             *argv])
+    try:
+        torchrun(launcher)
+    except SignalException:  # Ctrl-C: torchrun passed it on; rank 0 said what it saved
+        return EXIT_INTERRUPTED
+    except ChildFailedError as e:
+        return _failed_workers(e, args)
+    return 0
+
+
+def _failed_workers(error, args: TrainArgs) -> int:
+    """The launcher's exit code when a worker failed: a worker killed by a signal (other than the
+    SIGTERM with which torchrun stops the rest) in one line here; otherwise the first failed
+    worker's code (it said why)."""
+    from atgs.train.distributed import WorkerLost
+
+    failures = sorted(error.failures.items())
+    killed = [(rank, f) for rank, f in failures if f.exitcode < 0 and f.exitcode != -signal.SIGTERM]
+    said = [(rank, f) for rank, f in failures if f.exitcode > 0]
+    if killed or not said:
+        rank, f = (killed or failures)[0]
+        ckpt = args.out / "ckpt.pt"
+        kept = (f"{ckpt} holds the last checkpoint; continue with {PROG} --out {args.out} --resume"
+                if ckpt.is_file() else "no checkpoint was written yet")
+        raise WorkerLost(f"worker {rank} (pid {f.pid}) was killed by {f.signal_name()}; the other workers "
+                         f"stopped; {kept}")
+    return said[0][1].exitcode
+
+
 def main(argv: list[str] | None = None) -> int:
     process = argv is None  # the process's entry point (console script or python -m)
     argv = sys.argv[1:] if argv is None else argv
 
-    def body() -> None:  # a bad flag is a one-line error too (atgs.config_checks)
-        run(parse(argv), explicit_model_flags(argv))
+    def body() -> int | None:  # a bad flag is a one-line error too (atgs.config_checks)
+        args = parse(argv)
+        if args.workers > 1 and int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+            return launch_workers(argv, args)
+        result = run(args, explicit_model_flags(argv))
+        return EXIT_INTERRUPTED if "stopped_early" in result else None  # (a worker other than rank 0)
 
-    return run_cli(PROG, body, process=process)
+    code = run_cli(PROG, body, process=process)
+    if process and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        # a torchrun worker ends now: in a slow interpreter teardown (its signal handlers reset)
+        # the SIGTERM with which torchrun stops the others would read as "killed"
+        _exit_now(code)
+    return code
 
 
 if __name__ == "__main__":

@@ -86,7 +86,8 @@ class StopRequest:
 
 @contextlib.contextmanager
 def stop_on_sigint(notice: str = "stopping after this step (Ctrl-C again to abort)") -> Iterator[StopRequest]:
-    """While in the block the first SIGINT only sets the yielded request (and prints ``notice``);
+    """While in the block the first SIGINT only sets the yielded request (and prints ``notice``
+    unless it is empty);
     the loop polls it and stops at a safe point. A second SIGINT raises KeyboardInterrupt.
     The previous handler is restored on exit. Outside the main thread nothing is installed
     (signals go to the main thread) and the request is never set."""
@@ -99,7 +100,8 @@ def stop_on_sigint(notice: str = "stopping after this step (Ctrl-C again to abor
         if request.requested:
             raise KeyboardInterrupt
         request.requested = True
-        print(f"\n{notice}", file=sys.stderr, flush=True)
+        if notice:
+            print(f"\n{notice}", file=sys.stderr, flush=True)
 
     previous = signal.signal(signal.SIGINT, handler)
     try:

@@ -43,11 +43,12 @@ class DensifyStats:
         return self.grad_accum.device
 
     def record(self, dec: Decoded, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int,
-               height: int, q: int) -> None:
+               height: int, q: int) -> torch.Tensor | None:
+        """Add one rendered view; returns the slots whose ``last_pos`` it wrote (None: none)."""
         self.opacity_accum.index_add_(0, dec.active, dec.raw.opacities.detach().sum(1))
         self.anchor_count.index_add_(0, dec.active, torch.ones(dec.active.numel(), device=self.device))
         if means2d_grad is None:
-            return
+            return None
         # a non-finite screen-space gradient (the trainer zeroes it for the update) must not
         # poison the running sums: such Gaussians are not counted this step
         vis = ((radii > 0) & torch.isfinite(means2d_grad).all(dim=1)).nonzero().squeeze(1)
@@ -57,6 +58,7 @@ class DensifyStats:
         self.grad_count.index_add_(0, slots, torch.ones(slots.numel(), device=self.device))
         # at the keyframe: growth places anchors there
         self.last_pos.index_copy_(0, slots, dec.keyframe_means().index_select(0, vis))
+        return slots
 
     def append(self, n: int, q: int) -> None:
         z = DensifyStats.zeros(n, q, self.device)

@@ -17,6 +17,18 @@ OPTIM_BACKENDS = ("auto", "torch")
 _NO_LR = torch.empty(0, dtype=torch.float32, device="cpu")  # the compiled step's "one learning rate for all rows"
 
 
+def merge_rows(parts: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+    """One table's gradient from several (rows, grad) parts (views of a step, or workers): the
+    union of the rows, each with the sum of its parts' gradients in the order given. Rows are
+    unique within a part; a single part is returned as it is."""
+    if len(parts) == 1:
+        return parts[0]
+    rows, inv = torch.unique(torch.cat([r for r, _ in parts]), return_inverse=True)
+    g = parts[0][1].new_zeros((rows.numel(),) + tuple(parts[0][1].shape[1:]))
+    g.index_add_(0, inv, torch.cat([x for _, x in parts]))
+    return rows, g
+
+
 def _compiled_kernel():
     """The compiled step, or None where it does not build (the torch version then serves)."""
     from atgs.render.build import SPARSE_ADAM, cpu_backend_error, load_extension

@@ -4,7 +4,8 @@ non-finite values, periodic evaluation (through atgs.eval), checkpoints and resu
 What the trainer needs around the loop lives next to it, one module each: the set-up from the
 scene (``scene_setup``), the loss terms (``loss_terms``), the learning rates (``schedule``), the
 schedule's sizing to a step count (``step_schedule``), the time budget (``budget``) and the files
-of the output directory (``run_dir``).
+of the output directory (``run_dir``). Several workers training one run together: ``distributed``
+(each renders its share of a step's views; ``Trainer(workers=...)``).
 
 Device: the model, optimizer states, densification statistics, image cache and everything a
 step creates live on ``device``; rasterization goes through ``atgs.render`` (gsplat for CUDA
@@ -14,7 +15,7 @@ run's (``--train.threads``) while the trainer works and is restored when it retu
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 import functools
@@ -43,12 +44,13 @@ from atgs.timeline import evenly_spaced
 from atgs.train.budget import TimeBudget
 from atgs.train.config import TrainConfig
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
+from atgs.train.distributed import StepViews, Workers, check_settings
 from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.generalisation import evaluation_gap_warning
 from atgs.train.loss_terms import LossInputs, total_loss, weighted_terms
 from atgs.train.losses import psnr
-from atgs.train.optim import SparseAdam
+from atgs.train.optim import SparseAdam, merge_rows
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
 from atgs.train.scene_setup import (check_backend, free_space_of, model_from_scene, settings_from_scene,
@@ -92,6 +94,16 @@ class NonFiniteError(UserError, RuntimeError):
 
 
 @dataclass
+class View:
+    """One view of a step: a frame, decoded once, rendered from ``cams`` (training camera indices)."""
+
+    index: int  # in the step's views
+    cams: list[int]
+    frame: int
+    backgrounds: list | None = None  # drawn in advance (several workers); None: drawn at render time
+
+
+@dataclass
 class StepResult:
     loss: float
     psnr: float
@@ -111,11 +123,15 @@ def _in_run_threads(method: Callable) -> Callable:
 
 class Trainer:
     def __init__(self, scene: SceneData, model_cfg: ModelConfig, cfg: TrainConfig, out_dir: str | Path,
-                 model: ATGSModel | None = None, device: torch.device | str = "cpu", progress: bool = True) -> None:
+                 model: ATGSModel | None = None, device: torch.device | str = "cpu", progress: bool = True,
+                 workers: Workers | None = None) -> None:
         """``device``: where training runs (``atgs.device.resolve_device`` picks it for the CLI);
         a given ``model`` is moved there. ``progress``: a bar for the set-up's longer steps.
+        ``workers``: this process's place among several training the run together
+        (atgs.train.distributed; every worker builds its Trainer alike); None: one process.
         The set-up, in order (each step one method below):"""
         self.scene, self.device, self.out = scene, torch.device(device), Path(out_dir)
+        self.workers = workers
         self.train_idx, self.test_idx = list(scene.train_indices), list(scene.test_indices)
         self._check(cfg, model_cfg)
         # (with torch's own thread count, as these always ran: their sums are part of the run)
@@ -131,6 +147,7 @@ class Trainer:
             self._build_kernels()
             self._set_up_budget()
             self._start_velocities(fresh_model=model is None, progress=progress)
+            self._replicate()
 
     # --- set-up ------------------------------------------------------------------------------
     def _check(self, cfg: TrainConfig, model_cfg: ModelConfig) -> None:
@@ -138,6 +155,7 @@ class Trainer:
         cfg.validate()
         model_cfg.validate()
         check_backend(self.device, cfg.render_backend)
+        check_settings(cfg.views_per_step, cfg.drop_gaussians, 1 if self.workers is None else self.workers.world)
 
     def _resolve_scene_settings(self, cfg: TrainConfig, environment: EnvironmentMap | None) -> None:
         """Background and camera exposure from the scene, once for the run (scene_setup)."""
@@ -180,6 +198,10 @@ class Trainer:
         self.sampler = SegmentSampler(self.model.timeline, self.train_idx, self.gen)
         self.grid_visits = torch.zeros(self.model.num_segments, dtype=torch.int64, device=self.device)
         self.step = self.bad_in_row = self.skipped = self.final_pruned = 0
+        # Ctrl-C: the request polled during run_steps; several workers stop after the step at
+        # whose exchange any of them had it (_agreed_stop)
+        self._should_stop: Callable[[], bool] | None = None
+        self._agreed_stop = False
 
     def _set_up_images_and_exposure(self) -> None:
         """The training-image cache, and the learned per-camera exposure when it is on."""
@@ -219,11 +241,27 @@ class Trainer:
     def _start_velocities(self, fresh_model: bool, progress: bool) -> None:
         """A new model's anchor velocities from optical flow: set-up a budget pays for."""
         self.scene_flow_stats: dict | None = None
-        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity:
+        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity and self.leads:
+            # (several workers: rank 0 measures them, _replicate hands them to the others)
             t0 = time.perf_counter()
             self.scene_flow_stats = velocities_from_flow(self.model, self.scene, self.train_idx, progress)
             if self.budget is not None:  # it counts as time used
                 self.budget.used += time.perf_counter() - t0
+
+    def _replicate(self) -> None:
+        """Several workers: every one starts from rank 0's model (whatever the round-off of its
+        own set-up)."""
+        if self.workers is None:
+            return
+        m = self.model
+        tensors = [m.anchor_mu, m.anchor_keyframe, *m.sparse_tensors().values(), *m.decoder.parameters(),
+                   m.reach.settled, m.reach.recent]
+        self.workers.replicate(tensors + ([self.exposure.table] if self.exposure is not None else []))
+
+    @property
+    def leads(self) -> bool:
+        """This process prints, evaluates and writes the run's files (one process, or rank 0)."""
+        return self.workers is None or self.workers.leads
 
     # --- data -------------------------------------------------------------------------------
     def _load_image(self, cam: int, frame: int) -> np.ndarray:
@@ -261,56 +299,28 @@ class Trainer:
     def train_step(self) -> StepResult:
         """One step: ``views_per_step`` frames, each decoded once and rendered from
         ``cameras_per_frame`` training cameras, their mean loss back-propagated; then the sparse
-        and dense updates and, when due, densification."""
+        and dense updates and, when due, densification. (Several workers: each renders its share
+        of the views, then they exchange what the update needs, atgs.train.distributed.)"""
         cfg, model = self.cfg, self.model
-        q = model.cfg.gaussians_per_anchor
         self.dense_opt.zero_grad(set_to_none=True)
-        grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {}
-        losses, psnrs, n_gauss, bad = [], [], 0, False
-        segments: list[int] = []
-        per_view = cfg.views_per_step * cfg.cameras_per_frame
+        views = StepViews()
         rate = drop_rate(cfg.drop_gaussians, self.step, cfg.iterations)
-        for _ in range(cfg.views_per_step):
-            cis, f = self.sampler.next_views(cfg.cameras_per_frame)
-            cams = [self.cams[ci] for ci in cis]
-            dec = model.decode_frame(f, cams, track=True)
-            segments.append(dec.segment)
-            # one host-device synchronisation for the five tensors
-            if not bool(torch.stack([torch.isfinite(x).all() for x in dec.gaussians.as_tuple()]).all()):
-                bad = True
+        for view in self._views_of_step(views):
+            if not self._learn_view(view, rate, views):
+                views.bad = True
                 break
-            if len(dec.gaussians) == 0:  # nothing of the model in these views: nothing to learn
-                continue
-            outs, total = [], None
-            for ci, cam in zip(cis, cams):  # one decode, rendered from each camera
-                gt = self.images.get(ci, f)
-                shown = drop_gaussians(dec.gaussians, rate, self.gen)  # all of them unless dropout is on
-                out = rasterize_gaussians(shown, cam, background=self._background(), backend=self.cfg.render_backend)
-                out.means2d.retain_grad()
-                if self.exposure is not None:  # the image as this camera exposed it
-                    out = replace(out, image=self.exposure.apply(out.image, self.train_slot[ci]))
-                loss = self.compute_loss(dec, out, gt)
-                total = loss if total is None else total + loss
-                outs.append((cam, out))
-                losses.append(loss.detach())  # read back once at the end of the step
-                psnrs.append(psnr(out.image, gt))
-                n_gauss += len(dec.gaussians)
-            if not bool(torch.isfinite(total)):
-                bad = True
-                break
-            (total / per_view).backward()
-            for cam, out in outs:
-                g2d = out.means2d.grad
-                self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
-            for s in dec.sparse:
-                if s.leaf.grad is not None:
-                    grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
-        if bad:
+        if self.workers is not None:
+            dense = [p for g in self.dense_opt.param_groups for p in g["params"]]
+            stop = self.workers.reduce_step(views, dense + ([self.exposure.table] if self.exposure is not None else []),
+                                            model.sparse_tensors(), model.reach,
+                                            self._should_stop is not None and self._should_stop())
+            self._agreed_stop = self._agreed_stop or stop
+        if views.bad:
             return self._skip_step()
         self.bad_in_row = 0
-        for m in set(segments):
+        for m in set(views.segments):
             self.grid_visits[m] += 1
-        self._apply_sparse(grads)
+        self._apply_sparse(views.grads)
         self._apply_dense()
         if self.exposure is not None:
             self.exposure.step(cfg.grad_clip)
@@ -318,11 +328,73 @@ class Trainer:
         if self.step % REACH_REFRESH_STEPS == 0:  # anchors no view decoded lately: their reach drifts
             model.refresh_reach()
         self._maybe_densify()
-        if not losses:
+        means = views.means()
+        if means is None:
             return StepResult(float("nan"), float("nan"), 0, False)
-        values = torch.cat([torch.stack(losses).double(), torch.stack(psnrs).double()]).tolist()
-        n = len(losses)
-        return StepResult(float(np.mean(values[:n])), float(np.mean(values[n:])), n_gauss // n, False)
+        return StepResult(means[0], means[1], means[2], False)
+
+    def _views_of_step(self, views: StepViews) -> Iterator[View]:
+        """The step's views as one process draws them (the sampler, then each camera's random
+        background as it renders). Several workers draw all of them, backgrounds included, in
+        that order (every worker keeps the same generator), and each yields its share."""
+        cfg = self.cfg
+        timeline = self.model.timeline
+        if self.workers is None:
+            for v in range(cfg.views_per_step):
+                cis, f = self.sampler.next_views(cfg.cameras_per_frame)
+                views.segments.append(timeline.segment_of_frame(f))
+                yield View(v, cis, f)
+            return
+        drawn = []
+        for v in range(cfg.views_per_step):
+            cis, f = self.sampler.next_views(cfg.cameras_per_frame)
+            views.segments.append(timeline.segment_of_frame(f))
+            drawn.append(View(v, cis, f, [self._background() for _ in cis] if cfg.random_background else None))
+        for v in self.workers.share(cfg.views_per_step):
+            yield drawn[v]
+
+    def _learn_view(self, view: View, rate: float, views: StepViews) -> bool:
+        """Decode the view's frame, render it from its cameras and back-propagate its renders'
+        share of the step's mean loss (gradients and statistics into ``views`` and the
+        densification statistics); False when the decode or the loss is not finite."""
+        cfg, model = self.cfg, self.model
+        q = model.cfg.gaussians_per_anchor
+        per_view = cfg.views_per_step * cfg.cameras_per_frame
+        cams = [self.cams[ci] for ci in view.cams]
+        dec = model.decode_frame(view.frame, cams, track=True)
+        views.decoded.append(dec.active)
+        # one host-device synchronisation for the five tensors
+        if not bool(torch.stack([torch.isfinite(x).all() for x in dec.gaussians.as_tuple()]).all()):
+            return False
+        if len(dec.gaussians) == 0:  # nothing of the model in these views: nothing to learn
+            return True
+        outs, total = [], None
+        for k, (ci, cam) in enumerate(zip(view.cams, cams)):  # one decode, rendered from each camera
+            gt = self.images.get(ci, view.frame)
+            shown = drop_gaussians(dec.gaussians, rate, self.gen)  # all of them unless dropout is on
+            background = self._background() if view.backgrounds is None else view.backgrounds[k]
+            out = rasterize_gaussians(shown, cam, background=background, backend=cfg.render_backend)
+            out.means2d.retain_grad()
+            if self.exposure is not None:  # the image as this camera exposed it
+                out = replace(out, image=self.exposure.apply(out.image, self.train_slot[ci]))
+            loss = self.compute_loss(dec, out, gt)
+            total = loss if total is None else total + loss
+            outs.append((cam, out))
+            views.losses.append(loss.detach())  # read back once at the end of the step
+            views.psnrs.append(psnr(out.image, gt))
+            views.n_gauss += len(dec.gaussians)
+        if not bool(torch.isfinite(total)):
+            return False
+        (total / per_view).backward()  # the step's renders, on every worker: their gradients sum
+        for cam, out in outs:
+            g2d = out.means2d.grad
+            slots = self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
+            if self.workers is not None and slots is not None:
+                self.workers.note_positions(self.stats, slots, self.step * cfg.views_per_step + view.index)
+        for s in dec.sparse:
+            if s.leaf.grad is not None:
+                views.grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
+        return True
 
     def _skip_step(self) -> StepResult:
         """A step with non-finite Gaussians or loss changes nothing; too many in a row stop the run."""
@@ -340,12 +412,7 @@ class Trainer:
     def _apply_sparse(self, grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]]) -> None:
         tables = self.model.sparse_tensors()
         for name, parts in grads.items():
-            if len(parts) == 1:
-                rows, g = parts[0]
-            else:  # several views touched this table: sum gradients of shared rows
-                rows, inv = torch.unique(torch.cat([r for r, _ in parts]), return_inverse=True)
-                g = parts[0][1].new_zeros((rows.numel(),) + tuple(parts[0][1].shape[1:]))
-                g.index_add_(0, inv, torch.cat([x for _, x in parts]))
+            rows, g = merge_rows(parts)  # several views touched this table: gradients of shared rows summed
             # (non-finite entries zeroed, clipped per table to norm grad_clip)
             self.sparse_opt.step(name, tables[name], rows, g, self.sparse_lr(name, rows, self.step),
                                  clip=self.cfg.grad_clip)
@@ -369,8 +436,9 @@ class Trainer:
             return
         if not d.enabled or self.step < d.start or self.step > stop or self.step % d.interval:
             return
-        grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
-        prune_anchors(self.model, self.stats, d, self.sparse_opt)
+        with self._stats_of_all_views():
+            grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
+            prune_anchors(self.model, self.stats, d, self.sparse_opt)
         self.model.refresh_reach()  # the new anchors' reach, before a decode counts them as in view
 
     def _final_prune(self, stop: int) -> None:
@@ -381,7 +449,13 @@ class Trainer:
         # an anchor in some training view is active in >= 1/K of the frames: after
         # 2 * cameras * K steps, never having been decoded in view means it never will be
         need = 2 * len(self.train_idx) * self.model.num_keyframes
-        self.final_pruned = prune_final(self.model, self.stats, d, self.sparse_opt, self.step - last >= need)
+        with self._stats_of_all_views():
+            self.final_pruned = prune_final(self.model, self.stats, d, self.sparse_opt, self.step - last >= need)
+
+    def _stats_of_all_views(self) -> AbstractContextManager:
+        """Inside: the densification statistics of every view so far (several workers: summed
+        over them, atgs.train.distributed; one process: as they are)."""
+        return nullcontext() if self.workers is None else self.workers.stats_reduced(self.stats)
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
@@ -432,6 +506,7 @@ class Trainer:
 
     # --- checkpoints ----------------------------------------------------------------------------
     def checkpoint_payload(self) -> dict:
+        """What ``ckpt.pt`` holds (several workers: :meth:`save` sums the statistics first)."""
         m = self.model
         return {
             "model_config": to_dict(self.model_cfg), "train_config": to_dict(self.cfg),
@@ -454,20 +529,25 @@ class Trainer:
 
     def save(self, path: Path | None = None) -> Path:
         """Write the resumable checkpoint: by default the run's ``ckpt.pt`` (the first one also
-        commits config.json and the log, see RunDir), or a copy at ``path``."""
-        if path is None:
-            return self.run.save_checkpoint(self.checkpoint_payload())
-        save_checkpoint(path, self.checkpoint_payload())
-        return Path(path)
+        commits config.json and the log, see RunDir), or a copy at ``path``. Several workers: all
+        call it (the statistics are summed over them), rank 0 writes."""
+        with self._stats_of_all_views():
+            if not self.leads:
+                return self.run.ckpt_path if path is None else Path(path)
+            if path is None:
+                return self.run.save_checkpoint(self.checkpoint_payload())
+            save_checkpoint(path, self.checkpoint_payload())
+            return Path(path)
 
     @classmethod
     def resume(cls, scene: SceneData, path: str | Path, out_dir: str | Path,
                iterations: int | None = None, minutes: float | None = None,
-               device: torch.device | str = "cpu") -> "Trainer":
+               device: torch.device | str = "cpu", workers: Workers | None = None) -> "Trainer":
         """Continue the run of checkpoint ``path`` on ``device`` (any: checkpoints hold CPU tensors
-        and the optimizer and densification state move with the model). ``iterations``: a new
-        total step count (and no time budget; the schedule sized to it as ``--iterations`` sizes
-        it); ``minutes``: a new total time budget (the time already used counts)."""
+        and the optimizer and densification state move with the model) and on any number of
+        ``workers``. ``iterations``: a new total step count (and no time budget; the schedule
+        sized to it as ``--iterations`` sizes it); ``minutes``: a new total time budget (the
+        time already used counts)."""
         data = read_checkpoint(path)
         if data.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
@@ -484,13 +564,15 @@ class Trainer:
             raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
         model = model_from_checkpoint(data, path, device)
-        tr = cls(scene, model_cfg, cfg, out_dir, model=model, device=device)
+        tr = cls(scene, model_cfg, cfg, out_dir, model=model, device=device, workers=workers)
         st = data["trainer"]
         tr.sparse_opt.load_state_dict(st["sparse_opt"])
         tr.dense_opt.load_state_dict(st["dense_opt"])  # torch.optim moves the state to the parameters
         if tr.exposure is not None and st.get("exposure") is not None:
             tr.exposure.load_state_dict(st["exposure"])
         tr.stats = DensifyStats.from_state(st["densify"], tr.device)
+        if tr.workers is not None:  # the saved sums are all views': rank 0 carries them on
+            tr.workers.own_sums(tr.stats)
         tr.sampler.load_state_dict(st["sampler"])
         tr.grid_visits = st["grid_visits"].to(tr.device, copy=True)
         tr.gen.set_state(st["generator"])
@@ -521,7 +603,10 @@ class Trainer:
         """Re-size the schedule to the time left (no-op without --minutes)."""
         if self.budget is None:
             return
-        n = self.budget.plan(self.step, self._time_used(), self.cfg.iterations, self._overhead_used())
+        used, overhead = self._time_used(), self._overhead_used()
+        if self.workers is not None:  # rank 0's clock: every worker sizes the same schedule
+            used, overhead = self.workers.broadcast_floats([used, overhead])
+        n = self.budget.plan(self.step, used, self.cfg.iterations, overhead)
         if n is None:
             return
         first = self.budget.pace > 0 and self._planned_once is False
@@ -541,7 +626,7 @@ class Trainer:
         """:meth:`run_steps`, then the final evaluation (``result["eval"]``; written to ``eval/``
         with ``final_renders``) unless the run stopped early."""
         result = self.run_steps(progress, stop_at, should_stop)
-        if "stopped_early" not in result and (final_renders or self.cfg.eval_every > 0):
+        if "stopped_early" not in result and (final_renders or self.cfg.eval_every > 0) and self.leads:
             result["eval"] = self.final_evaluation(self.out / "eval" if final_renders else None)
         return result
 
@@ -551,8 +636,8 @@ class Trainer:
         """Train until ``cfg.iterations`` with periodic evaluation and checkpoints, then save
         ``ckpt.pt``. It stops early, as if killed there (checkpoint written,
         ``result["stopped_early"]`` = the step), at step ``stop_at`` or after the step at which
-        ``should_stop()`` turns true (Ctrl-C). (``self.cfg`` is read afresh every step: a time
-        budget re-sizes its schedule.)"""
+        ``should_stop()`` turns true (Ctrl-C; several workers: on any of them). (``self.cfg`` is
+        read afresh every step: a time budget re-sizes its schedule.)"""
         t0 = self._session_start = self.clock()
         start = self.step
         bar = progress_bar(self.cfg.iterations, "atgs-train", unit="step", enabled=progress, initial=start)
@@ -561,9 +646,10 @@ class Trainer:
         # so "due" is "an interval has passed", not "the step is a multiple of it"
         self._last_eval = start - start % self.cfg.eval_every if self.cfg.eval_every > 0 else start
         self._last_save = start - start % self.cfg.save_every if self.cfg.save_every > 0 else start
+        self._should_stop, self._agreed_stop = should_stop, False
         try:
             while (self.step < (self.cfg.iterations if stop_at is None else min(stop_at, self.cfg.iterations))
-                   and not (should_stop is not None and should_stop())):
+                   and not self._stop_requested()):
                 r = self.train_step()
                 if not r.skipped and math.isfinite(r.loss):
                     ema.add(r.loss, r.psnr)
@@ -572,7 +658,8 @@ class Trainer:
                        "seconds": f"{self.clock() - t0:.2f}", "skipped": self.skipped,
                        "eval_psnr": "", "eval_ssim": ""}
                 self._evaluate_if_due(row, ema.psnr, bar)
-                self.run.log(row)
+                if self.leads:
+                    self.run.log(row)
                 self._save_if_due()
                 bar.update(1)
                 self._follow_budget(bar)
@@ -581,6 +668,7 @@ class Trainer:
                                     anchors=self.model.num_anchors, gs=r.gaussians, refresh=False)
         finally:
             bar.close()
+            self._should_stop = None
         seconds = self.clock() - t0
         self._session_start = None
         self._used_before = self._used_before + seconds
@@ -592,6 +680,13 @@ class Trainer:
             result["stopped_early"] = self.step
         return result
 
+    def _stop_requested(self) -> bool:
+        """Ctrl-C: one process polls its request; several workers stop after the step at whose
+        exchange any of them had one (so all stop after the same step)."""
+        if self.workers is not None:
+            return self._agreed_stop
+        return self._should_stop is not None and self._should_stop()
+
     def _due(self, every: int, last: int) -> bool:
         """An interval has passed since ``last``, and the run does not end at this step."""
         return every > 0 and self.step - last >= every and self.step < self.cfg.iterations
@@ -601,6 +696,8 @@ class Trainer:
         if not self._due(self.cfg.eval_every, self._last_eval):
             return
         self._last_eval = self.step
+        if not self.leads:  # rank 0 evaluates (the others go on to the next step's exchange)
+            return
         t_eval = self.clock()
         ev = self.evaluate()
         self._overhead += self.clock() - t_eval  # not step time: the budget's pace excludes it
@@ -635,6 +732,8 @@ class Trainer:
             result["scene_flow"] = dict(self.scene_flow_stats)
         if self.warnings:
             result["warnings"] = list(self.warnings)
+        if self.workers is not None:  # what the workers exchanged (atgs.train.distributed.Traffic)
+            result["workers"] = self.workers.traffic.summary(self.workers.world)
         return result
 
 

@@ -1,0 +1,344 @@
+"""Training on several workers: data parallel over each step's views, through torch.distributed.
+
+Launch: ``torchrun --nproc-per-node N -m atgs.cli.train ...`` or ``atgs-train --workers N`` (which
+runs torchrun's launcher in-process, atgs.cli.train); the workers meet through torch's env://
+rendezvous (RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT, set by torchrun). gloo on the CPU, NCCL on
+CUDA when every worker has a GPU of its own (else gloo through host memory: NCCL refuses two
+workers on one GPU). A :class:`Workers` is this process's place among them; one process trains
+without one (``Trainer(workers=None)``: the single-process path, untouched).
+
+What a step does on N workers (docs/training.md, "Several workers"):
+
+- every worker draws the whole step's views from the same seeded generator (the sampler and the
+  random backgrounds; every later draw then stays the same too) and renders its contiguous share;
+- each view's loss is divided by the step's *global* number of renders, so the sum of the workers'
+  gradients is the one-process gradient;
+- one all-reduce (sum) carries the decoder's and the exposure's dense gradients, the step's flags
+  (a non-finite view skips the step on every worker; Ctrl-C stops all after the same step), the
+  losses for the log and the row counts of the sparse part;
+- one all-gather carries the sparse part: per table the rows this worker's views touched and their
+  gradients (merged over its views), and the reach (atgs.model.culling) its decodes measured;
+  every worker merges them in rank order, so all apply the same update to the same rows;
+- densification statistics stay per worker between densifications (sums; the last position is the
+  latest view's) and are reduced when densification, the final pruning or a checkpoint reads them;
+  growing and pruning then run on every worker from the same statistics and the same generator.
+
+So every worker holds the same model, rank 0 writes the checkpoint, and a checkpoint resumes on any
+number of workers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import timedelta
+import math
+import os
+import re
+import time
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from atgs.config_checks import ConfigError
+from atgs.errors import UserError
+from atgs.model.culling import AnchorReach
+from atgs.train.optim import merge_rows
+
+_HEADER = 6  # bad, stop, loss sum, PSNR sum, renders, Gaussians rendered
+REACH = "reach"  # the sparse part's last item: anchors' reach, reduced by max
+_EXACT = 2**24  # counts travel as float32: exact below this
+
+
+class WorkerLost(UserError, RuntimeError):
+    """Another worker failed, was stopped or stopped answering (one line; the last checkpoint
+    resumes)."""
+
+
+def check_settings(views_per_step: int, drop_gaussians: float, workers: int) -> None:
+    """Refuse settings that N workers cannot train as one process would."""
+    if workers <= 1:
+        return
+    if views_per_step < workers:
+        raise ConfigError(f"{workers} workers share each step's views, but --train.views-per-step is "
+                          f"{views_per_step}; pass --train.views-per-step {workers} (or a multiple of it)")
+    if drop_gaussians > 0:
+        raise ConfigError("--train.drop-gaussians is not supported on several workers yet (its draws depend "
+                          "on each view's decode); train on one worker or without it")
+
+
+@dataclass
+class StepViews:
+    """What one step's views leave for the update: all of the step's views in one process, this
+    worker's share on several (until :meth:`Workers.reduce_step` puts everyone's in)."""
+
+    grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = field(default_factory=dict)  # table -> (rows, grad)
+    losses: list[torch.Tensor] = field(default_factory=list)  # per render
+    psnrs: list[torch.Tensor] = field(default_factory=list)
+    n_gauss: int = 0
+    bad: bool = False  # a non-finite decode or loss: the step changes nothing
+    segments: list[int] = field(default_factory=list)  # of every view of the step
+    decoded: list[torch.Tensor] = field(default_factory=list)  # anchors each decode measured the reach of
+    totals: tuple[float, float, int, int] | None = None  # all workers' (loss sum, PSNR sum, renders, Gaussians)
+
+    def means(self) -> tuple[float, float, int] | None:
+        """(mean loss, mean PSNR, Gaussians per render) of the step's renders; None without any."""
+        if self.totals is not None:
+            loss, p, n, g = self.totals
+            return (loss / n, p / n, g // n) if n else None
+        if not self.losses:
+            return None
+        values = torch.cat([torch.stack(self.losses).double(), torch.stack(self.psnrs).double()]).tolist()
+        n = len(self.losses)
+        return float(np.mean(values[:n])), float(np.mean(values[n:])), self.n_gauss // n
+
+
+@dataclass
+class Traffic:
+    """Bytes this worker puts into the collectives (payloads; a ring all-reduce moves about twice
+    its payload per worker, an all-gather receives N - 1 payloads)."""
+
+    steps: int = 0
+    dense: int = 0  # the step's all-reduce (dense gradients, flags, counts)
+    sparse: int = 0  # the step's all-gather (touched rows and their gradients, reach), padded
+    sparse_rows: int = 0  # rows of all tables this worker sent
+    statistics: int = 0  # densification statistics, when densification or a checkpoint reads them
+    tables: int = 0  # what a dense all-reduce of every sparse table would carry per step (last step)
+    seconds: float = 0.0  # in the step's exchange: packing, the two collectives (waiting included), merging
+
+    def summary(self, world: int) -> dict:
+        n = max(1, self.steps)
+        return {"workers": world, "steps": self.steps,
+                "dense_bytes_per_step": self.dense / n, "sparse_bytes_per_step": self.sparse / n,
+                "sparse_rows_per_step": self.sparse_rows / n, "statistics_bytes_per_step": self.statistics / n,
+                "dense_tables_bytes_per_step": float(self.tables), "exchange_seconds_per_step": self.seconds / n}
+
+
+def _reason(error: BaseException) -> str:
+    """The gist of a collective's error: its first sentence, without the source location."""
+    text = re.sub(r"\[[^\]]*\.(cc|cpp|h):\d+\]\s*", "", " ".join(str(error).split()))
+    return text.split(". ")[0][:160] or type(error).__name__
+
+
+def _backend(device: torch.device, local_world: int) -> str:
+    if device.type == "cuda" and dist.is_nccl_available() and torch.cuda.device_count() >= local_world:
+        return "nccl"
+    return "gloo"
+
+
+class Workers:
+    """This process among the workers of a run: its rank, the process group and the collectives
+    of a step. Every method is collective (all workers call it, in the same order) unless it says
+    otherwise."""
+
+    def __init__(self, rank: int, world: int, device: torch.device, backend: str) -> None:
+        self.rank, self.world, self.device, self.backend = rank, world, device, backend
+        self.comm = device if backend == "nccl" else torch.device("cpu")  # where collectives run
+        self.traffic = Traffic()
+        self._written: torch.Tensor | None = None  # per slot: latest view that wrote its last position
+
+    @classmethod
+    def from_env(cls, device: torch.device, timeout_s: float) -> "Workers | None":
+        """Join the run's process group from torchrun's environment (None for one process).
+        ``device``: the kind of device to train on (a CUDA worker takes GPU LOCAL_RANK mod GPUs);
+        ``timeout_s``: how long a collective waits for the others before this worker stops."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world <= 1:
+            return None
+        rank, local_rank = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+        if device.type == "cuda":
+            device = torch.device("cuda", local_rank % torch.cuda.device_count())
+            torch.cuda.set_device(device)
+        backend = _backend(device, local_world)
+        dist.init_process_group(backend, init_method="env://", rank=rank, world_size=world,
+                                timeout=timedelta(seconds=timeout_s))
+        return cls(rank, world, device, backend)
+
+    @property
+    def leads(self) -> bool:
+        """Rank 0: it prints, evaluates and writes the run's files (not collective)."""
+        return self.rank == 0
+
+    def close(self) -> None:
+        """Leave the process group (not collective)."""
+        if dist.is_initialized():
+            dist.destroy_process_group()
+
+    def share(self, n: int) -> range:
+        """This worker's views of a step's ``n``: a contiguous block, in rank order (not collective)."""
+        return range(n * self.rank // self.world, n * (self.rank + 1) // self.world)
+
+    # --- collectives ------------------------------------------------------------------------------
+    def _call(self, collective, *args, **kwargs):
+        """A collective; a failed or silent peer becomes :class:`WorkerLost` (one line)."""
+        try:
+            return collective(*args, **kwargs)
+        except RuntimeError as e:  # DistBackendError, gloo's closed connections and timeouts
+            raise WorkerLost(f"worker {self.rank}: lost the other workers ({_reason(e)}); the last checkpoint "
+                             "resumes with --resume") from None
+
+    def replicate(self, tensors: Sequence[torch.Tensor]) -> None:
+        """Overwrite ``tensors`` with rank 0's (in place, so caches keyed by tensor versions see
+        it): every worker starts from the same model whatever its own set-up's round-off."""
+        sizes = torch.tensor([t.numel() for t in tensors] + [-t.numel() for t in tensors], dtype=torch.int64,
+                             device=self.comm)
+        self._call(dist.all_reduce, sizes, op=dist.ReduceOp.MAX)
+        n = len(tensors)
+        if bool((sizes[:n] != -sizes[n:]).any()):
+            raise WorkerLost(f"worker {self.rank}: the workers built models of different sizes from the scene; "
+                             "they must see the same --data and flags")
+        with torch.no_grad():
+            for t in tensors:
+                buf = t.detach().to(self.comm, copy=True).contiguous()
+                self._call(dist.broadcast, buf, 0)
+                t.copy_(buf.to(t.device))
+
+    def broadcast_floats(self, values: Sequence[float]) -> list[float]:
+        """Rank 0's ``values`` on every worker (e.g. its clock, so that all size one schedule)."""
+        t = torch.tensor(list(values), dtype=torch.float64, device=self.comm)
+        self._call(dist.broadcast, t, 0)
+        return [float(x) for x in t.tolist()]
+
+    def reduce_step(self, views: StepViews, dense: Sequence[torch.Tensor], tables: dict[str, torch.Tensor],
+                    reach: AnchorReach, stop: bool) -> bool:
+        """Put every worker's share of the step into ``views`` (the flags, the losses' totals,
+        the sparse gradients merged in rank order), the dense parameters' ``.grad`` (summed) and
+        ``reach`` (the largest measured). ``tables``: the model's sparse tables by name (the same
+        order on every worker); ``stop``: this worker was asked to stop. Returns whether any was."""
+        t0 = time.perf_counter()
+        names = list(tables) + [REACH]
+        widths = [math.prod(t.shape[1:]) for t in tables.values()] + [1]
+        local: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        if not views.bad:
+            local = {name: merge_rows(parts) for name, parts in views.grads.items()}
+        # the reach this worker's decodes measured (recorded even by a non-finite step's)
+        ids = (torch.unique(torch.cat(views.decoded)) if views.decoded
+               else torch.zeros(0, dtype=torch.int64, device=self.device))
+        local[REACH] = (ids, reach.recent.index_select(0, ids)[:, None])
+        stop, counts = self._reduce_dense(views, dense, names, local, stop)
+        self._gather_sparse(views, names, widths, tables, local, reach, counts)
+        self.traffic.steps += 1
+        self.traffic.seconds += time.perf_counter() - t0
+        self.traffic.tables = sum(t.numel() * t.element_size() for t in tables.values())
+        return stop
+
+    def _reduce_dense(self, views: StepViews, dense: Sequence[torch.Tensor], names: list[str],
+                      local: dict[str, tuple[torch.Tensor, torch.Tensor]], stop: bool) -> tuple[bool, torch.Tensor]:
+        """The step's all-reduce: flags, totals, sparse row counts (each worker in its own slot),
+        which dense parameters have a gradient, and those gradients. Returns (stop, every worker's
+        row counts: workers x items)."""
+        loss = float(torch.stack(views.losses).sum()) if views.losses else 0.0
+        psnr = float(torch.stack(views.psnrs).sum()) if views.psnrs else 0.0
+        counts = torch.zeros(self.world, len(names))
+        for i, name in enumerate(names):
+            if name in local:
+                counts[self.rank, i] = local[name][0].numel()
+        header = torch.tensor([float(views.bad), float(stop), loss, psnr, len(views.losses), views.n_gauss])
+        has = torch.tensor([float(p.grad is not None) for p in dense])
+        grads = [p.grad.detach().reshape(-1) if p.grad is not None else torch.zeros(p.numel(), device=p.device)
+                 for p in dense]
+        buf = torch.cat([header.to(self.comm), counts.reshape(-1).to(self.comm), has.to(self.comm)]
+                        + [g.to(self.comm, torch.float32) for g in grads])
+        if not max(float(counts.max()), float(views.n_gauss)) < _EXACT:
+            raise RuntimeError("a step's counts exceed what the workers' exchange carries exactly (2^24)")
+        self._call(dist.all_reduce, buf)
+        self.traffic.dense += buf.numel() * buf.element_size()
+        head = buf[:_HEADER].tolist()
+        at = _HEADER
+        counts = buf[at:at + counts.numel()].reshape(counts.shape).round().long().cpu()
+        at += counts.numel()
+        has_any = buf[at:at + len(dense)].tolist()
+        at += len(dense)
+        views.bad = head[0] > 0
+        views.totals = (head[2], head[3], int(round(head[4])), int(round(head[5])))
+        for p, flag in zip(dense, has_any):
+            n = p.numel()
+            p.grad = buf[at:at + n].view_as(p).to(p.device, p.dtype) if flag > 0 and not views.bad else None
+            at += n
+        return head[1] > 0, counts
+
+    def _gather_sparse(self, views: StepViews, names: list[str], widths: list[int],
+                       tables: dict[str, torch.Tensor], local: dict[str, tuple[torch.Tensor, torch.Tensor]],
+                       reach: AnchorReach, counts: torch.Tensor) -> None:
+        """The step's all-gather: per item its rows (int32 carried as float32 bits) and values, in
+        the order of ``names``; then every worker merges all of them in rank order."""
+        sizes = [int(sum(int(counts[r, i]) * (1 + widths[i]) for i in range(len(names)))) for r in range(self.world)]
+        longest = max(sizes)
+        pieces = []
+        for i, name in enumerate(names):
+            if name in local and local[name][0].numel():
+                rows, vals = local[name]
+                pieces += [rows.to(self.comm, torch.int32).view(torch.float32),
+                           vals.detach().reshape(-1).to(self.comm, torch.float32)]
+        mine = torch.cat(pieces) if pieces else torch.zeros(0, device=self.comm)
+        mine = torch.cat([mine, torch.zeros(longest - mine.numel(), device=self.comm)])
+        everyone = [torch.empty(longest, device=self.comm) for _ in range(self.world)]
+        self._call(dist.all_gather, everyone, mine)
+        self.traffic.sparse += longest * 4
+        self.traffic.sparse_rows += int(counts[self.rank, :-1].sum())
+        parts: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {}
+        for r, buf in enumerate(everyone):
+            at = 0
+            for i, name in enumerate(names):
+                n = int(counts[r, i])
+                if n == 0:
+                    continue
+                rows = buf[at:at + n].view(torch.int32).to(self.device, torch.int64)
+                at += n
+                vals = buf[at:at + n * widths[i]].to(self.device)
+                at += n * widths[i]
+                shape = (n,) + (tuple(tables[name].shape[1:]) if name != REACH else (1,))
+                parts.setdefault(name, []).append((rows, vals.reshape(shape)))
+        reached = parts.pop(REACH, [])
+        for rows, vals in reached:  # (rows unique within a worker's part)
+            reach.recent[rows] = torch.maximum(reach.recent[rows], vals[:, 0].to(reach.recent.dtype))
+        views.grads = {} if views.bad else {name: [merge_rows(p)] for name, p in parts.items()}
+
+    # --- densification statistics ------------------------------------------------------------------
+    def note_positions(self, stats, slots: torch.Tensor, stamp: int) -> None:
+        """Slots whose last position this worker's view ``stamp`` (step * views + view) just wrote
+        (not collective)."""
+        n = stats.grad_accum.numel()
+        if self._written is None or self._written.numel() != n:
+            self._written = torch.full((n,), -1, dtype=torch.int64, device=stats.device)
+        self._written.index_fill_(0, slots, stamp)
+
+    @contextmanager
+    def stats_reduced(self, stats) -> Iterator[None]:
+        """While the block runs, ``stats`` (atgs.train.densify.DensifyStats) hold the sums of every
+        worker's views and the last positions of the latest views (the same on every worker);
+        afterwards rank 0 keeps the sums and the others count their own views from zero."""
+        n = stats.grad_accum.numel()
+        written = (self._written if self._written is not None and self._written.numel() == n
+                   else torch.full((n,), -1, dtype=torch.int64, device=stats.device))
+        latest = written.to(self.comm, copy=True)
+        self._call(dist.all_reduce, latest, op=dist.ReduceOp.MAX)
+        latest = latest.to(stats.device)
+        mine = (written == latest) & (latest >= 0)
+        sums = (stats.grad_accum, stats.grad_count, stats.opacity_accum, stats.anchor_count)
+        ours = torch.where(mine[:, None], stats.last_pos, torch.zeros_like(stats.last_pos))
+        buf = torch.cat([s.reshape(-1) for s in sums] + [ours.reshape(-1)]).to(self.comm)
+        self._call(dist.all_reduce, buf)
+        self.traffic.statistics += buf.numel() * buf.element_size() + latest.numel() * latest.element_size()
+        buf = buf.to(stats.device)
+        at = 0
+        with torch.no_grad():
+            for s in sums:
+                s.copy_(buf[at:at + s.numel()].view_as(s))
+                at += s.numel()
+        stats.last_pos = torch.where((latest >= 0)[:, None], buf[at:].view_as(stats.last_pos), stats.last_pos)
+        try:
+            yield
+        finally:
+            self._written = None
+            self.own_sums(stats)
+
+    def own_sums(self, stats) -> None:
+        """From here on this worker's statistics sums count its own views only (rank 0's also
+        what was summed before): after a reduction, and on a resume (not collective)."""
+        if self.rank != 0:
+            for name in ("grad_accum", "grad_count", "opacity_accum", "anchor_count"):
+                getattr(stats, name).zero_()

@@ -1,0 +1,163 @@
+"""Several workers on one machine: steps per second and held-out PSNR at equal wall time, the bytes
+the workers exchange per step, and the parts of a step that a scaling model needs.
+
+    python bench/distributed.py                       # both cases, 3 minutes each, then the anatomy
+    python bench/distributed.py --minutes 1 --cases 2x1
+
+Cases (one after the other: the machine has 2 cores): "1x2" is one worker with two torch threads,
+"2x1" two workers (``atgs-train --workers 2``) with one thread each. Both train preset ``cpu`` on
+the built-in scene with two views per step (the global batch both share) for a ``--minutes``
+budget, through atgs-train (so its final evaluation, every frame of the held-out camera, scores
+them), without the velocities from optical flow (``--flow`` for them: their set-up would take
+most of a short budget here). The anatomy times the parts of one worker's step in-process (one thread, the preset's
+model at its start): the views (decode, render, backward), the rest (the sparse and dense updates,
+densification), and what the exchange of two workers costs. From these and the bytes per step,
+:func:`scaling_model` predicts a step on W workers (its assumptions are in the JSON and in
+docs/training.md, "Several workers"). Results: bench/results/distributed.json.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+import time
+
+import tyro
+from _docs import run_stamp  # bench/ (the script's own folder is on sys.path)
+from _harness import build_trainer
+
+from atgs.data.scene import PreparedScene
+from atgs.data.synth.videos import ensure_default_scene
+from atgs.io.cache import cache_dir
+from atgs.train.trainer import Trainer
+
+ROOT = Path(__file__).resolve().parent.parent
+CASES = {"1x2": (1, 2), "2x1": (2, 1)}  # name: (workers, torch threads each)
+VIEWS = 2  # views per step, both cases
+
+
+@dataclass
+class Distributed:
+    cases: tuple[str, ...] = tuple(CASES)
+    minutes: float = 3.0
+    flow: bool = False
+    """Velocities from optical flow at the start (a set-up of minutes here, counted in the budget:
+    off, so that the budget measures training)."""
+    anatomy_steps: int = 30
+    cache: Path = field(default_factory=cache_dir)
+    work_dir: Path = Path("/tmp/atgs-bench-distributed")
+    out: Path = ROOT / "bench" / "results" / "distributed.json"
+
+
+def run_case(name: str, args: Distributed) -> dict:
+    """atgs-train with a budget of ``args.minutes``: its result.json, wall time and the load."""
+    workers, threads = CASES[name]
+    out = args.work_dir / name
+    cmd = [sys.executable, "-m", "atgs.cli.train", "--out", str(out), "--overwrite", "--preset", "cpu",
+           "--minutes", str(args.minutes), "--train.views-per-step", str(VIEWS), "--train.threads", str(threads),
+           "--workers", str(workers), "--no-progress", "--cache-dir", str(args.cache),
+           "--train.velocity-from-flow" if args.flow else "--train.no-velocity-from-flow"]
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
+                          env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": str(threads)})
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"{name}: atgs-train failed ({proc.returncode}): {proc.stderr.strip()[-400:]}")
+    r = json.loads((out / "result.json").read_text())
+    return {"workers": workers, "threads": threads, "steps": r["steps"], "train_seconds": round(r["seconds"], 1),
+            "steps_per_second": round(r["steps"] / r["seconds"], 3), "command_seconds": round(wall, 1),
+            "anchors": r["anchors"], "psnr": round(r["eval"]["psnr"], 3), "ssim": round(r["eval"]["ssim"], 4),
+            "exchange": r.get("workers"), "load_before": round(load, 2), "load_after": round(os.getloadavg()[0], 2)}
+
+
+def anatomy(scene, args: Distributed) -> dict:
+    """Seconds of one worker's step (one thread, preset cpu at its start): its views and the rest."""
+    tr = build_trainer(scene, args.work_dir / "anatomy", "cpu", iterations=5000,
+                       train={"views_per_step": VIEWS, "velocity_from_flow": args.flow}, threads=1)
+    spent = {"views": 0.0}
+    learn = Trainer._learn_view
+
+    def timed(self, *a):
+        t0 = time.perf_counter()
+        try:
+            return learn(self, *a)
+        finally:
+            spent["views"] += time.perf_counter() - t0
+
+    for _ in range(5):  # caches warm up
+        tr.train_step()
+    Trainer._learn_view = timed
+    try:
+        t0 = time.perf_counter()
+        for _ in range(args.anatomy_steps):
+            tr.train_step()
+        total = time.perf_counter() - t0
+    finally:
+        Trainer._learn_view = learn
+    n = args.anatomy_steps
+    tables = sum(t.numel() * t.element_size() for t in tr.model.sparse_tensors().values())
+    dense = sum(p.numel() * 4 for g in tr.dense_opt.param_groups for p in g["params"])
+    return {"steps": n, "anchors": tr.model.num_anchors, "seconds_per_step": total / n,
+            "view_seconds": spent["views"] / n / VIEWS, "rest_seconds_per_step": (total - spent["views"]) / n,
+            "sparse_table_bytes": tables, "decoder_bytes": dense}
+
+
+def scaling_model(parts: dict, exchange: dict, workers: int, views_per_worker: int, bandwidth: float,
+                  latency: float) -> dict:
+    """A step on ``workers`` workers of ``views_per_worker`` views each, from one worker's
+    measured parts: every worker renders its views (view_seconds each) and all do the rest
+    (rest_seconds: the updates run on every worker); the exchange is a ring all-reduce of the
+    dense payload (2 (W-1)/W of it on the wire per worker) and an all-gather of each worker's
+    sparse payload ((W-1) payloads received), at ``bandwidth`` bytes/s with ``latency`` seconds
+    per ring hop. The sparse payload per worker is the measured one of two views (it grows with
+    the views a worker renders, not with W)."""
+    w = workers
+    dense, sparse = exchange["dense_bytes_per_step"], exchange["sparse_bytes_per_step"] * views_per_worker
+    comm = 2 * (w - 1) / w * dense / bandwidth + (w - 1) * sparse / bandwidth + 3 * (w - 1) * latency
+    step = parts["rest_seconds_per_step"] + views_per_worker * parts["view_seconds"] + comm
+    one = parts["rest_seconds_per_step"] + w * views_per_worker * parts["view_seconds"]
+    return {"workers": w, "views_per_step": w * views_per_worker, "step_seconds": step,
+            "exchange_seconds": comm, "one_worker_step_seconds": one, "speed_up": one / step,
+            "dense_table_all_reduce_seconds": 2 * (w - 1) / w * exchange["dense_tables_bytes_per_step"] / bandwidth}
+
+
+def main(args: Distributed) -> None:
+    scene = PreparedScene.load(ensure_default_scene(args.cache, progress=False))
+    results = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    results["stamp"] = run_stamp()
+    results["views_per_step"] = VIEWS
+    results["minutes"] = args.minutes
+    results["velocity_from_flow"] = args.flow
+    runs = results.setdefault("runs", {})
+    for name in args.cases:
+        runs[name] = run_case(name, args)
+        print(name, runs[name], flush=True)
+    results["anatomy"] = parts = anatomy(scene, args)
+    print("anatomy", parts, flush=True)
+    exchange = (runs.get("2x1") or {}).get("exchange")
+    if exchange:
+        # this CPU machine (gloo on the loopback: the measured exchange seconds are what counts),
+        # and an 8-GPU node of NVLink: ~100 GB/s per direction reached by NCCL's ring, 20 us a hop,
+        # the step's parts scaled by the measured GPU step (docs/gpu.md: 29 ms a step of one view)
+        gpu_scale = 0.029 / (parts["rest_seconds_per_step"] + parts["view_seconds"])
+        gpu_parts = {k: parts[k] * gpu_scale for k in ("rest_seconds_per_step", "view_seconds")}
+        results["scaling"] = {
+            "assumptions": {
+                "gpu_step_seconds_one_view": 0.029, "gpu_parts": "the CPU's split of a step, scaled to 29 ms",
+                "bandwidth_bytes_per_second": 100e9, "latency_seconds_per_hop": 20e-6,
+                "views_per_worker": 1, "sparse_bytes": "the 2x1 run's per worker per view, not growing with W"},
+            "gpu_8": scaling_model(gpu_parts, exchange, 8, 1, 100e9, 20e-6),
+            "gpu_2": scaling_model(gpu_parts, exchange, 2, 1, 100e9, 20e-6),
+            "gpu_4": scaling_model(gpu_parts, exchange, 4, 1, 100e9, 20e-6),
+        }
+        print("scaling", results["scaling"], flush=True)
+    args.out.write_text(json.dumps(results, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Distributed))
