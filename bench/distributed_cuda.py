@@ -88,8 +88,9 @@ def main(cfg: Config) -> None:
         two = json.loads((Path(d) / "two.json").read_text())
         a = torch.load(Path(d) / "one.pt", weights_only=True)["model"]
         b = torch.load(Path(d) / "two.pt", weights_only=True)["model"]
+    floats = [k for k in a if torch.is_tensor(a[k]) and a[k].is_floating_point() and a[k].numel()]
     diffs = {k: float((a[k].double() - b[k].double()).abs().max() / a[k].double().abs().max().clamp_min(1e-12))
-             for k in a if torch.is_tensor(a[k]) and a[k].is_floating_point() and a[k].numel()}
+             for k in floats}
     worst = max(diffs, key=diffs.get)
     result = {"device_name": torch.cuda.get_device_name(0) if cfg.device == "cuda" else "cpu", "torch": torch.__version__, "steps": cfg.steps,
               "views_per_step": cfg.views, "rasterizer": cfg.backend, "two_workers": two,

@@ -154,7 +154,8 @@ def browser_rows(ckpt: Path, web: Path, cfg: BenchConfig, tmp: Path) -> dict:
             s0, t0 = page.state(), time.perf_counter()
             time.sleep(cfg.play_seconds)
             s1, t1 = page.state(), time.perf_counter()
-            w, h = page.page.evaluate("() => { const c = document.querySelector('canvas'); return [c.width, c.height]; }")
+            w, h = page.page.evaluate("() => { const c = document.querySelector('canvas'); "
+                                      "return [c.width, c.height]; }")
             if size is None and cfg.screenshot is not None:
                 page.page.screenshot(path=str(cfg.screenshot))
             out.setdefault("playback", []).append({
@@ -193,7 +194,8 @@ def markdown_table(r: dict) -> str:
         f"Measured {r['date']} at {r['commit']} with `python bench/web.py --checkpoint {s['checkpoint']}` on "
         f"{r['machine']['cpus']} CPUs; Chromium with software WebGL2 (SwiftShader): browser figures are a floor.", "",
         "| what | measured | target |", "|---|---|---|",
-        f"| web export of the built-in scene's model ({s['step']:,} steps) | {s['folder_bytes'] / 2**20:.1f} MiB for {s['frames']} frames: "
+        f"| web export of the built-in scene's model ({s['step']:,} steps) | {s['folder_bytes'] / 2**20:.1f} MiB "
+        f"for {s['frames']} frames: "
         f"{s['bytes_per_frame'] / 1024:.0f} KiB a frame, {s['bytes_per_gaussian_frame']:.2f} B per Gaussian a frame "
         f"({s['gaussians_per_frame_mean']:,.0f} Gaussians a frame counted over each chunk's union, "
         f"{100 * s['static_share']:.0f}% of them unchanged over their chunk, stored once) | |",

@@ -232,12 +232,13 @@ class Workers:
         row counts: workers x items)."""
         loss = float(torch.stack(views.losses).sum()) if views.losses else 0.0
         psnr = float(torch.stack(views.psnrs).sum()) if views.psnrs else 0.0
-        counts = torch.zeros(self.world, len(names))
+        counts = torch.zeros(self.world, len(names), device="cpu")  # host numbers, sent through self.comm
         for i, name in enumerate(names):
             if name in local:
                 counts[self.rank, i] = local[name][0].numel()
-        header = torch.tensor([float(views.bad), float(stop), loss, psnr, len(views.losses), views.n_gauss])
-        has = torch.tensor([float(p.grad is not None) for p in dense])
+        header = torch.tensor([float(views.bad), float(stop), loss, psnr, len(views.losses), views.n_gauss],
+                              device="cpu")
+        has = torch.tensor([float(p.grad is not None) for p in dense], device="cpu")
         grads = [p.grad.detach().reshape(-1) if p.grad is not None else torch.zeros(p.numel(), device=p.device)
                  for p in dense]
         buf = torch.cat([header.to(self.comm), counts.reshape(-1).to(self.comm), has.to(self.comm)]
