@@ -24,6 +24,7 @@ PACK_SPEEDUP = 3
 GPU_PAPER_STEPS_PER_S = 20
 PLAYBACK_FPS = 25
 SUITE_MINUTES = 15
+WEB_SIZE_SHARE, WEB_PSNR_DB, WEB_FIRST_FRAME_S = 1 / 8, 35, 2  # issue 39: the web export and player
 
 
 def quality_verdict(psnr: float, ssim: float, seconds: float) -> str:
@@ -430,6 +431,40 @@ def tradeoff(r: dict) -> Cells:
                  + "; plot below, docs/tradeoff.md")
 
 
+def _web_run(r: dict) -> str:
+    return run_of(r["date"], [r["machine"]["loadavg_before"][0], r["loadavg"][0]])
+
+
+def web_size(r: dict) -> Cells:
+    s = r["size"]
+    return Cells(f"the built-in scene's model ({s['step']:,} steps), {s['frames']} frames, "
+                 f"{count(s['gaussians_per_frame_mean'])} Gaussians a frame", _web_run(r),
+                 f"1/{s['ply_bytes'] / s['folder_bytes']:.1f} ({s['bytes_per_gaussian_frame']:.2f} B per Gaussian a "
+                 f"frame against 68)", reached(s["folder_bytes"] <= WEB_SIZE_SHARE * s["ply_bytes"]))
+
+
+def web_browser(r: dict) -> Cells:
+    m, b = r["summary"], r["browser"]
+    extra = [p["db"] for e in r["extra"] for p in e["psnr"]]
+    return Cells(f"{len(b['psnr'])} views of the built-in scene's model" + (f", {len(extra)} of the real N3DV frame's"
+                                                                             if extra else "") +
+                 ", headless Chromium (software WebGL2)", _web_run(r),
+                 f"{m['psnr_min_db']:.1f} dB at least" + (f" / {min(extra):.1f} dB" if extra else "") +
+                 f"; first frame {m['first_frame_s_median']:.2f} s",
+                 reached(min([m["psnr_min_db"], *extra]) >= WEB_PSNR_DB
+                         and max(b["first_frame_s"]) <= WEB_FIRST_FRAME_S))
+
+
+def distributed(r: dict) -> Cells:
+    one, two = r["runs"]["1x2"], r["runs"]["2x1"]
+    x = two["exchange"]
+    return Cells(f"built-in scene, preset `cpu`, {r['minutes']:g} min each, {r['views_per_step']} views a step; "
+                 "2 workers on 2 cores: a floor", run_of(r["stamp"]["date"], [r["stamp"]["loadavg"][0]]),
+                 f"{one['steps_per_second']:.2f} / {two['steps_per_second']:.2f} steps/s, {one['psnr']:.2f} / "
+                 f"{two['psnr']:.2f} dB; {(x['dense_bytes_per_step'] + x['sparse_bytes_per_step']) / 1e6:.1f} MB a "
+                 f"step exchanged, against {r['anatomy']['sparse_table_bytes'] / 1e6:.1f} MB dense", "")
+
+
 def suite_run(r: dict) -> Cells:
     subset = f"subset `{' '.join(r['pytest_args'])}`, " if r["pytest_args"] else ""
     return Cells(f"{subset}`{r['command']}`",
@@ -488,6 +523,11 @@ ROWS = (
         "`atgs-view demo` with the UI / trained built-in scene, frames cached / its first loop",
         f"{PLAYBACK_FPS} FPS", window),
     Row("tradeoff", "tradeoff.py", "trade-off: presets, `--auto`, anchor layouts, knob sweeps", "", tradeoff),
+    Row("web", "web.py", "web export: bytes against the PLY export", "1/8 or less", web_size),
+    Row("web", "web.py", "web player: the browser's frames against atgs-view, time to the first frame",
+        f">= {WEB_PSNR_DB} dB, <= {WEB_FIRST_FRAME_S} s", web_browser),
+    Row("distributed", "distributed.py", "several workers: 1 worker x 2 threads / 2 workers x 1 thread at equal "
+        "time, bytes exchanged a step", "", distributed),
     Row("test_suite", "test_suite.py", "test suite (the pytest part of `./scripts/test.sh`)",
         f"< {SUITE_MINUTES} min", suite_run),
 )
