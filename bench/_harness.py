@@ -88,14 +88,16 @@ def case_configs(preset_name: str, *, iterations: int | None = None, minutes: fl
 
 def build_trainer(scene, out: Path, preset_name: str, *, iterations: int | None = None,
                   minutes: float | None = None, model: Mapping[str, Any] = NONE, train: Mapping[str, Any] = NONE,
-                  threads: int = 1, device: str = "cpu", progress: bool = False) -> Trainer:
+                  threads: int = 1, device: str = "cpu", progress: bool = False, workers=None) -> Trainer:
     """A fresh Trainer of :func:`case_configs` on ``scene`` writing to ``out`` (emptied first),
-    torch's global seed set to the trainer's seed. ``progress``: the set-up's progress bar."""
+    torch's global seed set to the trainer's seed. ``progress``: the set-up's progress bar;
+    ``workers``: this process's place among several (atgs.train.distributed.Workers)."""
     m, t = case_configs(preset_name, iterations=iterations, minutes=minutes, model=model, train=train,
                         threads=threads)
-    shutil.rmtree(out, ignore_errors=True)
+    if workers is None or workers.leads:  # the others must not empty it under the first
+        shutil.rmtree(out, ignore_errors=True)
     torch.manual_seed(t.seed)
-    return Trainer(scene, m, t, out, device=device, progress=progress)
+    return Trainer(scene, m, t, out, device=device, progress=progress, workers=workers)
 
 
 class Timed(NamedTuple):

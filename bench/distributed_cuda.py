@@ -23,7 +23,7 @@ import torch.multiprocessing as mp
 import tyro
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))  # the toy scene and tiny configs of the test suite
+sys.path.insert(0, str(ROOT / "tests"))  # the toy scene of the test suite
 
 
 @dataclass
@@ -38,15 +38,13 @@ class Config:
 
 
 def _trainer(out: Path, cfg: Config, workers=None):
-    from builders import growing_tiny_config, make_toy_scene
+    from _harness import build_trainer
+    from builders import make_toy_scene
 
-    from atgs.train.trainer import Trainer
-
-    m, t = growing_tiny_config(cfg.steps)
-    t.views_per_step, t.cameras_per_frame, t.render_backend = cfg.views, 2, cfg.backend
     scene = make_toy_scene(num_frames=6, num_cameras=4, width=40, height=32, keyframes=3)
     device = workers.device if workers is not None else torch.device(cfg.device)
-    return Trainer(scene, m, t, out, progress=False, workers=workers, device=device)
+    return build_trainer(scene, out, "tiny", iterations=cfg.steps, device=str(device), workers=workers,
+                         train={"views_per_step": cfg.views, "cameras_per_frame": 2, "render_backend": cfg.backend})
 
 
 def _timed_run(tr) -> float:
