@@ -35,6 +35,7 @@ from atgs.web.server import make_server
 from atgs.web.stream_format import (HEADER, MAGIC, ChunkFormatError, StreamFrame, decode_chunk, encode_chunk,
                                     pack_chunk, quantize_chunk)
 from builders import train_tiny_checkpoint
+from test_cli_promises import _default_sigint
 
 EPS = 1e-6
 
@@ -329,7 +330,7 @@ def test_the_server_serves_the_files_as_they_are(site: Path) -> None:
 
 def test_atgs_serve_prints_its_address_and_serves(site: Path) -> None:
     proc = subprocess.Popen([sys.executable, "-m", "atgs.cli.serve", str(site), "--port", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     try:
         line = proc.stdout.readline().strip()
         m = re.fullmatch(r"atgs-serve: serving (.*) at (http://127\.0\.0\.1:(\d+)/index\.html) \(Ctrl-C to stop\)", line)
@@ -339,7 +340,7 @@ def test_atgs_serve_prints_its_address_and_serves(site: Path) -> None:
         assert _get(chunk)[0] == (site / "stream" / "chunk_000000.bin").read_bytes()
     finally:
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)  # generous: once over 20 s with the whole suite beside it
+        _, err = proc.communicate(timeout=20)
     assert proc.returncode == 130 and err.strip() == "atgs-serve: interrupted"
 
 
