@@ -185,7 +185,8 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     ckpt = args.out / "ckpt.pt"
     if args.resume:
         trainer = Trainer.resume(load_scene(args), resumed_checkpoint(args), args.out, iterations=args.iterations,
-                                 minutes=args.minutes, device=device, workers=workers)
+                                 minutes=args.minutes, device=device, workers=workers,
+                                 partition=args.train.partition if "train.partition" in explicit else None)
         trainer.run.stage_config({"device": str(device)})  # config.json keeps the run's preset and data
         print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} on {_where(device, workers)}")
         return trainer
@@ -356,7 +357,9 @@ def main(argv: list[str] | None = None) -> int:
         args = parse(argv)
         if args.workers > 1 and int(os.environ.get("WORLD_SIZE", "1")) <= 1:
             return launch_workers(argv, args)
-        result = run(args, explicit_model_flags(argv))
+        # (--train.partition on a resume: the workers split the run from here on so)
+        partition = {"train.partition"} if "partition" in given_flags(argv, "--train.") else set()
+        result = run(args, explicit_model_flags(argv) | partition)
         return EXIT_INTERRUPTED if "stopped_early" in result else None  # (a worker other than rank 0)
 
     code = run_cli(PROG, body, process=process)
