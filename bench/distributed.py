@@ -199,7 +199,8 @@ def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, pa
             "rank": rank, "peak_mb": {k: round(v, 1) for k, v in peaks.items()},
             "resident_mb_after_steps": round(resident, 1), "anchors": tr.model.num_anchors,
             "segments_held": tr.model.hash.num_grids, "table_mb": round(sum(tables.values()) / 2**20, 1),
-            "seconds_per_step": round(seconds / steps, 3)}))
+            "seconds_per_step": round(seconds / steps, 3),
+            "exchange": None if workers is None else workers.traffic.summary(world)}))
     finally:
         if workers is not None:
             workers.close()
