@@ -176,3 +176,28 @@ def test_a_wrong_exchange_fails_the_checks(tmp_path: Path, variant: str) -> None
     w = [torch.load(tmp_path / f"{variant}{r}.pt", weights_only=True) for r in (0, 1)]
     with pytest.raises(AssertionError, match="changed" if variant == "owned reduced" else "differs"):
         _check_partition(w, None)
+
+
+def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes(toy_scene_dir, tmp_path):
+    """The command line: --workers 2 --train.partition time to the end (rank 0's final evaluation
+    of the gathered checkpoint, every frame), then resumed on two workers again."""
+    import json
+
+    from test_distributed import _start
+    from test_cli_promises import _finish, _last_line
+
+    out = tmp_path / "run"
+    code, err = _finish(_start("--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--iterations",
+                               "4", "--workers", "2", "--train.partition", "time"))
+    assert code == 0 and "Traceback" not in err, err
+    result = json.loads((out / "result.json").read_text())
+    assert result["eval"]["psnr"] > 5 and result["eval"]["views"] == 6, result["eval"]
+    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "6",
+                               "--workers", "2", "--train.partition", "views"))
+    # (the views partition shares the run's views per step, 1 here, between the workers: refused)
+    assert code == 2 and "--train.views-per-step is 1" in _last_line(err), err
+    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "6",
+                               "--workers", "2"))
+    assert code == 0 and "Traceback" not in err, err
+    data = torch.load(out / "ckpt.pt", weights_only=True)
+    assert data["step"] == 6 and data["train_config"]["partition"] == "time"

@@ -317,7 +317,8 @@ def launch_workers(argv: list[str], args: TrainArgs) -> int:
         from atgs.config_dict import from_dict
 
         cfg = from_dict(TrainConfig, read_checkpoint(resumed_checkpoint(args))["train_config"])
-    check_settings(cfg.views_per_step, cfg.drop_gaussians, n)
+    partition = args.train.partition if "partition" in given_flags(argv, "--train.") else cfg.partition
+    check_settings(cfg.views_per_step, cfg.drop_gaussians, n, partition)
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
     launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}", "--module", "atgs.cli.train",
                                              *argv])
