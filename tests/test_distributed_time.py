@@ -179,8 +179,9 @@ def test_a_wrong_exchange_fails_the_checks(tmp_path: Path, variant: str) -> None
 
 
 def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes(toy_scene_dir, tmp_path):
-    """The command line: --workers 2 --train.partition time to the end (rank 0's final evaluation
-    of the gathered checkpoint, every frame), then resumed on two workers again."""
+    """The command line: --workers 2 --train.partition time to the end (periodic evaluations of
+    rank 0's frames, its final evaluation of the gathered checkpoint, every frame), then resumed
+    on two workers again."""
     import json
 
     from test_distributed import _start
@@ -188,8 +189,10 @@ def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes
 
     out = tmp_path / "run"
     code, err = _finish(_start("--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--iterations",
-                               "4", "--workers", "2", "--train.partition", "time"))
+                               "4", "--workers", "2", "--train.partition", "time", "--train.eval-every", "2"))
     assert code == 0 and "Traceback" not in err, err
+    evaluated = [r.split(",") for r in (out / "train_log.csv").read_text().strip().splitlines()]
+    assert evaluated[2][evaluated[0].index("eval_psnr")], "the periodic evaluation (rank 0's frames) at step 2"
     result = json.loads((out / "result.json").read_text())
     assert result["eval"]["psnr"] > 5 and result["eval"]["views"] == 6, result["eval"]
     code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "6",
