@@ -3,6 +3,7 @@ the workers exchange per step, and the parts of a step that a scaling model need
 
     python bench/distributed.py                       # both cases, 3 minutes each, then the anatomy
     python bench/distributed.py --minutes 1 --cases 2x1
+    python bench/distributed.py --part memory         # peak memory per worker as frames grow (below)
 
 Cases (one after the other: the machine has 2 cores): "1x2" is one worker with two torch threads,
 "2x1" two workers (``atgs-train --workers 2``) with one thread each. Both train preset ``cpu`` on
@@ -14,6 +15,14 @@ model at its start): the views (decode, render, backward), the rest (the sparse 
 densification), and what the exchange of two workers costs. From these and the bytes per step,
 :func:`scaling_model` predicts a step on W workers (its assumptions are in the JSON and in
 docs/training.md, "Several workers"). Results: bench/results/distributed.json.
+
+The memory part (``--part memory``, its own entry of the JSON): a synthetic capture of 250,
+500 and 1,000 frames (4 cameras at 64x48, a keyframe every 10 frames; synthesized and prepared
+once into the cache, seconds each) trained for a few steps by N workers of one partition
+(torch.multiprocessing, gloo), a model whose per-segment tables dominate (a segment every 10
+frames, 8 levels of 2^15 rows), each worker reporting its peak resident memory (ru_maxrss)
+after its set-up, after the steps, and after the checkpoint (rank 0 gathers the whole model).
+Cases "FRAMESxWORKERS[views|time]", e.g. 500x2time.
 """
 
 from __future__ import annotations
@@ -22,9 +31,13 @@ from dataclasses import dataclass, field
 import json
 import os
 from pathlib import Path
+import re
+import resource
+import socket
 import subprocess
 import sys
 import time
+from typing import Literal
 
 import tyro
 from _docs import run_stamp  # bench/ (the script's own folder is on sys.path)
@@ -42,12 +55,16 @@ VIEWS = 2  # views per step, both cases
 
 @dataclass
 class Distributed:
+    part: Literal["speed", "memory"] = "speed"
     cases: tuple[str, ...] = tuple(CASES)
     minutes: float = 3.0
     flow: bool = False
     """Velocities from optical flow at the start (a set-up of minutes here, counted in the budget:
     off, so that the budget measures training)."""
     anatomy_steps: int = 30
+    memory_cases: tuple[str, ...] = ("250x1time", "500x1time", "500x2time", "500x2views", "1000x2time",
+                                     "1000x4time")
+    memory_steps: int = 10
     cache: Path = field(default_factory=cache_dir)
     work_dir: Path = Path("/tmp/atgs-bench-distributed")
     out: Path = ROOT / "bench" / "results" / "distributed.json"
@@ -126,7 +143,120 @@ def scaling_model(parts: dict, exchange: dict, workers: int, views_per_worker: i
             "dense_table_all_reduce_seconds": 2 * (w - 1) / w * exchange["dense_tables_bytes_per_step"] / bandwidth}
 
 
+# --- memory: each worker's peak as the frames grow with the workers ------------------------------------
+MEMORY_SYNTH = {"cameras": 4, "width": 64, "height": 48, "texture_size": 128}
+FRAMES_PER_KEYFRAME = FRAMES_PER_SEGMENT = 10
+
+
+def memory_configs(partition: str, steps: int, world: int, frames: int):
+    """The tiny preset with per-segment tables that dominate the model (about 2 MB of table and
+    6 MB with its optimizer state per segment), a keyframe every 10 frames (the synthetic
+    capture's moving points would make one of most frames) of at most 300 anchors; a view per
+    worker and step."""
+    from atgs.train.config import preset
+
+    m, t = preset("tiny")
+    m.num_keyframes, m.max_anchors_per_keyframe = frames // FRAMES_PER_KEYFRAME, 300
+    t.views_per_step = world if partition == "views" else 1
+    m.frames_per_segment, m.hash.levels, m.hash.log2_table_size = FRAMES_PER_SEGMENT, 8, 15
+    t.iterations, t.partition, t.velocity_from_flow, t.camera_exposure, t.threads = steps, partition, False, "off", 1
+    return m, t
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # (Linux: kilobytes)
+
+
+def _resident_mb() -> float:
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, partition: str, steps: int) -> None:
+    """One worker of a memory case: its peaks (MB) after the set-up, the steps and the checkpoint."""
+    from atgs.train.distributed import Workers
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world), OMP_NUM_THREADS="1")
+    import torch
+
+    workers = Workers.from_env(torch.device("cpu"), timeout_s=600) if world > 1 else None
+    try:
+        peaks = {"start": _peak_mb()}
+        scene = PreparedScene.load(scene_dir)
+        m, t = memory_configs(partition, steps, world, scene.num_frames)
+        tr = Trainer(scene, m, t, Path(out), progress=False, workers=workers)
+        peaks["set_up"] = _peak_mb()
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            tr.train_step()
+        seconds = time.perf_counter() - t0
+        peaks["steps"] = _peak_mb()
+        resident = _resident_mb()  # now: what training holds, without the set-up's passing peak
+        tr.save(Path(out) / "ckpt.pt")
+        peaks["checkpoint"] = _peak_mb()
+        tables = {n: t.numel() * t.element_size() for n, t in tr.model.sparse_tensors().items()}
+        Path(out, f"memory{rank}.json").write_text(json.dumps({
+            "rank": rank, "peak_mb": {k: round(v, 1) for k, v in peaks.items()},
+            "resident_mb_after_steps": round(resident, 1), "anchors": tr.model.num_anchors,
+            "segments_held": tr.model.hash.num_grids, "table_mb": round(sum(tables.values()) / 2**20, 1),
+            "seconds_per_step": round(seconds / steps, 3),
+            "exchange": None if workers is None else workers.traffic.summary(world)}))
+        if workers is not None:  # (leaving together: gloo aborted a process leaving early with 4 workers)
+            torch.distributed.barrier()
+    finally:
+        if workers is not None:
+            workers.close()
+
+
+def memory_case(name: str, args: Distributed) -> dict:
+    import torch.multiprocessing as mp
+
+    from atgs.data.synth.scene import SynthConfig
+
+    frames, world, partition = re.fullmatch(r"(\d+)x(\d+)(views|time)", name).groups()
+    frames, world = int(frames), int(world)
+    t0 = time.perf_counter()
+    scene_dir = ensure_default_scene(args.cache, SynthConfig(frames=frames, **MEMORY_SYNTH),
+                                     keyframes=frames // FRAMES_PER_KEYFRAME, progress=False)
+    synth = time.perf_counter() - t0
+    out = args.work_dir / f"memory-{name}"
+    out.mkdir(parents=True, exist_ok=True)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.perf_counter()
+    os.environ["PYTHONPATH"] = str(ROOT)  # the workers import this checkout's atgs
+    mp.start_processes(memory_worker, args=(world, port, str(scene_dir), str(out), partition, args.memory_steps),
+                       nprocs=world, start_method="spawn")
+    workers = [json.loads((out / f"memory{r}.json").read_text()) for r in range(world)]
+    return {"frames": frames, "workers": world, "partition": partition, "steps": args.memory_steps,
+            "scene_seconds": round(synth, 1), "run_seconds": round(time.perf_counter() - t0, 1),
+            "per_worker": workers,
+            "largest_peak_mb_before_checkpoint": max(w["peak_mb"]["steps"] for w in workers),
+            "largest_resident_mb_after_steps": max(w["resident_mb_after_steps"] for w in workers),
+            "largest_peak_mb_of_a_worker_not_writing": max((w["peak_mb"]["checkpoint"] for w in workers[1:]),
+                                                           default=None)}
+
+
+def memory(args: Distributed) -> None:
+    results = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    part = results.setdefault("memory", {})
+    part["stamp"] = run_stamp()
+    part["synthetic_capture"] = {**MEMORY_SYNTH, "frames_per_keyframe": FRAMES_PER_KEYFRAME}
+    part["model"] = {"preset": "tiny", "frames_per_segment": FRAMES_PER_SEGMENT, "hash_levels": 8,
+                     "log2_table_size": 15, "frames_per_keyframe": FRAMES_PER_KEYFRAME,
+                     "max_anchors_per_keyframe": 300}
+    cases = part.setdefault("cases", {})
+    for name in args.memory_cases:
+        cases[name] = memory_case(name, args)
+        print(name, json.dumps(cases[name]), flush=True)
+        args.out.write_text(json.dumps(results, indent=1) + "\n")
+
+
 def main(args: Distributed) -> None:
+    if args.part == "memory":
+        memory(args)
+        return
     scene = PreparedScene.load(ensure_default_scene(args.cache, progress=False))
     results = json.loads(args.out.read_text()) if args.out.is_file() else {}
     results["stamp"] = run_stamp()

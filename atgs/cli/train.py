@@ -185,7 +185,8 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     ckpt = args.out / "ckpt.pt"
     if args.resume:
         trainer = Trainer.resume(load_scene(args), resumed_checkpoint(args), args.out, iterations=args.iterations,
-                                 minutes=args.minutes, device=device, workers=workers)
+                                 minutes=args.minutes, device=device, workers=workers,
+                                 partition=args.train.partition if "train.partition" in explicit else None)
         trainer.run.stage_config({"device": str(device)})  # config.json keeps the run's preset and data
         print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} on {_where(device, workers)}")
         return trainer
@@ -316,7 +317,8 @@ def launch_workers(argv: list[str], args: TrainArgs) -> int:
         from atgs.config_dict import from_dict
 
         cfg = from_dict(TrainConfig, read_checkpoint(resumed_checkpoint(args))["train_config"])
-    check_settings(cfg.views_per_step, cfg.drop_gaussians, n)
+    partition = args.train.partition if "partition" in given_flags(argv, "--train.") else cfg.partition
+    check_settings(cfg.views_per_step, cfg.drop_gaussians, n, partition)
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
     launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}", "--module", "atgs.cli.train",
                                              *argv])
@@ -356,7 +358,9 @@ def main(argv: list[str] | None = None) -> int:
         args = parse(argv)
         if args.workers > 1 and int(os.environ.get("WORLD_SIZE", "1")) <= 1:
             return launch_workers(argv, args)
-        result = run(args, explicit_model_flags(argv))
+        # (--train.partition on a resume: the workers split the run from here on so)
+        partition = {"train.partition"} if "partition" in given_flags(argv, "--train.") else set()
+        result = run(args, explicit_model_flags(argv) | partition)
         return EXIT_INTERRUPTED if "stopped_early" in result else None  # (a worker other than rank 0)
 
     code = run_cli(PROG, body, process=process)

@@ -120,8 +120,13 @@ def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Te
 class ATGSModel:
     def __init__(self, cfg: ModelConfig, timeline: Timeline, cameras: list[Camera], fps: float,
                  anchors: AnchorInit, bbox_min: torch.Tensor, bbox_max: torch.Tensor, extent: float,
-                 seed: int = 0, clearance: float = 0.0) -> None:
+                 seed: int = 0, clearance: float = 0.0, segments: range | None = None) -> None:
+        """``segments``: the per-segment tables (hash grids, temporal MLPs) hold only these
+        segments' rows (a worker of the time partition, atgs.train.time_partition): decoding
+        then reaches only frames of these segments; None: all of them."""
         self.cfg, self.timeline = cfg, timeline
+        # the first segment of the per-segment tables (their row 0); see ``segments``
+        self.first_segment = 0 if segments is None else segments.start
         self.cameras, self.fps, self.extent = list(cameras), float(fps), float(extent)
         self.voxel_size = anchors.voxel_size
         self.test_camera_names: list[str] = []
@@ -147,7 +152,7 @@ class ATGSModel:
         h = cfg.hash
         M = timeline.num_segments
         self.hash = HashGrid4D(M, h.levels, h.features_per_level, h.log2_table_size, h.base_resolution,
-                               h.growth, h.max_time_resolution, generator=gen)
+                               h.growth, h.max_time_resolution, generator=gen, grids=segments)
         n_in = h.levels * h.features_per_level
 
         def uni(shape: tuple[int, ...], fan_in: int) -> torch.Tensor:
@@ -158,6 +163,9 @@ class ATGSModel:
         self.tmlp_b1 = uni((M, h.mlp_hidden), n_in)
         self.tmlp_w2 = uni((M, h.mlp_hidden, d), h.mlp_hidden)
         self.tmlp_b2 = uni((M, d), h.mlp_hidden)
+        if segments is not None:
+            for name in TEMPORAL_MLP:
+                setattr(self, name, getattr(self, name)[segments.start:segments.stop].clone())
         with torch.random.fork_rng():
             torch.manual_seed(seed)
             self.decoder = GaussianDecoder(2 * d, cfg.gaussians_per_anchor, cfg.hidden_opacity,
@@ -173,7 +181,7 @@ class ATGSModel:
                     train_cameras: list[Camera] | None = None, seed: int = 0,
                     bounds: torch.Tensor | None = None, motion_points: torch.Tensor | None = None,
                     motion_point_keyframes: torch.Tensor | None = None,
-                    motion_keyframes: list[int] | None = None) -> "ATGSModel":
+                    motion_keyframes: list[int] | None = None, segments: range | None = None) -> "ATGSModel":
         """Anchors from the scene's keyframe points. ``motion_points`` (points on moving content
         only, at ``motion_keyframes``, atgs.data.moving_points) become per-keyframe anchors of the
         model keyframe nearest their frame; by default the model then has as many keyframes as
@@ -218,7 +226,8 @@ class ATGSModel:
         centers = np.stack([c.center for c in (train_cameras or cameras)])
         radius = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 1.0
         clear = clearance_radius(cameras, anchors.mu.median(0).values.cpu().numpy(), cfg.camera_clearance)
-        return cls(cfg, tl, cameras, fps, anchors, lo - pad, hi + pad, 1.1 * max(radius, 1e-3), seed, clear)
+        return cls(cfg, tl, cameras, fps, anchors, lo - pad, hi + pad, 1.1 * max(radius, 1e-3), seed, clear,
+                   segments)
 
     # --- public API (docs/ARCHITECTURE.md) ----------------------------------------------------
     @property
@@ -232,6 +241,13 @@ class ATGSModel:
     @property
     def num_segments(self) -> int:
         return self.timeline.num_segments
+
+    @property
+    def decodable_frames(self) -> range:
+        """The frames of the segments the per-segment tables hold (all frames but on a worker
+        of the time partition)."""
+        tl, first = self.timeline, self.first_segment
+        return range(tl.frames_of_segment(first).start, tl.frames_of_segment(first + self.hash.num_grids - 1).stop)
 
     @property
     def num_anchors(self) -> int:
@@ -365,7 +381,9 @@ class ATGSModel:
         stale = torch.zeros(self.num_anchors, dtype=torch.bool, device=self.device)
         stale[self.reach.stale()] = True
         n = int(stale.sum())
-        frames = self.timeline.keyframe_frames()
+        # (a model holding some segments only: the nearest frame it decodes)
+        lo, hi = self.decodable_frames.start, self.decodable_frames.stop - 1
+        frames = [min(max(f, lo), hi) for f in self.timeline.keyframe_frames()]
         with torch.no_grad():
             for j, f in enumerate(frames):
                 own = (self.anchor_keyframe == j) | ((self.anchor_keyframe == STATIC) if j == 0 else False)
@@ -412,10 +430,10 @@ class ATGSModel:
             if g is not None:
                 sparse.append(SparseLeaf("spatial", g.rows, g.leaf))
             fa = fa + fs
-        h, g = self.hash.query(xn, tau, m, track)
+        h, g = self.hash.query(xn, tau, m - self.first_segment, track)
         if g is not None:
             sparse.append(SparseLeaf("hash", g.rows, g.leaf))
-        seg = torch.tensor([m], device=mu.device)
+        seg = torch.tensor([m - self.first_segment], device=mu.device)
         w1, b1, w2, b2 = (rows_of(n, seg)[0] for n in TEMPORAL_MLP)
         ft = torch.relu((h * inside) @ w1 + b1) @ w2 + b2
         fw = torch.cat([fa, ft], dim=1)
@@ -443,7 +461,7 @@ class ATGSModel:
         with cache.lock, torch.no_grad():
             win = cache.window(tables, window, lambda: self.active_anchors(f).nonzero().squeeze(1))
             shown, dist = self.faded_in(f, win.active)
-            active, raw = cache.gather(tables, win, shown, m, tau)
+            active, raw = cache.gather(tables, win, shown, m - self.first_segment, tau)
             _, gaussians, _, _ = self._drawn(f, active, dist, raw,
                                              lambda name, rows: getattr(self, name).index_select(0, rows))
             return gaussians

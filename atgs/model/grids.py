@@ -166,15 +166,30 @@ class HashGrid4D:
 
     def __init__(self, num_grids: int, levels: int, features: int, log2_table: int, base_res: int,
                  growth: float, max_time_res: int, init_scale: float = 1e-4,
-                 generator: torch.Generator | None = None, backend: str = "auto") -> None:
-        self.num_grids, self.levels, self.features = int(num_grids), int(levels), int(features)
+                 generator: torch.Generator | None = None, backend: str = "auto",
+                 grids: range | None = None) -> None:
+        """``grids``: keep only these grids' rows (a worker of the time partition,
+        atgs.train.time_partition; the generator is still advanced over all of them, one grid's
+        draws at a time); the table then holds ``len(grids)`` grids, queried by local index."""
+        self.levels, self.features = int(levels), int(features)
         self.table_size = 2 ** int(log2_table)
         self.res = [max(1, int(math.floor(base_res * growth**lv))) for lv in range(self.levels)]
         self.time_res = [max(1, min(r, int(max_time_res))) for r in self.res]
-        rows = self.num_grids * self.levels * self.table_size
         # Instant-NGP initializes uniformly in [-1e-4, 1e-4].
         device = generator.device if generator is not None else "cpu"
-        self.table = (torch.rand(rows, self.features, generator=generator, device=device) * 2 - 1) * init_scale
+        if grids is None:
+            self.num_grids = int(num_grids)
+            rows = self.num_grids * self.levels * self.table_size
+            self.table = (torch.rand(rows, self.features, generator=generator, device=device) * 2 - 1) * init_scale
+        else:
+            self.num_grids = len(grids)
+            per_grid = self.levels * self.table_size
+            blocks = []
+            for m in range(int(num_grids)):
+                block = torch.rand(per_grid, self.features, generator=generator, device=device)
+                if m in grids:
+                    blocks.append((block * 2 - 1) * init_scale)
+            self.table = torch.cat(blocks)
         self.backend = backend
 
     def dense_level(self, lv: int) -> bool:

@@ -66,7 +66,11 @@ class DensifyStats:
             setattr(self, name, torch.cat([getattr(self, name), getattr(z, name)]))
 
     def keep(self, keep: torch.Tensor, q: int) -> None:
-        slot_keep = keep[:, None].expand(-1, q).reshape(-1)
+        """Keep the anchors of mask ``keep``, or those of indices ``keep`` in that order."""
+        if keep.dtype == torch.bool:
+            slot_keep = keep[:, None].expand(-1, q).reshape(-1)
+        else:
+            slot_keep = (keep[:, None] * q + torch.arange(q, device=keep.device)).reshape(-1)
         for name in ("grad_accum", "grad_count", "last_pos"):
             setattr(self, name, getattr(self, name)[slot_keep])
         for name in ("opacity_accum", "anchor_count"):
@@ -85,12 +89,18 @@ def _voxel_keys(pos: torch.Tensor, keyframe: torch.Tensor, size: float) -> torch
 
 
 def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None,
-                 generator: torch.Generator) -> int:
-    """Add anchors where the mean screen-space gradient is high; returns how many were added."""
+                 generator: torch.Generator, parents: range | None = None, room: int | None = None) -> int:
+    """Add anchors where the mean screen-space gradient is high; returns how many were added.
+    ``parents``: only these anchors grow children (the generator then draws for their slots
+    only); ``room``: how many may be added (default: up to ``cfg.max_anchors``)."""
     q = model.cfg.gaussians_per_anchor
-    room = cfg.max_anchors - model.num_anchors
+    room = cfg.max_anchors - model.num_anchors if room is None else room
     min_count = cfg.interval * cfg.success_threshold * 0.5
     eligible = stats.grad_count > min_count
+    if parents is not None:
+        inside = torch.zeros_like(eligible)
+        inside[parents.start * q:parents.stop * q] = True
+        eligible &= inside
     device = stats.device
     grads = torch.where(eligible, stats.grad_accum / stats.grad_count.clamp_min(1), torch.zeros((), device=device))
     slot_anchor = torch.arange(model.num_anchors, device=device).repeat_interleave(q)
@@ -106,7 +116,13 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
             cand &= grads < cfg.grad_threshold * (cfg.hierarchy_factor // 2) ** (i + 1)
         # random thinning, stronger at the finer levels (Scaffold-GS)
         # drawn where the generator lives (the trainer's CPU generator: the same draws on every device)
-        cand &= torch.rand(cand.shape, generator=generator, device=generator.device).to(device) > 0.5 ** (i + 1)
+        if parents is None:
+            draw = torch.rand(cand.shape, generator=generator, device=generator.device)
+        else:
+            draw = torch.zeros(cand.shape, device=generator.device)
+            draw[parents.start * q:parents.stop * q] = torch.rand(len(parents) * q, generator=generator,
+                                                                  device=generator.device)
+        cand &= draw.to(device) > 0.5 ** (i + 1)
         idx = cand.nonzero().squeeze(1)
         if idx.numel() == 0:
             continue

@@ -29,7 +29,7 @@ number of workers.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import timedelta
@@ -57,9 +57,10 @@ class WorkerLost(UserError, RuntimeError):
     resumes)."""
 
 
-def check_settings(views_per_step: int, drop_gaussians: float, workers: int) -> None:
-    """Refuse settings that N workers cannot train as one process would."""
-    if workers <= 1:
+def check_settings(views_per_step: int, drop_gaussians: float, workers: int, partition: str = "views") -> None:
+    """Refuse settings that N workers cannot train as one process would (partitioned by views;
+    partitioned by time, every worker draws its own views: atgs.train.time_partition)."""
+    if workers <= 1 or partition == "time":
         return
     if views_per_step < workers:
         raise ConfigError(f"{workers} workers share each step's views, but --train.views-per-step is "
@@ -196,6 +197,12 @@ class Workers:
                 self._call(dist.broadcast, buf, 0)
                 t.copy_(buf.to(t.device))
 
+    def gather_to_leader(self, obj) -> list | None:
+        """Every worker's ``obj`` (picklable), in rank order, on rank 0; None on the others."""
+        out = [None] * self.world if self.leads else None
+        self._call(dist.gather_object, obj, out, dst=0)
+        return out
+
     def broadcast_floats(self, values: Sequence[float]) -> list[float]:
         """Rank 0's ``values`` on every worker (e.g. its clock, so that all size one schedule)."""
         t = torch.tensor(list(values), dtype=torch.float64, device=self.comm)
@@ -308,19 +315,24 @@ class Workers:
         self._written.index_fill_(0, slots, stamp)
 
     @contextmanager
-    def stats_reduced(self, stats) -> Iterator[None]:
+    def stats_reduced(self, stats, shared: Callable[[], int] | None = None) -> Iterator[None]:
         """While the block runs, ``stats`` (atgs.train.densify.DensifyStats) hold the sums of every
         worker's views and the last positions of the latest views (the same on every worker);
-        afterwards rank 0 keeps the sums and the others count their own views from zero."""
-        n = stats.grad_accum.numel()
-        written = (self._written if self._written is not None and self._written.numel() == n
+        afterwards rank 0 keeps the sums and the others count their own views from zero.
+        ``shared``: only the first ``shared()`` anchors' statistics (the time partition's shared
+        anchors; the others are each worker's own), read before and after the block."""
+        total = stats.grad_accum.numel()
+        a = stats.opacity_accum.numel() if shared is None else shared()
+        n = total if shared is None else a * (total // max(1, stats.opacity_accum.numel()))
+        written = (self._written[:n] if self._written is not None and self._written.numel() == total
                    else torch.full((n,), -1, dtype=torch.int64, device=stats.device))
         latest = written.to(self.comm, copy=True)
         self._call(dist.all_reduce, latest, op=dist.ReduceOp.MAX)
         latest = latest.to(stats.device)
         mine = (written == latest) & (latest >= 0)
-        sums = (stats.grad_accum, stats.grad_count, stats.opacity_accum, stats.anchor_count)
-        ours = torch.where(mine[:, None], stats.last_pos, torch.zeros_like(stats.last_pos))
+        sums = (stats.grad_accum[:n], stats.grad_count[:n], stats.opacity_accum[:a], stats.anchor_count[:a])
+        last = stats.last_pos[:n]
+        ours = torch.where(mine[:, None], last, torch.zeros_like(last))
         buf = torch.cat([s.reshape(-1) for s in sums] + [ours.reshape(-1)]).to(self.comm)
         self._call(dist.all_reduce, buf)
         self.traffic.statistics += buf.numel() * buf.element_size() + latest.numel() * latest.element_size()
@@ -330,16 +342,22 @@ class Workers:
             for s in sums:
                 s.copy_(buf[at:at + s.numel()].view_as(s))
                 at += s.numel()
-        stats.last_pos = torch.where((latest >= 0)[:, None], buf[at:].view_as(stats.last_pos), stats.last_pos)
+        last = torch.where((latest >= 0)[:, None], buf[at:].view_as(last), last)
+        stats.last_pos = last if shared is None else torch.cat([last, stats.last_pos[n:]])
         try:
             yield
         finally:
             self._written = None
-            self.own_sums(stats)
+            self.own_sums(stats, None if shared is None else shared())
 
-    def own_sums(self, stats) -> None:
+    def own_sums(self, stats, anchors: int | None = None) -> None:
         """From here on this worker's statistics sums count its own views only (rank 0's also
-        what was summed before): after a reduction, and on a resume (not collective)."""
+        what was summed before): after a reduction, and on a resume (not collective).
+        ``anchors``: only the first ones' (the time partition's shared anchors)."""
         if self.rank != 0:
-            for name in ("grad_accum", "grad_count", "opacity_accum", "anchor_count"):
-                getattr(stats, name).zero_()
+            a = stats.opacity_accum.numel() if anchors is None else anchors
+            n = a * (stats.grad_accum.numel() // max(1, stats.opacity_accum.numel()))
+            for name in ("grad_accum", "grad_count"):
+                getattr(stats, name)[:n].zero_()
+            for name in ("opacity_accum", "anchor_count"):
+                getattr(stats, name)[:a].zero_()

@@ -20,11 +20,14 @@ class SegmentSampler:
     temporal grid gets the same number of views; the frame is uniform within the segment and
     the camera uniform over the training cameras. All randomness comes from ``generator``."""
 
-    def __init__(self, timeline: Timeline, train_cameras: list[int], generator: torch.Generator) -> None:
+    def __init__(self, timeline: Timeline, train_cameras: list[int], generator: torch.Generator,
+                 segments: range | None = None) -> None:
+        """``segments``: draw from these only (default all; a worker of the time partition)."""
         if not train_cameras:
             raise ValueError("no training cameras: every camera is a test camera")
         self.timeline, self.cams, self.gen = timeline, list(train_cameras), generator
-        self.segments = [m for m in range(timeline.num_segments) if len(timeline.frames_of_segment(m))]
+        among = range(timeline.num_segments) if segments is None else segments
+        self.segments = [m for m in among if len(timeline.frames_of_segment(m))]
         self.queue: list[int] = []
 
     def next(self) -> tuple[int, int]:
@@ -49,7 +52,8 @@ class SegmentSampler:
         return {"queue": torch.tensor(self.queue, dtype=torch.int64, device="cpu")}  # saved with the checkpoint
 
     def load_state_dict(self, state: dict) -> None:
-        self.queue = [int(x) for x in state["queue"].tolist()]
+        """(Of a sampler over other segments: the queued ones this one draws from.)"""
+        self.queue = [int(x) for x in state["queue"].tolist() if int(x) in self.segments]
 
 
 class ImageCache:

@@ -62,9 +62,11 @@ def _bounds(scene: "SceneData") -> torch.Tensor | None:
     return None if b is None else torch.as_tensor(np.asarray(b, dtype=np.float32), device="cpu").reshape(2, 3)
 
 
-def model_from_scene(scene: "SceneData", model_cfg: "ModelConfig", train_idx: list[int], seed: int) -> ATGSModel:
+def model_from_scene(scene: "SceneData", model_cfg: "ModelConfig", train_idx: list[int], seed: int,
+                     segments: range | None = None) -> ATGSModel:
     """A new model from the scene's keyframe and motion points, built on the CPU (the same
-    initialisation on every device; the trainer moves it)."""
+    initialisation on every device; the trainer moves it). ``segments``: only these segments'
+    per-segment tables (ATGSModel)."""
     def cpu(values, dtype) -> torch.Tensor:
         return torch.as_tensor(np.asarray(values, dtype=dtype), device="cpu")
 
@@ -73,7 +75,7 @@ def model_from_scene(scene: "SceneData", model_cfg: "ModelConfig", train_idx: li
         scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in train_idx],
         seed=seed, bounds=_bounds(scene), motion_points=cpu(scene.motion_points, np.float32),
         motion_point_keyframes=cpu(scene.motion_point_keyframes, np.int64),
-        motion_keyframes=list(scene.motion_keyframes))
+        motion_keyframes=list(scene.motion_keyframes), segments=segments)
 
 
 def free_space_of(scene: "SceneData", cams: "list[Camera]", device: torch.device) -> FreeSpace:

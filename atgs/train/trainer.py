@@ -32,7 +32,7 @@ from atgs.checkpoint import CheckpointError, model_from_checkpoint, read_checkpo
 from atgs.config_dict import from_dict, to_dict
 from atgs.data.scene import resize_frame
 from atgs.errors import UserError
-from atgs.model.atgs_model import ATGSModel, Decoded
+from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded, num_segments_for
 from atgs.model.config import ModelConfig
 from atgs.model.culling import REFRESH_STEPS as REACH_REFRESH_STEPS
 from atgs.model.grids import grid_kernels
@@ -45,6 +45,8 @@ from atgs.train.budget import TimeBudget
 from atgs.train.config import TrainConfig
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
 from atgs.train.distributed import StepViews, Workers, check_settings
+from atgs.train import time_partition
+from atgs.train.time_partition import TimeSlice, segment_block
 from atgs.train.dropout import drop_gaussians, drop_rate
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.generalisation import evaluation_gap_warning
@@ -136,6 +138,11 @@ class Trainer:
         self._check(cfg, model_cfg)
         # (with torch's own thread count, as these always ran: their sums are part of the run)
         self._resolve_scene_settings(cfg, None if model is None else model.environment)
+        # several workers partitioned by time: this one's share (atgs.train.time_partition), set
+        # with the model; None: one process, or the views partition
+        self.part: TimeSlice | None = None
+        self._taken: torch.Tensor | None = None  # the anchors of a given model it kept
+        self._early_seconds = 0.0  # set-up a time budget pays for, spent before it exists
         self.run = RunDir(self.out)
         with self.run_threads():
             self._set_up_views()
@@ -155,7 +162,8 @@ class Trainer:
         cfg.validate()
         model_cfg.validate()
         check_backend(self.device, cfg.render_backend)
-        check_settings(cfg.views_per_step, cfg.drop_gaussians, 1 if self.workers is None else self.workers.world)
+        check_settings(cfg.views_per_step, cfg.drop_gaussians, 1 if self.workers is None else self.workers.world,
+                       cfg.partition)
 
     def _resolve_scene_settings(self, cfg: TrainConfig, environment: EnvironmentMap | None) -> None:
         """Background and camera exposure from the scene, once for the run (scene_setup)."""
@@ -165,24 +173,49 @@ class Trainer:
         """torch's thread count of this run's work (--train.threads), restored afterwards."""
         return torch_threads(self.cfg.threads) if self.cfg.threads > 0 else nullcontext()
 
+    @property
+    def timed(self) -> bool:
+        """Several workers partitioned by time (each draws its own views from its segments)."""
+        return self.workers is not None and self.cfg.partition == "time"
+
     def _set_up_views(self) -> None:
-        """Training cameras at the training resolution, and the generator every draw comes from."""
+        """Training cameras at the training resolution, and the generator every draw comes from
+        (partitioned by time, each worker's own: rank 0's is the run's)."""
         s = self.cfg.resolution_scale
         self.cams = [c.scaled(s) if s != 1.0 else c for c in self.scene.cameras]
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
-        self.gen = torch.Generator(device="cpu").manual_seed(self.cfg.seed)
+        self.gen = torch.Generator(device="cpu").manual_seed(
+            self.cfg.seed + (7919 * self.workers.rank if self.timed else 0))
 
     def _set_up_model(self, model_cfg: ModelConfig, model: ATGSModel | None) -> None:
         """A new model from the scene (on the CPU, then moved) or the given one, on the device."""
-        if model is None:
-            model = model_from_scene(self.scene, model_cfg, self.train_idx, self.cfg.seed)
+        fresh = model is None
+        if fresh:
+            segments = (segment_block(num_segments_for(model_cfg, self.scene.num_frames), self.workers.rank,
+                                      self.workers.world) if self.timed else None)
+            model = model_from_scene(self.scene, model_cfg, self.train_idx, self.cfg.seed, segments)
         self.model = model.to(self.device)
         self.model_cfg = self.model.cfg  # a loaded model may have switched features off
         self.model.test_camera_names = list(self.scene.test_cameras)
         self.model.background = tuple(float(c) for c in self.cfg.background)
         self.model.environment = self._environment
+        if self.timed:
+            self._take_time_slice(fresh)
         # measured before the first culled decode (atgs.model.culling): unknown reach culls nothing
         self.model.refresh_reach()
+
+    def _take_time_slice(self, fresh: bool) -> None:
+        """Partitioned by time: the anchors' start (rank 0's, velocities included) on every
+        worker, then this worker's share of them (and of a given whole model's segments)."""
+        m = self.model
+        if fresh and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity and self.leads:
+            t0 = time.perf_counter()
+            self.scene_flow_stats = velocities_from_flow(m, self.scene, self.train_idx, progress=False)
+            self._early_seconds += time.perf_counter() - t0
+        self.workers.replicate([m.anchor_mu, m.anchor_keyframe, *(getattr(m, n) for n in ANCHOR_TABLES),
+                                m.spatial.table, *m.decoder.parameters()])
+        self.part = TimeSlice.plan(m.timeline, m, self.workers.rank, self.workers.world)
+        self._taken = self.part.take_model(m)
 
     def _set_up_optimizers(self) -> None:
         """Sparse Adam for the tables (rows a step touches), dense Adam for the decoder heads."""
@@ -195,7 +228,8 @@ class Trainer:
     def _set_up_step_state(self) -> None:
         """What a checkpoint carries besides the model and optimizers."""
         self.stats = DensifyStats.zeros(self.model.num_anchors, self.model_cfg.gaussians_per_anchor, self.device)
-        self.sampler = SegmentSampler(self.model.timeline, self.train_idx, self.gen)
+        self.sampler = SegmentSampler(self.model.timeline, self.train_idx, self.gen,
+                                      None if self.part is None else self.part.segments)
         self.grid_visits = torch.zeros(self.model.num_segments, dtype=torch.int64, device=self.device)
         self.step = self.bad_in_row = self.skipped = self.final_pruned = 0
         # Ctrl-C: the request polled during run_steps; several workers stop after the step at
@@ -231,6 +265,8 @@ class Trainer:
         """--minutes: the step count is sized from the measured pace (atgs.train.budget)."""
         self.budget = (TimeBudget(60.0 * self.cfg.minutes, reserve_views=self.final_views())
                        if self.cfg.minutes > 0 else None)
+        if self.budget is not None:
+            self.budget.used += self._early_seconds
         self.clock: Callable[[], float] = time.perf_counter  # seconds; tests drive a budget with a fake clock
         self._session_start: float | None = None  # clock() when run_steps began
         self._used_before = 0.0  # seconds of earlier run_steps calls of this trainer
@@ -240,6 +276,9 @@ class Trainer:
 
     def _start_velocities(self, fresh_model: bool, progress: bool) -> None:
         """A new model's anchor velocities from optical flow: set-up a budget pays for."""
+        if self.timed:  # (measured with the model's set-up)
+            self.scene_flow_stats = getattr(self, "scene_flow_stats", None)
+            return
         self.scene_flow_stats: dict | None = None
         if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity and self.leads:
             # (several workers: rank 0 measures them, _replicate hands them to the others)
@@ -252,6 +291,10 @@ class Trainer:
         """Several workers: every one starts from rank 0's model (whatever the round-off of its
         own set-up)."""
         if self.workers is None:
+            return
+        if self.timed:  # (the model's shared parts with its set-up)
+            if self.exposure is not None:
+                self.workers.replicate([self.exposure.table])
             return
         m = self.model
         tensors = [m.anchor_mu, m.anchor_keyframe, *m.sparse_tensors().values(), *m.decoder.parameters(),
@@ -283,7 +326,10 @@ class Trainer:
         return dense_lrs(self.cfg.lr, step, self.cfg.iterations)
 
     def sparse_lr(self, name: str, rows: torch.Tensor, step: int) -> float | torch.Tensor:
-        return sparse_lr(self.cfg.lr, name, rows, step, self.model, self.grid_visits, self._expected_visits())
+        visits = self.grid_visits  # (partitioned by time: of this worker's segments, as its tables)
+        if self.part is not None:
+            visits = visits[self.part.segments.start:self.part.segments.stop]
+        return sparse_lr(self.cfg.lr, name, rows, step, self.model, visits, self._expected_visits())
 
     # --- the loss (atgs.train.loss_terms) ---------------------------------------------------------
     def loss_terms(self, dec: Decoded, out, gt: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -311,9 +357,15 @@ class Trainer:
                 break
         if self.workers is not None:
             dense = [p for g in self.dense_opt.param_groups for p in g["params"]]
-            stop = self.workers.reduce_step(views, dense + ([self.exposure.table] if self.exposure is not None else []),
-                                            model.sparse_tensors(), model.reach,
+            dense += [self.exposure.table] if self.exposure is not None else []
+            tables = model.sparse_tensors()
+            if self.part is not None:  # only the shared parameters' gradients travel
+                owned = time_partition.keep_owned(views, self.part.num_shared(model))
+                tables = {n: t for n, t in tables.items() if n in time_partition.EXCHANGED}
+            stop = self.workers.reduce_step(views, dense, tables, model.reach,
                                             self._should_stop is not None and self._should_stop())
+            if self.part is not None:
+                time_partition.with_owned(views, owned, self.workers.world, dense)
             self._agreed_stop = self._agreed_stop or stop
         if views.bad:
             return self._skip_step()
@@ -339,7 +391,7 @@ class Trainer:
         that order (every worker keeps the same generator), and each yields its share."""
         cfg = self.cfg
         timeline = self.model.timeline
-        if self.workers is None:
+        if self.workers is None or self.timed:
             for v in range(cfg.views_per_step):
                 cis, f = self.sampler.next_views(cfg.cameras_per_frame)
                 views.segments.append(timeline.segment_of_frame(f))
@@ -390,7 +442,10 @@ class Trainer:
             g2d = out.means2d.grad
             slots = self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
             if self.workers is not None and slots is not None:
-                self.workers.note_positions(self.stats, slots, self.step * cfg.views_per_step + view.index)
+                stamp = self.step * cfg.views_per_step + view.index
+                if self.timed:  # (every worker renders views of that index)
+                    stamp = stamp * self.workers.world + self.workers.rank
+                self.workers.note_positions(self.stats, slots, stamp)
         for s in dec.sparse:
             if s.leaf.grad is not None:
                 views.grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
@@ -437,9 +492,21 @@ class Trainer:
         if not d.enabled or self.step < d.start or self.step > stop or self.step % d.interval:
             return
         with self._stats_of_all_views():
-            grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
+            if self.part is None:
+                grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
+            else:
+                self._grow_time_partitioned()
             prune_anchors(self.model, self.stats, d, self.sparse_opt)
         self.model.refresh_reach()  # the new anchors' reach, before a decode counts them as in view
+
+    def _grow_time_partitioned(self) -> None:
+        """Partitioned by time: the shared anchors grow alike on every worker (summed statistics,
+        a generator seeded by the step), each worker's own from its own; then shared first again."""
+        m, d, n = self.model, self.cfg.densify, self.part.num_shared(self.model)
+        same = torch.Generator(device="cpu").manual_seed(self.cfg.seed * 1_000_003 + self.step)
+        grow_anchors(m, self.stats, d, self.sparse_opt, same, parents=range(0, n), room=d.max_anchors - n)
+        grow_anchors(m, self.stats, d, self.sparse_opt, self.gen, parents=range(n, m.num_anchors))
+        self.part.reorder(m, self.stats, self.sparse_opt)
 
     def _final_prune(self, stop: int) -> None:
         d = self.cfg.densify
@@ -455,12 +522,18 @@ class Trainer:
     def _stats_of_all_views(self) -> AbstractContextManager:
         """Inside: the densification statistics of every view so far (several workers: summed
         over them, atgs.train.distributed; one process: as they are)."""
-        return nullcontext() if self.workers is None else self.workers.stats_reduced(self.stats)
+        if self.workers is None:
+            return nullcontext()
+        if self.part is None:
+            return self.workers.stats_reduced(self.stats)
+        return self.workers.stats_reduced(self.stats, lambda: self.part.num_shared(self.model))
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
-        """The frames of periodic and final evaluation: ``eval_max_frames`` evenly spaced."""
-        return evenly_spaced(self.model.num_frames, max(1, self.cfg.eval_max_frames))
+        """The frames of periodic and final evaluation: ``eval_max_frames`` evenly spaced (of
+        rank 0's frames when partitioned by time: those its model decodes)."""
+        frames = self.model.decodable_frames
+        return [frames[i] for i in evenly_spaced(len(frames), max(1, self.cfg.eval_max_frames))]
 
     @_in_run_threads
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
@@ -502,7 +575,17 @@ class Trainer:
         """What ``atgs-eval`` reports by default (every frame of the test cameras at full
         resolution, three comparison images per camera; LPIPS aside), so the figure that
         atgs-train prints at the end is the figure atgs-eval gives for the same checkpoint."""
-        return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3)
+        if self.part is None:
+            return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3)
+        # partitioned by time (rank 0 only): the whole model, as the checkpoint gathered it
+        from atgs.checkpoint import load_model
+
+        own, self.model = self.model, load_model(self.run.ckpt_path, self.device)
+        self.model.environment = own.environment
+        try:
+            return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3)
+        finally:
+            self.model = own
 
     # --- checkpoints ----------------------------------------------------------------------------
     def checkpoint_payload(self) -> dict:
@@ -532,22 +615,31 @@ class Trainer:
         commits config.json and the log, see RunDir), or a copy at ``path``. Several workers: all
         call it (the statistics are summed over them), rank 0 writes."""
         with self._stats_of_all_views():
+            parts = None
+            if self.part is not None:  # partitioned by time: rank 0 gathers every worker's part
+                parts = self.workers.gather_to_leader(time_partition.local_part(
+                    self.model, self.sparse_opt, self.stats, self.grid_visits, self.part))
             if not self.leads:
                 return self.run.ckpt_path if path is None else Path(path)
+            payload = self.checkpoint_payload()
+            if parts is not None:
+                payload = time_partition.fill_payload(payload, parts)
             if path is None:
-                return self.run.save_checkpoint(self.checkpoint_payload())
-            save_checkpoint(path, self.checkpoint_payload())
+                return self.run.save_checkpoint(payload)
+            save_checkpoint(path, payload)
             return Path(path)
 
     @classmethod
     def resume(cls, scene: SceneData, path: str | Path, out_dir: str | Path,
                iterations: int | None = None, minutes: float | None = None,
-               device: torch.device | str = "cpu", workers: Workers | None = None) -> "Trainer":
+               device: torch.device | str = "cpu", workers: Workers | None = None,
+               partition: str | None = None) -> "Trainer":
         """Continue the run of checkpoint ``path`` on ``device`` (any: checkpoints hold CPU tensors
         and the optimizer and densification state move with the model) and on any number of
         ``workers``. ``iterations``: a new total step count (and no time budget; the schedule
         sized to it as ``--iterations`` sizes it); ``minutes``: a new total time budget (the
-        time already used counts)."""
+        time already used counts); ``partition``: how several workers split the run from here
+        (default: as it was saved; a checkpoint of either resumes with either)."""
         data = read_checkpoint(path)
         if data.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
@@ -560,6 +652,8 @@ class Trainer:
             cfg = schedule_for(replace(cfg, minutes=0.0), iterations)
         if minutes is not None:
             cfg = replace(cfg, minutes=minutes)
+        if partition is not None:
+            cfg = replace(cfg, partition=partition)
         if int(data["num_frames"]) != scene.num_frames:
             raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
@@ -571,11 +665,18 @@ class Trainer:
         if tr.exposure is not None and st.get("exposure") is not None:
             tr.exposure.load_state_dict(st["exposure"])
         tr.stats = DensifyStats.from_state(st["densify"], tr.device)
+        if tr.part is not None:  # partitioned by time: this worker's share of the whole state
+            h = tr.model.hash
+            tr.part.take_state(tr.sparse_opt, tr.stats, tr._taken, h.levels * h.table_size,
+                               tr.model_cfg.gaussians_per_anchor)
         if tr.workers is not None:  # the saved sums are all views': rank 0 carries them on
-            tr.workers.own_sums(tr.stats)
+            tr.workers.own_sums(tr.stats, None if tr.part is None else tr.part.num_shared(tr.model))
         tr.sampler.load_state_dict(st["sampler"])
         tr.grid_visits = st["grid_visits"].to(tr.device, copy=True)
-        tr.gen.set_state(st["generator"])
+        if tr.part is None or tr.workers.leads:  # (the other workers of the time partition: their own)
+            tr.gen.set_state(st["generator"])
+        else:
+            tr.gen.manual_seed(cfg.seed + 7919 * tr.workers.rank + int(data["step"]))
         tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
         tr.step = int(data["step"])
         tr.run = RunDir(tr.out, resume_step=tr.step)

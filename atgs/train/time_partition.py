@@ -1,0 +1,230 @@
+"""Several workers partitioned by time (``--train.partition time``): each worker owns a
+contiguous block of the model's time segments.
+
+A worker holds, of the model (docs/training.md, "Several workers"):
+
+- its segments' rows of the per-segment tables (the 4D hash grids and the temporal MLPs,
+  :data:`SEGMENT_TABLES`), queried by local index (``ATGSModel.first_segment``);
+- the anchors whose keyframe windows touch its segments' frames: *own* anchors, whose keyframe
+  only its frames reach, and *shared* ones: static anchors, and those of keyframes that the
+  frames of two or more workers reach (boundary keyframes). Shared anchors are replicated on
+  every worker, in the same order, before the own ones (the anchor tables' first rows);
+- the parameters every frame uses: the spatial grid, the decoder, the camera exposure.
+
+Each worker draws its views from its own frames; after the backward pass the workers reduce
+only what is shared (:data:`EXCHANGED`: the spatial grid's touched rows and the shared anchors'
+rows through atgs.train.distributed's sparse exchange, the decoder's and the exposure's dense
+gradients through its all-reduce) and average it; the owned tables never leave their worker.
+
+Densification: each worker grows and prunes its own anchors from its own statistics and
+generator; the shared anchors' statistics are summed over the workers and every worker grows
+them with the same generator (seeded by the step) and prunes them alike, so they stay replicas.
+A new anchor takes its parent's keyframe, so it is shared or own as its parent.
+
+Checkpoints: rank 0 gathers every worker's part (:func:`local_part`: its own anchors, segment
+rows, their optimizer state and statistics) and writes one ``ckpt.pt`` in the usual format (the
+anchors shared first, then each worker's own ones in rank order; the segments in order); any
+number of workers, and either partition, resume from it (the trainer slices what it loaded).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from atgs.config_checks import ConfigError
+from atgs.model.anchors import STATIC
+from atgs.model.atgs_model import ANCHOR_TABLES, TEMPORAL_MLP, ATGSModel
+from atgs.timeline import Timeline
+from atgs.train.distributed import StepViews
+
+SEGMENT_TABLES = ("hash",) + TEMPORAL_MLP  # per-segment tables: a worker holds its segments' rows
+# the sparse tables whose gradients the workers reduce: every row, or the shared anchors' rows
+EXCHANGED = {"spatial": "all", **{name: "shared" for name in ANCHOR_TABLES}}
+_STAT_SLOTS = ("grad_accum", "grad_count", "last_pos")  # per Gaussian slot (anchor * q + slot)
+_STAT_ANCHORS = ("opacity_accum", "anchor_count")  # per anchor
+_OPT_STORES = ("exp_avg", "exp_avg_sq", "steps")
+
+
+def segment_block(num_segments: int, rank: int, world: int) -> range:
+    """Worker ``rank``'s contiguous block of ``num_segments`` segments."""
+    if num_segments < world:
+        raise ConfigError(f"--train.partition time gives each of {world} workers whole time segments, but the "
+                          f"model has {num_segments}; pass --model.num-segments {world} (or more) or "
+                          "--train.partition views")
+    return range(num_segments * rank // world, num_segments * (rank + 1) // world)
+
+
+@dataclass
+class TimeSlice:
+    """This worker's share of the model: its segments and which anchors it holds."""
+
+    rank: int
+    world: int
+    segments: range
+    held_keyframes: torch.Tensor  # (K + 1,) bool: keyframes whose anchors it holds; the last: static
+    shared_keyframes: torch.Tensor  # (K + 1,) bool: keyframes several workers hold; the last: static
+
+    @classmethod
+    def plan(cls, timeline: Timeline, model: ATGSModel, rank: int, world: int) -> "TimeSlice":
+        K = timeline.num_keyframes
+        touched = torch.zeros(world, K + 1, dtype=torch.bool)
+        touched[:, K] = True  # static anchors: every frame
+        for r in range(world):
+            segs = segment_block(timeline.num_segments, r, world)
+            frames = range(timeline.frames_of_segment(segs.start).start,
+                           timeline.frames_of_segment(segs.stop - 1).stop)
+            if not frames:
+                raise ConfigError(f"worker {r}'s time segments {segs.start}..{segs.stop - 1} hold no frame; "
+                                  "pass fewer --model.num-segments or fewer workers")
+            # windows move monotonically with the frame: the first and last frames bound them
+            lo, hi = timeline.window_of_frame(frames.start)[0], timeline.window_of_frame(frames.stop - 1)[1]
+            touched[r, lo:hi + 1] = True
+        if model.cfg.static_keyframe0 and model.cfg.anchor_layout == "per-keyframe":
+            touched[:, 0] = True  # keyframe 0's anchors are active at every frame
+        return cls(rank, world, segment_block(timeline.num_segments, rank, world), touched[rank],
+                   touched.sum(0) > 1)
+
+    @staticmethod
+    def _of(table: torch.Tensor, keyframe: torch.Tensor) -> torch.Tensor:
+        k = torch.where(keyframe == STATIC, table.numel() - 1, keyframe).cpu()
+        return table[k].to(keyframe.device)
+
+    def shared(self, keyframe: torch.Tensor) -> torch.Tensor:
+        """(A,) bool: anchors of these keyframes every worker holds."""
+        return self._of(self.shared_keyframes, keyframe)
+
+    def order(self, keyframe: torch.Tensor) -> torch.Tensor:
+        """Indices of the anchors (of a whole model's ``keyframe``) this worker holds: the shared
+        ones first, then its own, each in the given order."""
+        held, shared = self._of(self.held_keyframes, keyframe), self.shared(keyframe)
+        return torch.cat([shared.nonzero().squeeze(1), (held & ~shared).nonzero().squeeze(1)])
+
+    def num_shared(self, model: ATGSModel) -> int:
+        """How many of the model's first anchors are the shared ones."""
+        return int(self.shared(model.anchor_keyframe).sum())
+
+    def frames(self, timeline: Timeline) -> range:
+        return range(timeline.frames_of_segment(self.segments.start).start,
+                     timeline.frames_of_segment(self.segments.stop - 1).stop)
+
+    # --- slicing a whole model's state ------------------------------------------------------------
+    def rows_of_segments(self, name: str, table: torch.Tensor, per_grid: int) -> torch.Tensor:
+        """This worker's rows of a whole model's per-segment table ``name``."""
+        s = self.segments
+        if name == "hash":
+            return table[s.start * per_grid:s.stop * per_grid].clone()
+        return table[s.start:s.stop].clone()
+
+    def take_model(self, model: ATGSModel) -> torch.Tensor:
+        """Keep this worker's anchors (and, of a whole model, its segments' rows); returns the
+        indices of the anchors kept (for :meth:`take_state`)."""
+        ids = self.order(model.anchor_keyframe)
+        model.keep_anchors(ids)
+        if model.hash.num_grids != len(self.segments):  # a whole model (a resumed checkpoint's)
+            per_grid = model.hash.levels * model.hash.table_size
+            for name in SEGMENT_TABLES:
+                model.set_sparse_tensor(name, self.rows_of_segments(name, model.sparse_tensors()[name], per_grid))
+            model.hash.num_grids = len(self.segments)
+            model.first_segment = self.segments.start
+            model.inference_cache.clear()
+        return ids
+
+    def take_state(self, opt, stats, ids: torch.Tensor, per_grid: int, q: int) -> None:
+        """Slice a whole model's sparse optimizer state and densification statistics (loaded
+        from a checkpoint) to the anchors ``ids`` and this worker's segments."""
+        for name in ANCHOR_TABLES:
+            opt.keep_rows(name, ids)
+        for key in _OPT_STORES:
+            store = getattr(opt, key)
+            for name in SEGMENT_TABLES:
+                store[name] = self.rows_of_segments(name, store[name], per_grid)
+        stats.keep(ids, q)
+
+    def reorder(self, model: ATGSModel, stats, opt) -> None:
+        """Put the shared anchors first again (after growth appended some)."""
+        perm = torch.argsort((~self.shared(model.anchor_keyframe)).to(torch.int8), stable=True)
+        if bool((perm == torch.arange(perm.numel(), device=perm.device)).all()):
+            return
+        model.keep_anchors(perm)
+        stats.keep(perm, model.cfg.gaussians_per_anchor)
+        for name in ANCHOR_TABLES:
+            opt.keep_rows(name, perm)
+
+
+# --- the step's exchange -------------------------------------------------------------------------------
+def keep_owned(views: StepViews, num_shared: int) -> dict[str, list[tuple[torch.Tensor, torch.Tensor]]]:
+    """Take the owned gradients (segment tables, own anchors' rows) out of ``views`` before the
+    exchange, which then carries only the shared ones; returns the owned ones."""
+    exchanged, owned = {}, {}
+    for name, parts in views.grads.items():
+        kind = EXCHANGED.get(name)
+        if kind == "all":
+            exchanged[name] = parts
+        elif kind == "shared":
+            for rows, g in parts:
+                mask = rows < num_shared
+                exchanged.setdefault(name, []).append((rows[mask], g[mask]))
+                owned.setdefault(name, []).append((rows[~mask], g[~mask]))
+        else:
+            owned[name] = parts
+    views.grads = exchanged
+    views.decoded = [ids[ids < num_shared] for ids in views.decoded]  # the reach of the shared anchors
+    return owned
+
+
+def with_owned(views: StepViews, owned: dict, world: int, dense: Sequence[torch.Tensor]) -> None:
+    """After the exchange: the shared gradients (summed over the workers) become their mean, and
+    the owned ones join them."""
+    if views.bad:
+        return
+    for p in dense:
+        if p.grad is not None:
+            p.grad.div_(world)
+    views.grads = {name: [(rows, g / world) for rows, g in parts] for name, parts in views.grads.items()}
+    for name, parts in owned.items():
+        views.grads.setdefault(name, []).extend(parts)
+
+
+# --- checkpoints -------------------------------------------------------------------------------------------
+def local_part(model: ATGSModel, opt, stats, grid_visits: torch.Tensor, part: TimeSlice) -> dict[str, torch.Tensor]:
+    """What this worker adds to the gathered checkpoint, each tensor to be concatenated in rank
+    order: its anchors (rank 0: the shared ones too), its segments' rows, their optimizer state,
+    statistics and visit counts."""
+    a = 0 if part.rank == 0 else part.num_shared(model)
+    q = model.cfg.gaussians_per_anchor
+    tables = model.sparse_tensors()
+    out = {"model/anchor_mu": model.anchor_mu[a:], "model/anchor_keyframe": model.anchor_keyframe[a:]}
+    for name in ANCHOR_TABLES:
+        out[f"model/{name}"] = tables[name][a:]
+        for key in _OPT_STORES:
+            out[f"sparse_opt/{key}/{name}"] = getattr(opt, key)[name][a:]
+    for name in SEGMENT_TABLES:
+        out[f"model/{name}"] = tables[name]
+        for key in _OPT_STORES:
+            out[f"sparse_opt/{key}/{name}"] = getattr(opt, key)[name]
+    for name in _STAT_SLOTS:
+        out[f"densify/{name}"] = getattr(stats, name)[a * q:]
+    for name in _STAT_ANCHORS:
+        out[f"densify/{name}"] = getattr(stats, name)[a:]
+    out["grid_visits"] = grid_visits[part.segments.start:part.segments.stop]
+    return {k: v.detach().cpu() for k, v in out.items()}
+
+
+def fill_payload(payload: dict, parts: list[dict[str, torch.Tensor]]) -> dict:
+    """Rank 0's checkpoint payload with every worker's ``parts`` (rank order) in place of its own."""
+    st = payload["trainer"]
+    for key in parts[0]:
+        whole = torch.cat([p[key] for p in parts])
+        where, _, name = key.rpartition("/")
+        if where == "model":
+            payload["model"][name] = whole
+        elif where.startswith("sparse_opt/"):
+            st["sparse_opt"][where.split("/")[1]][name] = whole
+        elif where == "densify":
+            st["densify"][name] = whole
+        else:
+            st[name] = whole
+    return payload
