@@ -91,10 +91,11 @@ def build_trainer(scene, out: Path, preset_name: str, *, iterations: int | None 
                   threads: int = 1, device: str = "cpu", progress: bool = False, workers=None) -> Trainer:
     """A fresh Trainer of :func:`case_configs` on ``scene`` writing to ``out`` (emptied first),
     torch's global seed set to the trainer's seed. ``progress``: the set-up's progress bar;
-    ``workers``: this process's place among several (atgs.train.distributed.Workers)."""
+    ``workers``: this process's place among several (atgs.train.distributed.Workers; ``out`` is
+    then left as it is)."""
     m, t = case_configs(preset_name, iterations=iterations, minutes=minutes, model=model, train=train,
                         threads=threads)
-    if workers is None or workers.leads:  # the others must not empty it under the first
+    if workers is None:  # several workers share ``out``: its caller prepares it (here one would empty it under another)
         shutil.rmtree(out, ignore_errors=True)
     torch.manual_seed(t.seed)
     return Trainer(scene, m, t, out, device=device, progress=progress, workers=workers)

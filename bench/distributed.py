@@ -148,19 +148,16 @@ MEMORY_SYNTH = {"cameras": 4, "width": 64, "height": 48, "texture_size": 128}
 FRAMES_PER_KEYFRAME = FRAMES_PER_SEGMENT = 10
 
 
-def memory_configs(partition: str, steps: int, world: int, frames: int):
-    """The tiny preset with per-segment tables that dominate the model (about 2 MB of table and
-    6 MB with its optimizer state per segment), a keyframe every 10 frames (the synthetic
-    capture's moving points would make one of most frames) of at most 300 anchors; a view per
-    worker and step."""
-    from atgs.train.config import preset
-
-    m, t = preset("tiny")
-    m.num_keyframes, m.max_anchors_per_keyframe = frames // FRAMES_PER_KEYFRAME, 300
-    t.views_per_step = world if partition == "views" else 1
-    m.frames_per_segment, m.hash.levels, m.hash.log2_table_size = FRAMES_PER_SEGMENT, 8, 15
-    t.iterations, t.partition, t.velocity_from_flow, t.camera_exposure, t.threads = steps, partition, False, "off", 1
-    return m, t
+def memory_overrides(partition: str, world: int, frames: int) -> tuple[dict, dict]:
+    """(model, train) overrides of the tiny preset: per-segment tables that dominate the model
+    (about 2 MB of table and 6 MB with its optimizer state per segment), a keyframe every 10
+    frames (the synthetic capture's moving points would make one of most frames) of at most 300
+    anchors; a view per worker and step."""
+    model = {"num_keyframes": frames // FRAMES_PER_KEYFRAME, "max_anchors_per_keyframe": 300,
+             "frames_per_segment": FRAMES_PER_SEGMENT, "hash": {"levels": 8, "log2_table_size": 15}}
+    train = {"views_per_step": world if partition == "views" else 1, "partition": partition,
+             "velocity_from_flow": False, "camera_exposure": "off"}
+    return model, train
 
 
 def _peak_mb() -> float:
@@ -183,8 +180,8 @@ def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, pa
     try:
         peaks = {"start": _peak_mb()}
         scene = PreparedScene.load(scene_dir)
-        m, t = memory_configs(partition, steps, world, scene.num_frames)
-        tr = Trainer(scene, m, t, Path(out), progress=False, workers=workers)
+        model, train = memory_overrides(partition, world, scene.num_frames)
+        tr = build_trainer(scene, Path(out), "tiny", iterations=steps, model=model, train=train, workers=workers)
         peaks["set_up"] = _peak_mb()
         t0 = time.perf_counter()
         for _ in range(steps):
