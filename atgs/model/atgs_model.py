@@ -247,7 +247,8 @@ class ATGSModel:
         """The frames of the segments the per-segment tables hold (all frames but on a worker
         of the time partition)."""
         tl, first = self.timeline, self.first_segment
-        return range(tl.frames_of_segment(first).start, tl.frames_of_segment(first + self.hash.num_grids - 1).stop)
+        held = [r for r in (tl.frames_of_segment(m) for m in range(first, first + self.hash.num_grids)) if len(r)]
+        return range(held[0].start, held[-1].stop) if held else range(0)  # (segments may hold no frame)
 
     @property
     def num_anchors(self) -> int:

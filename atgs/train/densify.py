@@ -89,17 +89,17 @@ def _voxel_keys(pos: torch.Tensor, keyframe: torch.Tensor, size: float) -> torch
 
 
 def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt: SparseAdam | None,
-                 generator: torch.Generator, parents: range | None = None, room: int | None = None) -> int:
+                 generator: torch.Generator, growing: range | None = None, room: int | None = None) -> int:
     """Add anchors where the mean screen-space gradient is high; returns how many were added.
-    ``parents``: only these anchors grow children (the generator then draws for their slots
+    ``growing``: only these anchors grow children (the generator then draws for their slots
     only); ``room``: how many may be added (default: up to ``cfg.max_anchors``)."""
     q = model.cfg.gaussians_per_anchor
     room = cfg.max_anchors - model.num_anchors if room is None else room
     min_count = cfg.interval * cfg.success_threshold * 0.5
     eligible = stats.grad_count > min_count
-    if parents is not None:
+    if growing is not None:
         inside = torch.zeros_like(eligible)
-        inside[parents.start * q:parents.stop * q] = True
+        inside[growing.start * q:growing.stop * q] = True
         eligible &= inside
     device = stats.device
     grads = torch.where(eligible, stats.grad_accum / stats.grad_count.clamp_min(1), torch.zeros((), device=device))
@@ -116,11 +116,11 @@ def grow_anchors(model: ATGSModel, stats: DensifyStats, cfg: DensifyConfig, opt:
             cand &= grads < cfg.grad_threshold * (cfg.hierarchy_factor // 2) ** (i + 1)
         # random thinning, stronger at the finer levels (Scaffold-GS)
         # drawn where the generator lives (the trainer's CPU generator: the same draws on every device)
-        if parents is None:
+        if growing is None:
             draw = torch.rand(cand.shape, generator=generator, device=generator.device)
         else:
             draw = torch.zeros(cand.shape, device=generator.device)
-            draw[parents.start * q:parents.stop * q] = torch.rand(len(parents) * q, generator=generator,
+            draw[growing.start * q:growing.stop * q] = torch.rand(len(growing) * q, generator=generator,
                                                                   device=generator.device)
         cand &= draw.to(device) > 0.5 ** (i + 1)
         idx = cand.nonzero().squeeze(1)

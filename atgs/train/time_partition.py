@@ -70,7 +70,7 @@ class TimeSlice:
     @classmethod
     def plan(cls, timeline: Timeline, model: ATGSModel, rank: int, world: int) -> "TimeSlice":
         K = timeline.num_keyframes
-        touched = torch.zeros(world, K + 1, dtype=torch.bool)
+        touched = torch.zeros(world, K + 1, dtype=torch.bool, device="cpu")
         touched[:, K] = True  # static anchors: every frame
         for r in range(world):
             segs = segment_block(timeline.num_segments, r, world)

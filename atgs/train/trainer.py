@@ -504,8 +504,8 @@ class Trainer:
         a generator seeded by the step), each worker's own from its own; then shared first again."""
         m, d, n = self.model, self.cfg.densify, self.part.num_shared(self.model)
         same = torch.Generator(device="cpu").manual_seed(self.cfg.seed * 1_000_003 + self.step)
-        grow_anchors(m, self.stats, d, self.sparse_opt, same, parents=range(0, n), room=d.max_anchors - n)
-        grow_anchors(m, self.stats, d, self.sparse_opt, self.gen, parents=range(n, m.num_anchors))
+        grow_anchors(m, self.stats, d, self.sparse_opt, same, growing=range(0, n), room=d.max_anchors - n)
+        grow_anchors(m, self.stats, d, self.sparse_opt, self.gen, growing=range(n, m.num_anchors))
         self.part.reorder(m, self.stats, self.sparse_opt)
 
     def _final_prune(self, stop: int) -> None:
