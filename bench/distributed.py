@@ -202,8 +202,6 @@ def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, pa
             "segments_held": tr.model.hash.num_grids, "table_mb": round(sum(tables.values()) / 2**20, 1),
             "seconds_per_step": round(seconds / steps, 3),
             "exchange": None if workers is None else workers.traffic.summary(world)}))
-        if workers is not None:  # (leaving together: gloo aborted a process leaving early with 4 workers)
-            torch.distributed.barrier()
     finally:
         if workers is not None:
             workers.close()

@@ -233,7 +233,7 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
     finally:
         if workers is not None:
             signal.signal(signal.SIGTERM, signal.SIG_IGN)  # on the way out torchrun's SIGTERM is no news
-            workers.close()
+            workers.close(together=sys.exc_info()[0] is None)  # (on an error the others may be gone)
 
 
 def _train(args: TrainArgs, explicit: set[str], workers) -> dict:

@@ -163,10 +163,20 @@ class Workers:
         """Rank 0: it prints, evaluates and writes the run's files (not collective)."""
         return self.rank == 0
 
-    def close(self) -> None:
-        """Leave the process group (not collective)."""
-        if dist.is_initialized():
-            dist.destroy_process_group()
+    def close(self, together: bool = True) -> None:
+        """Leave the process group. ``together`` (every worker ending normally): first wait at a
+        barrier, so that no worker tears its connections down while another still uses them (gloo
+        then aborted a process at exit: "terminate called without an active exception"); a failed
+        barrier (a worker gone) is no error here. Without ``together`` (leaving on an error) it is
+        not collective."""
+        if not dist.is_initialized():
+            return
+        if together:
+            try:
+                dist.barrier()
+            except Exception:  # noqa: BLE001 - the others are gone or failing: leave anyway
+                pass
+        dist.destroy_process_group()
 
     def share(self, n: int) -> range:
         """This worker's views of a step's ``n``: a contiguous block, in rank order (not collective)."""
