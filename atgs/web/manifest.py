@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from atgs.cameras import Camera
-from atgs.render.constants import ALPHA_MAX, ALPHA_MIN, DILATION, NEAR, RADIUS_SIGMAS
+from atgs.render.constants import ALPHA_MAX, ALPHA_MIN, CLAMP_MARGIN, DILATION, NEAR, RADIUS_SIGMAS
 from atgs.viewer.scene_utils import default_camera, orbit_center
 
 FORMAT = "atgs-web"
@@ -41,7 +41,7 @@ def camera_entry(cam: Camera, held_out: bool) -> dict[str, Any]:
 def render_numerics() -> dict[str, float]:
     """The rasterizer's numbers, so the browser draws what atgs-view draws."""
     return {"near": NEAR, "dilation": DILATION, "alpha_min": ALPHA_MIN, "alpha_max": ALPHA_MAX,
-            "extent": RADIUS_SIGMAS}
+            "extent": RADIUS_SIGMAS, "clamp_margin": CLAMP_MARGIN}
 
 
 def scene_entry(model) -> dict[str, Any]:

@@ -10,7 +10,7 @@
 // texture. Not instancing: software WebGL (SwiftShader) pays per instance, 700 against 50 ms
 // a frame for 38k Gaussians at 96x72 (and llvmpipe, the desktop player found, twice the time).
 
-import { clampLimits } from './camera.js';
+import { CLAMP_MARGIN, clampLimits } from './camera.js';
 import { DepthSorter } from './sort.js';
 
 // Texels per row of the Gaussian and order textures (entry i at (i % width, i / width)).
@@ -442,7 +442,7 @@ export class Renderer {
     gl.uniformMatrix4fv(u.u_w2c, true, Float32Array.from(view.w2c));
     const intr = view.intr;
     gl.uniform4f(u.u_intr, intr.fx, intr.fy, intr.cx, intr.cy);
-    gl.uniform4fv(u.u_lim, clampLimits(intr));
+    gl.uniform4fv(u.u_lim, clampLimits(intr, r.clamp_margin ?? CLAMP_MARGIN));  // (older exports: the constant)
     gl.uniform2f(u.u_size, width, height);
     gl.uniform1f(u.u_near, r.near);
     gl.uniform1f(u.u_dilation, r.dilation);
