@@ -185,3 +185,51 @@ def make_toy_scene(num_frames: int = 6, num_cameras: int = 5, width: int = 40, h
         pk.append(torch.full((4,), j, dtype=torch.int64))
     return MemoryScene(cams, num_frames, 30.0, kf_frames, torch.cat(pts).numpy(), torch.cat(pk).numpy(),
                        [cams[-1].name], frames)
+
+
+# --- a model for decode tests ----------------------------------------------------------------------
+
+DECODE_FRAMES, DECODE_KEYFRAMES = 17, 5
+DECODE_CASES = {
+    "plain": dict(temporal_fade=False, anchor_velocity=False, opacity_threshold=0.0, camera_clearance=0.0),
+    "motion": dict(temporal_fade=True, anchor_velocity=True, opacity_threshold=0.0, camera_clearance=0.0),
+    "everything": dict(temporal_fade=True, anchor_velocity=True, smoothing_3d=0.2, camera_clearance=0.25),
+    "per-keyframe": dict(anchor_layout="per-keyframe", static_keyframe0=True, temporal_fade=True,
+                         anchor_velocity=True, smoothing_3d=0.2),
+}
+
+
+def decode_case_model(case: str) -> ATGSModel:
+    """A tiny model with every step of the decode at work (``DECODE_CASES``: which steps are on):
+    dense and hashed hash levels, 3 segments, anchors outside the grid box, a camera inside the
+    cloud for the clearance; "everything" puts the opacity cut in a wide gap between opacities."""
+    from atgs.train.config import preset
+    from decode_reference import reference_frame
+
+    F, K = DECODE_FRAMES, DECODE_KEYFRAMES
+    cfg, _ = preset("tiny")
+    cfg.window, cfg.num_segments, cfg.frustum_cull = 3, 3, True
+    # base 2, growth 2: level 0 fits the 2^8 table (dense), levels 1-3 are hashed
+    cfg.hash = HashGridConfig(levels=4, features_per_level=2, log2_table_size=8, base_resolution=2,
+                              growth=2.0, max_time_resolution=5, mlp_hidden=16)
+    for k, v in DECODE_CASES[case].items():
+        setattr(cfg, k, v)
+    gen = torch.Generator().manual_seed(1)
+    pts = torch.rand(30 * K, 3, generator=gen)
+    # a second camera inside the cloud: the clearance cuts Gaussians around it
+    inner = Camera("inner", 32, 24, np.array([[30, 0, 16], [0, 30, 12], [0, 0, 1.0]]),
+                   look_at(np.array([0.5, 0.5, 0.5]), np.array([2.0, 0.5, 0.5])))
+    model = ATGSModel.from_points(cfg, pts, torch.arange(K).repeat_interleave(30), evenly_spaced(F, K), F, 25.0,
+                                  [side_camera(), inner], seed=0)
+    randomize_features(model, gen)
+    model.anchor_log_scale = model.anchor_log_scale + 0.3 * torch.randn(model.anchor_log_scale.shape, generator=gen)
+    model.anchor_velocity = 0.05 * torch.randn(model.anchor_velocity.shape, generator=gen)
+    model.anchor_fade = model.anchor_fade + 0.5 * torch.randn(model.anchor_fade.shape, generator=gen)
+    lo, hi = model.bbox_min.clone(), model.bbox_max.clone()  # some anchors outside the grids' box
+    model.bbox_min, model.bbox_max = lo + 0.2 * (hi - lo), hi - 0.2 * (hi - lo)
+    if case == "everything":  # an opacity cut far from every opacity: no round-off flips
+        opac = reference_frame(model, 8).opacities.sort().values
+        gaps = opac[1:] - opac[:-1]
+        mid = opac.numel() // 4 + int(gaps[opac.numel() // 4: 3 * opac.numel() // 4].argmax())
+        model.cfg.opacity_threshold = float(opac[mid] + opac[mid + 1]) / 2
+    return model

@@ -1,0 +1,97 @@
+"""The compute-shader decode (atgs/viewer/gl_decode.py) against the torch decode, on llvmpipe.
+
+Every Gaussian the training decode draws (its anchor and slot ids say which) must sit at slot
+``position of the anchor in the window x q + slot`` of the GL columns with the same packed values
+(float32 round-off; one unit of the 16-bit quantization), and every other slot must have opacity
+0 (the torch decode drops them; the sort and the splat shader cull them). The four cases turn on
+each step of the decode: plain heads, fade and velocity, smoothing + opacity cut + clearance, the
+per-keyframe layout with static keyframe-0 anchors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from builders import DECODE_CASES, DECODE_FRAMES, decode_case_model
+from atgs.headless_gl import create_headless_context
+from atgs.model.precision import low_precision_view
+from atgs.viewer.gl_decode import GLDecodeUnavailable, GLFrameDecoder, gl_decode_problem
+from atgs.viewer.packing import pack_gaussians
+
+COLUMN_TYPES = ((np.float32, 3), (np.int16, 4), (np.float32, 3), (np.uint16, 4))
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    try:
+        c = create_headless_context("auto")
+    except Exception as exc:  # pragma: no cover - a machine without Mesa
+        pytest.skip(f"no headless OpenGL: {exc}")
+    if c.version_code < 430:
+        pytest.skip(f"OpenGL {c.version_code} has no compute shaders")
+    yield c
+    c.release()
+
+
+def read_columns(frame) -> list[np.ndarray]:
+    n = frame.count
+    return [np.frombuffer(buf.read(), dtype=dt)[: n * k].reshape(n, k) for buf, (dt, k) in zip(frame.columns, COLUMN_TYPES)]
+
+
+def torch_slots(model, f: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(GL slot of each Gaussian the torch decode draws, its packed columns)."""
+    tl = model.timeline
+    with torch.no_grad():
+        d = model._decode(f, tl.segment_of_frame(f), tl.local_time_of_frame(f), None, track=False)
+    window = model.active_anchors(f).nonzero().squeeze(1)
+    position = torch.full((model.num_anchors,), -1, dtype=torch.long)
+    position[window] = torch.arange(window.numel())
+    assert bool((position[d.anchor_ids] >= 0).all())
+    slots = (position[d.anchor_ids] * model.cfg.gaussians_per_anchor + d.slot_ids).numpy()
+    return slots, [np.asarray(c) for c in pack_gaussians(d.gaussians).columns]
+
+
+@pytest.mark.parametrize("case", list(DECODE_CASES))
+def test_gl_decode_equals_the_torch_decode(ctx, case: str) -> None:
+    model = decode_case_model(case)
+    decoder = GLFrameDecoder(ctx, model)
+    dropped_somewhere = False
+    for f in (0, 5, 8, DECODE_FRAMES - 1):
+        frame = decoder.decode(f)
+        got = read_columns(frame)
+        slots, ref = torch_slots(model, f)
+        assert frame.count == model.active_anchors(f).sum() * model.cfg.gaussians_per_anchor
+        assert len(slots) > 0
+        means, quat, scales, oprgb = (g[slots] for g in got)
+        np.testing.assert_allclose(means, ref[0], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(scales, ref[2], rtol=1e-5, atol=1e-7)
+        assert np.abs(quat.astype(np.int32) - ref[1]).max() <= 1
+        assert np.abs(oprgb.astype(np.int32) - ref[3]).max() <= 1
+        others = np.ones(frame.count, dtype=bool)
+        others[slots] = False
+        assert (got[3][others, 0] == 0).all(), "a Gaussian the torch decode drops has opacity in the GL columns"
+        dropped_somewhere |= bool(others.any())
+    if case != "plain":  # fades, the cut and the clearance drop Gaussians: the test sees them
+        assert dropped_somewhere
+    decoder.release()
+
+
+def test_frames_alternate_between_buffer_sets(ctx) -> None:
+    """Frame t+1 decodes into other buffers than frame t (t may still be drawn), then they repeat."""
+    model = decode_case_model("motion")
+    decoder = GLFrameDecoder(ctx, model, slots=2)
+    a, b, c = decoder.decode(3), decoder.decode(4), decoder.decode(5)
+    assert {id(x) for x in a.columns}.isdisjoint(id(x) for x in b.columns)
+    assert [id(x) for x in a.columns] == [id(x) for x in c.columns]
+    assert not np.array_equal(read_columns(b)[0], read_columns(c)[0])  # frame 5 moved on from 4
+    decoder.release()
+
+
+def test_what_cannot_be_decoded_on_the_gl_says_why(ctx) -> None:
+    model = decode_case_model("plain")
+    assert gl_decode_problem(ctx, model) is None
+    assert "ATGS checkpoints" in gl_decode_problem(ctx, object())
+    reduced = low_precision_view(model, torch.bfloat16)
+    with pytest.raises(GLDecodeUnavailable, match="decoder"):
+        GLFrameDecoder(ctx, reduced)
