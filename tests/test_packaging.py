@@ -130,8 +130,9 @@ def test_shaders_are_found_through_the_atgs_namespace() -> None:
 
     import atgs.viewer.splat_renderer as sr
 
-    names = sorted(p.name for p in files("atgs.shaders").iterdir() if p.name.endswith((".vert", ".frag", ".geom")))
-    assert names == sorted(p.name for p in (REPO / "atgs" / "shaders").glob("*.*") if p.suffix in (".vert", ".frag", ".geom"))
+    stages = (".vert", ".frag", ".geom", ".comp")
+    names = sorted(p.name for p in files("atgs.shaders").iterdir() if p.name.endswith(stages))
+    assert names == sorted(p.name for p in (REPO / "atgs" / "shaders").glob("*.*") if p.suffix in stages)
     assert Path(sr.__file__).resolve().parent == REPO / "atgs" / "viewer"
 
 
@@ -146,7 +147,7 @@ def test_the_wheel_ships_the_shaders_and_the_web_player(tmp_path) -> None:
     (wheel,) = tmp_path.glob("atgs-*.whl")
     shipped = set(zipfile.ZipFile(wheel).namelist())
     needed = [p for folder in ("atgs/web/player", "atgs/shaders") for p in (REPO / folder).iterdir()
-              if p.is_file() and p.suffix in (".js", ".html", ".css", ".vert", ".frag", ".geom")]
+              if p.is_file() and p.suffix in (".js", ".html", ".css", ".vert", ".frag", ".geom", ".comp")]
     assert len(needed) > 10
     missing = [str(p.relative_to(REPO)) for p in needed if str(p.relative_to(REPO)) not in shipped]
     assert not missing
