@@ -18,6 +18,9 @@ Rows, one function each (``PARTS``; each returns a list of row dicts with a ``de
   with what sets the draw's cost: the Gaussians drawn, the fragments each one writes and the
   overdraw (fragments per pixel), counted by the GL (a samples-passed query), and the draw time
   with each blend-target precision (8-bit, half and float RGBA).
+- content_gl: the same with ``--decode gl``: the frame decoded by a compute shader into GL
+  buffers, sorted on the GL and drawn indirectly (nothing through host memory), with GL time
+  queries of the decode dispatch, a whole new frame and a camera move.
 Each part runs on CUDA when torch sees a CUDA device (training: and gsplat imports) and on the
 CPU; a CUDA row without them is written as ``"not measured"`` with the reason. The OpenGL draw
 runs wherever the headless context lives (its renderer string is in the part's ``machine.gl``:
@@ -28,7 +31,7 @@ from __future__ import annotations
 
 
 from _docs import publish  # bench/ (the script's own folder is on sys.path)
-from _viewer_scenes import random_gaussians, time_frames, untrained_model, warm_renderer
+from _viewer_scenes import bench_camera, random_gaussians, time_frames, untrained_model, warm_renderer
 
 import json
 import os
@@ -180,6 +183,9 @@ def viewer_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> li
         row = {"part": "viewer", "device": device, "device_name": device_name(device), "gaussians": n,
                "size": f"{W}x{H}", **time_frames(renderer, random_gaussians(n, device=device), W, H, cfg.repeats),
                "loadavg": os.getloadavg()}
+        renderer._sort_key = type(renderer._sort_key)()  # force a sort: the counts are of this camera
+        drawn, fragments, _ = draw_counts(renderer, bench_camera(W, H))
+        row.update(drawn=drawn, fragments_per_splat=fragments / max(drawn, 1), overdraw=fragments / (W * H))
         rows.append(row)
         print(json.dumps(row))
     return rows
@@ -305,12 +311,77 @@ def content_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> l
     return rows
 
 
+def content_gl_rows(cfg: GpuBenchConfig, device: str, renderer: SplatRenderer) -> list[dict]:
+    """The player on each trained checkpoint with ``--decode gl``: the frame decoded by the
+    compute shader into GL buffers, sorted on the GL and drawn indirectly (viewer.gl_decode,
+    viewer.gl_sort), nothing through host memory; the same camera and frames as ``content``.
+    GPU times come from GL time queries: the decode dispatch alone, and a whole new frame."""
+    import atgs
+    from atgs.viewer.gl_decode import GLFrameDecoder
+
+    W, H = cfg.size
+    rows = []
+    for path in cfg.checkpoints:
+        model = atgs.load(path, device="cpu")
+        by_name = {c.name: c for c in model.cameras}
+        held = [by_name[n] for n in getattr(model, "test_camera_names", []) if n in by_name]
+        base = (held or model.cameras)[0]
+        cam, moved = content_camera(base, (W, H)), content_camera(base, (W, H), 1.0)
+        frames = [round(i * (model.num_frames - 1) / max(cfg.content_frames - 1, 1)) for i in range(cfg.content_frames)]
+        decoder = GLFrameDecoder(renderer.ctx, model)
+        renderer.target_dtype = "f1"  # the window's RGBA8 target
+        renderer.set_gl_frame(decoder.decode(frames[-1]))  # untimed: compiles, buffers, first use
+        renderer.render(content_camera(base, (W, H), 0.5), sync=True)
+        t = {k: [] for k in ("decode_issue_ms", "decode_gpu_ms", "new_frame_ms", "new_frame_gpu_ms",
+                             "move_ms", "move_gpu_ms")}
+        drawn = []
+        for f in frames:
+            renderer.ctx.finish()
+            query = renderer.ctx.query(time=True)
+            t0 = time.perf_counter()
+            with query:
+                frame = decoder.decode(f)
+            renderer.ctx.finish()
+            t["decode_issue_ms"].append(frame.decode_ms)
+            t["decode_gpu_ms"].append(query.elapsed / 1e6)
+            # a whole new frame: decode, sort and draw, waited for
+            query = renderer.ctx.query(time=True)
+            t0 = time.perf_counter()
+            with query:
+                renderer.set_gl_frame(decoder.decode(f))
+                renderer.render(cam, sync=False)
+            renderer.ctx.finish()
+            t["new_frame_ms"].append((time.perf_counter() - t0) * 1e3)
+            t["new_frame_gpu_ms"].append(query.elapsed / 1e6)
+            drawn.append(renderer.drawn_count())
+            query = renderer.ctx.query(time=True)
+            t0 = time.perf_counter()
+            with query:
+                renderer.render(moved, sync=False)
+            renderer.ctx.finish()
+            t["move_ms"].append((time.perf_counter() - t0) * 1e3)
+            t["move_gpu_ms"].append(query.elapsed / 1e6)
+        decoder.release()
+        m = {k: _median(v) for k, v in t.items()}
+        row = {"part": "content_gl", "device": device, "device_name": device_name(device),
+               "gl": renderer.ctx.info.get("GL_RENDERER", "?"),
+               "checkpoint": f"{path.parent.name or path}, {W}x{H}", "camera": base.name, "size": f"{W}x{H}",
+               "frames": len(frames), "anchors": model.num_anchors, "slots": frame.count,
+               "drawn": int(_median(drawn)), **m,
+               "fps_new_frame": 1000.0 / m["new_frame_ms"], "fps_camera_move": 1000.0 / m["move_ms"],
+               "loadavg": os.getloadavg()}
+        rows.append(row)
+        print(json.dumps(row))
+    return rows
+
+
 # Each part: name -> function(cfg, device, renderer) -> rows.
 PARTS: dict[str, Callable[[GpuBenchConfig, str, SplatRenderer], list[dict]]] = {
     "train": train_rows,
     "viewer": viewer_rows,
     "decode": decode_rows,
     "content": content_rows,
+    "content_gl": content_gl_rows,
 }
 
 
@@ -344,9 +415,12 @@ def markdown_table(result: dict) -> str:
                   lambda r: [r["size"], f"{r['anchors']:,}", f"{r['gaussians_per_view']:,}",
                              f"{r['ms_per_step']:.0f}", f"**{r['steps_per_s']:.2f}**",
                              "" if r["peak_gpu_mb"] is None else f"{r['peak_gpu_mb']:,.0f}"]),
-        "viewer": (["viewer at 1920x1080: device", "name", "Gaussians", "pack ms", "upload ms", "sort ms", "draw ms",
+        "viewer": (["viewer at 1920x1080, random Gaussians: device", "name", "Gaussians", "drawn",
+                    "mean splat area (px)", "overdraw", "pack ms", "upload ms", "sort ms", "draw ms",
                     "new frame FPS", "camera move FPS"], "gaussians",
-                   lambda r: [f"{r['pack_ms']:.1f}", f"{r['upload_ms']:.1f}", f"{r['sort_ms']:.1f}",
+                   lambda r: [f"{r['drawn']:,}" if "drawn" in r else "", f"{r['fragments_per_splat']:.0f}" if "drawn" in r else "",
+                              f"{r['overdraw']:.1f}" if "drawn" in r else "",
+                              f"{r['pack_ms']:.1f}", f"{r['upload_ms']:.1f}", f"{r['sort_ms']:.1f}",
                               f"{r['draw_ms']:.0f}", f"**{r['fps_new_frame']:.2f}**",
                               f"**{r['fps_camera_move']:.2f}**"]),
         "decode": (["decode + pack, untrained model: device", "name", "preset", "decoded on", "anchors", "Gaussians",
@@ -354,13 +428,20 @@ def markdown_table(result: dict) -> str:
                    lambda r: [r["decoded_on"], f"{r['anchors']:,}", f"{r['gaussians']:,}",
                               f"{r['first_frame_ms']:.0f}", f"**{r['decode_ms']:.1f}**"]),
         "content": (["player on a trained checkpoint: device", "name", "checkpoint, size", "Gaussians drawn",
-                     "fragments per splat", "overdraw", "decode + pack ms", "upload ms", "sort ms", "draw ms",
+                     "mean splat area (px)", "overdraw", "decode + pack ms", "upload ms", "sort ms", "draw ms",
                      "draw ms, RGBA8 / half / float target", "new frame FPS", "camera move FPS"], "checkpoint",
                     lambda r: [f"{r['drawn']:,}", f"{r['fragments_per_splat']:.0f}", f"{r['overdraw']:.1f}",
                                f"{r['decode_pack_ms']:.1f}", f"{r['upload_ms']:.1f}", f"{r['sort_ms']:.1f}",
                                f"{r['draw_ms']:.1f}",
                                " / ".join(f"{r['draw_ms_by_target'][d]:.1f}" for d in ("f1", "f2", "f4")),
                                f"**{r['fps_new_frame']:.1f}**", f"**{r['fps_camera_move']:.1f}**"]),
+        "content_gl": (["player, --decode gl (decode and sort on the GL): device", "name", "checkpoint, size", "GL",
+                        "Gaussians drawn", "decode GPU ms", "new frame ms (GPU)", "camera move ms (GPU)",
+                        "new frame FPS", "camera move FPS"], "checkpoint",
+                       lambda r: [r["gl"].split(" (")[0], f"{r['drawn']:,}", f"{r['decode_gpu_ms']:.1f}",
+                                  f"{r['new_frame_ms']:.1f} ({r['new_frame_gpu_ms']:.1f})",
+                                  f"{r['move_ms']:.1f} ({r['move_gpu_ms']:.1f})",
+                                  f"**{r['fps_new_frame']:.1f}**", f"**{r['fps_camera_move']:.1f}**"]),
     }
     for part, (head, key, cells) in tables.items():
         for device in ("cuda", "cpu"):
@@ -412,7 +493,8 @@ def main(cfg: GpuBenchConfig) -> None:
     # what an unmeasured part's rows would have covered (one "not measured" row each)
     row_keys = {"train": ("preset", cfg.train_presets), "viewer": ("gaussians", cfg.counts),
                 "decode": ("preset", cfg.presets),
-                "content": ("checkpoint", tuple(p.parent.name or str(p) for p in cfg.checkpoints))}
+                "content": ("checkpoint", tuple(p.parent.name or str(p) for p in cfg.checkpoints)),
+                "content_gl": ("checkpoint", tuple(p.parent.name or str(p) for p in cfg.checkpoints))}
     jobs = [(part, device) for part in cfg.parts for device in cfg.devices]
     with progress_bar(len(jobs), "gpu bench", unit="part") as bar:
         for part, device in jobs:

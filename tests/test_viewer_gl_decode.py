@@ -9,15 +9,21 @@ per-keyframe layout with static keyframe-0 anchors."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
-from builders import DECODE_CASES, DECODE_FRAMES, decode_case_model
+from builders import DECODE_CASES, DECODE_FRAMES, decode_case_model, side_camera
 from atgs.headless_gl import create_headless_context
 from atgs.model.precision import low_precision_view
 from atgs.viewer.gl_decode import GLDecodeUnavailable, GLFrameDecoder, gl_decode_problem
+from atgs.viewer.errors import ViewerError
+from atgs.viewer.headless import HeadlessRenderer
 from atgs.viewer.packing import pack_gaussians
+from atgs.viewer.scene_utils import resized
+from atgs.viewer.splat_renderer import RenderSettings
 
 COLUMN_TYPES = ((np.float32, 3), (np.int16, 4), (np.float32, 3), (np.uint16, 4))
 
@@ -95,3 +101,43 @@ def test_what_cannot_be_decoded_on_the_gl_says_why(ctx) -> None:
     reduced = low_precision_view(model, torch.bfloat16)
     with pytest.raises(GLDecodeUnavailable, match="decoder"):
         GLFrameDecoder(ctx, reduced)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray, peak: float) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
+
+
+@pytest.mark.parametrize("case", ["motion", "everything"])
+def test_a_frame_decoded_and_sorted_on_the_gl_is_the_torch_image(case: str) -> None:
+    """HeadlessRenderer with --decode gl (decode, sort and an indirect draw, all on the GL) against
+    --decode torch (torch decode, torch sort, the columns uploaded): colour, alpha and depth."""
+    model = decode_case_model(case)
+    cam = resized(side_camera(), (128, 96))
+    images = {}
+    for route in ("torch", "gl"):
+        hr = HeadlessRenderer(model, "auto", "cpu", route)
+        try:
+            for f in (2, 9):
+                hr.show_frame(f)
+                for mode in ("color", "alpha", "depth"):
+                    images[route, f, mode] = hr.renderer.render_image(cam, RenderSettings(mode=mode))
+                images[route, f, "drawn"] = hr.renderer.drawn_count()
+                images[route, f, "range"] = hr.renderer.depth_range
+        finally:
+            hr.close()
+    for f in (2, 9):
+        assert images["gl", f, "drawn"] == images["torch", f, "drawn"] > 0
+        assert images["torch", f, "alpha"].max() > 0.3  # the view sees the Gaussians
+        assert _psnr(images["gl", f, "color"], images["torch", f, "color"], 1.0) > 60
+        assert _psnr(images["gl", f, "alpha"], images["torch", f, "alpha"], 1.0) > 60
+        depth = images["torch", f, "depth"]
+        assert _psnr(images["gl", f, "depth"], depth, float(depth.max())) > 60
+        np.testing.assert_allclose(images["gl", f, "range"], images["torch", f, "range"], rtol=1e-5)
+
+
+def test_decode_gl_refuses_what_it_cannot_decode_in_one_line(tmp_path) -> None:
+    from atgs.viewer.loading import load_source
+
+    with pytest.raises(ViewerError, match="--decode gl: only ATGS checkpoints"):
+        HeadlessRenderer(load_source("demo", 500, None), "auto", "cpu", "gl")

@@ -15,9 +15,10 @@ from PIL import Image
 from builders import write_tiny_checkpoint
 
 
-@pytest.mark.parametrize("opened", ["checkpoint", "ply folder"])
+@pytest.mark.parametrize("opened", ["checkpoint", "ply folder", "checkpoint decoded on the GL"])
 def test_window_plays_scrubs_and_screenshots(tmp_path: Path, opened: str) -> None:
-    """The same session on a checkpoint and on its atgs-export folder (24 PLY files + manifest)."""
+    """The same session on a checkpoint, on its atgs-export folder (24 PLY files + manifest), and
+    on the checkpoint with frames decoded and sorted in compute shaders (``--decode gl``)."""
     if shutil.which("xvfb-run") is None:
         pytest.fail("xvfb-run is missing: apt-get install xvfb xauth")
     source = ckpt = write_tiny_checkpoint(tmp_path / "ckpt.pt", num_frames=24)
@@ -31,6 +32,7 @@ def test_window_plays_scrubs_and_screenshots(tmp_path: Path, opened: str) -> Non
         "xvfb-run", "-a", "-s", "-screen 0 640x480x24",
         sys.executable, str(Path(__file__).with_name("viewer_driver.py")), str(source), str(shot),
         "--camera", "1", "--size", "320x240", "--frames", "12",
+        "--decode", "gl" if opened.endswith("on the GL") else "torch",
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -43,7 +45,7 @@ def test_window_plays_scrubs_and_screenshots(tmp_path: Path, opened: str) -> Non
     for i, f in enumerate(played):  # never a frame the playhead has not reached (no jumping ahead)
         assert f in playhead[: i + 2], (i, played, playhead)
     assert report["scrub_shown"] == report["scrub_target"] == round(0.75 * 23)
-    assert report["gaussians"] > 0
+    assert report["gaussians"] > 0 and 0 < report["drawn"] <= report["gaussians"]
     inputs = report["inputs"]  # keyboard and mouse went through imgui's input queue
     assert inputs["right_arrow_step"] == 1 and inputs["left_arrow_back"]
     assert inputs["space_plays"] and inputs["space_pauses"]

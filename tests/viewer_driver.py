@@ -1,6 +1,6 @@
 """Test-only driver of the real player window (run under Xvfb by tests/test_viewer_window.py).
 
-    python tests/viewer_driver.py CKPT SHOT.png [--camera I] [--size WxH] [--frames N]
+    python tests/viewer_driver.py CKPT SHOT.png [--camera I] [--size WxH] [--frames N] [--decode gl]
 
 Opens atgs.viewer.app.PlayerApp on a checkpoint, plays, scrubs, feeds keyboard and mouse events
 through imgui's input queue, saves a screenshot to SHOT.png and a JSON report to SHOT.json.
@@ -141,7 +141,8 @@ def autotest(app: PlayerApp, screenshot: Path, frames: int) -> dict:
         "scrub_shown": None if app.feeder.shown is None else app.feeder.shown.frame,
         "window_size": list(app.glfw.get_framebuffer_size(app.window)),
         "gl": app.gl_info,
-        "gaussians": 0 if app.renderer.gaussians is None else len(app.renderer.gaussians),
+        "gaussians": app.renderer.count,
+        "drawn": app.renderer.drawn_count(),
         "fps": app.stats.fps,
         "screenshot": str(screenshot),
         "splats_screenshot": str(splat),
@@ -158,10 +159,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--camera", type=int, default=0)
     p.add_argument("--size", default=None)
     p.add_argument("--frames", type=int, default=20)
+    p.add_argument("--decode", default="torch", choices=["torch", "gl"])
     a = p.parse_args(argv)
 
     def body() -> None:
-        app = PlayerApp(load_source(a.checkpoint), camera_index=a.camera, size=a.size)
+        app = PlayerApp(load_source(a.checkpoint), camera_index=a.camera, size=a.size, decode=a.decode)
         try:
             print(json.dumps(autotest(app, a.screenshot, a.frames)))
         finally:

@@ -73,7 +73,8 @@ class PlayerApp:
     def __init__(self, source: GaussianSource, camera_index: int = 0, size: str | None = None,
                  settings: RenderSettings | None = None, visible: bool = True,
                  preloaded: dict[int, PackedGaussians] | None = None, cache_mb: int = 1024,
-                 device: torch.device | str = "cpu", path_file: str | Path | None = None) -> None:
+                 device: torch.device | str = "cpu", path_file: str | Path | None = None,
+                 decode: str = "torch") -> None:
         import imgui_bundle  # noqa: F401  (first: makes pyGLFW use imgui-bundle's libglfw)
         import glfw
         import moderngl
@@ -125,10 +126,12 @@ class PlayerApp:
         self._gl_finish = gil_free_finish(self.ctx.finish)
         self.settings = settings or RenderSettings()
         self.playback = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0))
+        gl_decoding = decode == "gl"
         self.cache = DecodeCache(lambda f: decode_frame(source, f, device), capacity=8, pinned=preloaded,
-                                 keep_bytes=max(0, cache_mb) << 20)
-        self.feeder = FrameFeeder(self.cache, lookahead=4)
-        self.cache.prefetch(range(source.num_frames))  # fill --cache-mb in the background
+                                 keep_bytes=0 if gl_decoding else max(0, cache_mb) << 20)
+        self.feeder = self._gl_feeder(source) if gl_decoding else FrameFeeder(self.cache, lookahead=4)
+        if not gl_decoding:
+            self.cache.prefetch(range(source.num_frames))  # fill --cache-mb in the background
         self.center = orbit_center(source)
         self.control = CameraControl.from_camera(cam0, pivot=self.center, up=scene_up(self.cameras))
         self.fly_mode = False
@@ -145,6 +148,16 @@ class PlayerApp:
         self._last_time = time.perf_counter()
         self._anchors = -1
         self._closed = False
+
+    def _gl_feeder(self, source: GaussianSource):
+        """Frames decoded on the GL (``--decode gl``), or a one-line error saying why not."""
+        from atgs.viewer.gl_decode import GLFrameDecoder, GLFrameFeeder, gl_decode_problem
+
+        problem = gl_decode_problem(self.ctx, source)
+        if problem:
+            self._terminate()
+            raise ViewerError(f"--decode gl: {problem}; use --decode torch")
+        return GLFrameFeeder(GLFrameDecoder(self.ctx, source))
 
     # --- main loop ---------------------------------------------------------------------------
     def run(self) -> None:
@@ -168,7 +181,7 @@ class PlayerApp:
         self.paths.update(dt)  # a path preview moves the view and the playhead
         packed, changed = self.feeder.update(self.playback)
         if changed and packed is not None:
-            self.renderer.set_gaussians(packed)
+            self.renderer.set_frame(packed)
             self.stats.push("upload_ms", self.renderer.timings.upload_ms)
             self.stats.push("decode_ms", packed.decode_ms)
             self._anchors = packed.num_anchors
@@ -178,6 +191,7 @@ class PlayerApp:
         drew, wait_ms = False, 0.0
         if fb_w > 0 and fb_h > 0:
             drew = self._render_view(fb_w, fb_h)
+            self.feeder.after_draw(self.playback)  # the GL feeder decodes the next frame behind the draw
             if drew:  # wait for the splat here, GIL released, so the decode thread keeps running
                 t_wait = time.perf_counter()
                 self._gl_finish()
@@ -392,11 +406,11 @@ class PlayerApp:
         flags = F.no_decoration | F.no_move | F.no_saved_settings | F.always_auto_resize | F.no_inputs
         imgui.begin("stats", None, flags)
         st = self.stats
-        n = len(self.renderer.gaussians) if self.renderer.gaussians is not None else 0
+        n = self.renderer.count
         anchors = "?" if self._anchors < 0 else f"{self._anchors}"
         imgui.text(f"{st.fps:5.1f} FPS  ({st.frame_ms:.0f} ms)   res x{self.render_scale:.2f}")
         imgui.text(f"decode {st.decode_ms:.0f}  sort {st.sort_ms:.1f}  upload {st.upload_ms:.1f}  draw {st.draw_ms:.0f} ms")
-        imgui.text(f"anchors {anchors}  Gaussians {n} ({self.renderer.timings.drawn} drawn)")
+        imgui.text(f"anchors {anchors}  Gaussians {n} ({self.renderer.drawn_count()} drawn)")
         if self.cache.last_error:
             imgui.text(self.cache.last_error)
         if self.message:
@@ -452,6 +466,7 @@ class PlayerApp:
             return
         self._closed = True
         self.cache.close()
+        self.feeder.close()
         self.imgui.backends.opengl3_shutdown()
         self.imgui.backends.glfw_shutdown()
         self.imgui.destroy_context()

@@ -20,6 +20,7 @@ from atgs.viewer.camera_path import CameraPath
 from atgs.viewer.camera_path_file import load_camera_path
 from atgs.viewer.device import place_source, resolve_device
 from atgs.viewer.errors import ViewerError
+from atgs.viewer.gl_decode import DecodeRoute
 from atgs.viewer.loading import load_source
 from atgs.viewer.scene_utils import cameras_path, orbit_center, orbit_path, parse_size, resized, start_camera
 from atgs.viewer.splat_renderer import RenderMode, RenderSettings
@@ -45,6 +46,9 @@ class DrawOptions:
     Gaussians and fragments for speed (docs/viewer.md gives the PSNR cost)."""
     device: DeviceName = "auto"
     """Where frames are decoded, packed and depth sorted: auto = CUDA when torch sees a GPU."""
+    decode: DecodeRoute = "torch"
+    """torch: frames decoded by torch on --device, then uploaded; gl: decoded and depth sorted in
+    OpenGL 4.3 compute shaders, nothing through host memory (for GPUs; slow on llvmpipe: docs/viewer.md)."""
 
 
 @dataclass
@@ -138,7 +142,7 @@ def run_headless(cfg: ViewConfig) -> Path:
             raise ViewerError(f"--time {cfg.time}: normalized time must be within [0, 1]")
         frame = frame_at(cfg.time, n)
     cam = resized(start_camera(source, cfg.camera), size)
-    hr = HeadlessRenderer(source, cfg.gl, device)
+    hr = HeadlessRenderer(source, cfg.gl, device, cfg.decode)
     try:
         img = hr.frame_rgb8(frame, cam, settings)
     finally:
@@ -157,7 +161,7 @@ def run_window(cfg: ViewConfig) -> None:
     use_trained_background(settings, cfg, source)
     preloaded = preload_frames(source, cfg.preload_mb, device) if cfg.preload else None
     app = PlayerApp(source, camera_index=cfg.camera, size=cfg.size, settings=settings, preloaded=preloaded,
-                    cache_mb=cfg.cache_mb, device=device, path_file=cfg.path)
+                    cache_mb=cfg.cache_mb, device=device, path_file=cfg.path, decode=cfg.decode)
     try:
         app.run()
     finally:
@@ -216,7 +220,7 @@ def render_video(cfg: RenderConfig) -> Path:
         path = [resized(c, size) for c in path]
         frames = [frame_at(0.0 if n == 1 else i / (n - 1), F) for i in range(n)]
     with open_video_output(cfg.out, size[0], size[1], fps) as writer:
-        hr = HeadlessRenderer(source, cfg.gl, device)
+        hr = HeadlessRenderer(source, cfg.gl, device, cfg.decode)
         try:
             with progress_bar(n, "atgs-render", unit="frame") as bar:
                 render_sequence(hr, frames, path, settings, lambda i, img: writer.write(img), progress=bar)

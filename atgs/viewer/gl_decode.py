@@ -20,7 +20,9 @@ sort and the splat shader cull, so the image is the same.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
+from typing import Literal
 
 import moderngl
 import numpy as np
@@ -30,7 +32,10 @@ from atgs.model.anchor_motion import MIN_FADE_WIDTH, max_fade_width
 from atgs.model.atgs_model import ATGSModel
 from atgs.model.decoder import GaussianDecoder
 from atgs.model.fast_decode import plain_heads
-from atgs.viewer.splat_renderer import load_shader
+from atgs.shaders import load_shader
+
+DecodeRoute = Literal["torch", "gl"]
+"""Where the player decodes frames: torch (on --device, then uploaded) or GL compute shaders."""
 
 MIN_GL = 430  # compute shaders and storage buffers
 STORAGE_BLOCKS = 8  # the shader binds eight storage buffers (the minimum GL 4.3 guarantees)
@@ -63,9 +68,10 @@ class GLFrame:
     """A decoded frame living in GL buffers: ``count`` Gaussians in the packing layout."""
 
     frame: int
-    count: int
+    count: int  # slots: the window's anchors x q (the torch decode's dropped Gaussians have opacity 0)
     num_anchors: int
     columns: tuple[moderngl.Buffer, ...]  # mean, quat, scale, opacity_rgb (viewer.packing.COLUMNS)
+    decode_ms: float = 0.0  # host time to issue the decode (the GL runs it later)
 
 
 def _f32(t: torch.Tensor) -> np.ndarray:
@@ -209,6 +215,7 @@ class GLFrameDecoder:
 
     def decode(self, f: int) -> GLFrame:
         """Issue frame f's decode (no wait: the GL runs it before anything that reads the columns)."""
+        t0 = time.perf_counter()
         m = self.model
         tl = m.timeline
         f = int(f)
@@ -243,10 +250,43 @@ class GLFrameDecoder:
             p.run(-(-self._count // LOCAL_SIZE))
             # the splat draw reads the columns as vertex attributes, the GL sort as storage
             self.ctx.memory_barrier(moderngl.VERTEX_ATTRIB_ARRAY_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
-        return GLFrame(f, count, self._count, out)
+        return GLFrame(f, count, self._count, out, (time.perf_counter() - t0) * 1e3)
 
     def release(self) -> None:
         for obj in (self.program, self._anchors, self._table, self._weights, self._active,
                     *(b for slot in self._slots for b in slot)):
             if obj is not None:
                 obj.release()
+
+
+class GLFrameFeeder:
+    """The player's frames when they are decoded on the GL (the counterpart of
+    :class:`viewer.playback.FrameFeeder`): the shown frame is decoded when the playhead reaches it,
+    unless :meth:`after_draw` decoded it already while the previous one was drawn (frame t+1 is
+    issued right after t's draw, into the other buffer set, so the GL runs it behind that draw and
+    the UI never waits for it)."""
+
+    def __init__(self, decoder: GLFrameDecoder) -> None:
+        self.decoder = decoder
+        self.shown: GLFrame | None = None
+        self._ahead: GLFrame | None = None
+
+    def update(self, playback) -> tuple[GLFrame, bool]:
+        """(frame to show, whether it changed since the last call)."""
+        f = playback.frame
+        if self.shown is not None and self.shown.frame == f:
+            return self.shown, False
+        ahead, self._ahead = self._ahead, None
+        self.shown = ahead if ahead is not None and ahead.frame == f else self.decoder.decode(f)
+        return self.shown, True
+
+    def after_draw(self, playback) -> None:
+        """While playing, decode the next frame now (behind the draw just issued)."""
+        if not playback.playing:
+            return
+        upcoming = playback.upcoming(2)
+        if len(upcoming) > 1 and (self._ahead is None or self._ahead.frame != upcoming[1]):
+            self._ahead = self.decoder.decode(upcoming[1])
+
+    def close(self) -> None:
+        self.decoder.release()

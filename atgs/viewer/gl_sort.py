@@ -59,7 +59,7 @@ import moderngl
 import numpy as np
 
 from atgs.viewer.sorting import FrustumCull, _cull_planes
-from atgs.viewer.splat_renderer import load_shader
+from atgs.shaders import load_shader
 
 BLOCK_SIZE = 512  # items per sequential walker in the radix passes (module docstring)
 MIN_GL_VERSION = 430  # compute shaders and shader storage buffers

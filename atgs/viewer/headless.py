@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -12,6 +13,7 @@ import torch
 from atgs.cameras import Camera
 from atgs.headless_gl import create_headless_context
 from atgs.viewer.decode_cache import DecodeCache
+from atgs.viewer.errors import ViewerError
 from atgs.viewer.output import depth_range, display_rgb, to_uint8
 from atgs.viewer.packing import PackedGaussians
 from atgs.viewer.source import GaussianSource, decode_frame
@@ -25,11 +27,21 @@ class HeadlessRenderer:
     source: GaussianSource
     gl: str = "auto"
     device: torch.device | str = "cpu"  # where frames are packed and sorted (viewer.device)
+    decode: str = "torch"  # or "gl": decoded and sorted in compute shaders (viewer.gl_decode)
 
     def __post_init__(self) -> None:
         self.ctx = create_headless_context(self.gl)
         self.renderer = SplatRenderer(self.ctx)
         self._frame = -1
+        self.gl_decoder = None
+        if self.decode == "gl":
+            from atgs.viewer.gl_decode import GLFrameDecoder, gl_decode_problem
+
+            problem = gl_decode_problem(self.ctx, self.source)
+            if problem:
+                self.close()
+                raise ViewerError(f"--decode gl: {problem}; use --decode torch")
+            self.gl_decoder = GLFrameDecoder(self.ctx, self.source)
 
     def set_frame(self, packed: PackedGaussians) -> None:
         if packed.frame != self._frame or packed.frame < 0:
@@ -42,11 +54,21 @@ class HeadlessRenderer:
         self.renderer.render(camera, settings)
         return to_uint8(display_rgb(self.renderer.read(), settings.mode, settings.background, zrange))
 
+    def show_frame(self, frame: int) -> None:
+        """Decode frame ``frame`` (unless it is the current one) and make it the one drawn."""
+        if self.gl_decoder is None:
+            self.set_frame(decode_frame(self.source, frame, self.device))
+        elif frame != self._frame:
+            self.renderer.set_gl_frame(self.gl_decoder.decode(frame))
+            self._frame = frame
+
     def frame_rgb8(self, frame: int, camera: Camera, settings: RenderSettings) -> np.ndarray:
-        self.set_frame(decode_frame(self.source, frame, self.device))
+        self.show_frame(frame)
         return self.render_rgb8(camera, settings)
 
     def close(self) -> None:
+        if self.gl_decoder is not None:
+            self.gl_decoder.release()
         self.renderer.release()
         self.ctx.release()
 
@@ -63,14 +85,19 @@ def render_sequence(
     ``on_image(i, rgb8)``. Returns mean stage times in ms."""
     totals = {"decode_wait_ms": 0.0, "sort_ms": 0.0, "draw_ms": 0.0, "upload_ms": 0.0}
     zrange: tuple[float, float] | None = None
-    with DecodeCache(lambda f: decode_frame(hr.source, f, hr.device), capacity=4) as cache:
+    # torch: a decode thread works ahead; gl: the decode is a dispatch the GL runs in order
+    cache = DecodeCache(lambda f: decode_frame(hr.source, f, hr.device), capacity=4) if hr.gl_decoder is None else None
+    with cache or contextlib.nullcontext():
         for i, (f, cam) in enumerate(zip(frames, cameras)):
-            cache.request(list(dict.fromkeys(frames[i : i + 3])))
             t0 = time.perf_counter()
-            packed = cache.wait_for(f)
+            if cache is not None:
+                cache.request(list(dict.fromkeys(frames[i : i + 3])))
+                packed = cache.wait_for(f)
+                assert packed is not None
+                hr.set_frame(packed)
+            else:
+                hr.show_frame(f)
             totals["decode_wait_ms"] += (time.perf_counter() - t0) * 1e3
-            assert packed is not None
-            hr.set_frame(packed)
             if settings.mode == "depth" and zrange is None:
                 hr.renderer.render(cam, settings)
                 zrange = depth_range(hr.renderer.read())  # one colormap range for the whole video

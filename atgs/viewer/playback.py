@@ -123,3 +123,9 @@ class FrameFeeder:
             self.shown = p
             return p, True
         return self.shown, False
+
+    def after_draw(self, playback: Playback) -> None:
+        """Nothing to do: the decode thread works ahead on its own (the GL feeder decodes here)."""
+
+    def close(self) -> None:
+        """The cache belongs to the caller."""

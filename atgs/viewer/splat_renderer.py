@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from importlib.resources import files
 from typing import Literal, get_args
 
 import moderngl
 import numpy as np
 
 from atgs.cameras import Camera
+from atgs.shaders import load_shader
 from atgs.viewer.packing import COLUMN_FORMATS, COLUMNS, PackedGaussians
 from atgs.viewer.sorting import FrustumCull, back_to_front, view_depths
 
@@ -38,15 +38,6 @@ RADIUS_SIGMAS = 3.0
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 ATTRIBUTES = tuple(f"a_{c}" for c in COLUMNS)  # vertex shader inputs of viewer.packing's columns
-
-
-def load_shader(name: str, defines: dict[str, int] | None = None) -> str:
-    """Shader source; ``defines`` become ``#define`` lines right after the ``#version`` line."""
-    text = files("atgs.shaders").joinpath(name).read_text(encoding="utf-8")
-    if not defines:
-        return text
-    version, rest = text.split("\n", 1)
-    return "\n".join([version, *(f"#define {k} {v}" for k, v in defines.items()), rest])
 
 
 def clamp_limits(K: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
@@ -138,6 +129,11 @@ class SplatRenderer:
         self._index_buf: moderngl.Buffer | None = None
         self._vao: moderngl.VertexArray | None = None
         self._vao_key: tuple = ()
+        # a frame decoded on the GL (viewer.gl_decode.GLFrame): its columns stay in GL buffers,
+        # and the order is sorted on the GL too (viewer.gl_sort), drawn by an indirect draw
+        self._gl_frame: object | None = None
+        self._gl_sort: object | None = None
+        self._gl_order: object | None = None
         self._allocations = 0  # buffers made so far: the VAO is rebuilt when this changes
         self._sh_degree = -1
         self._count = 0
@@ -183,13 +179,45 @@ class SplatRenderer:
         self._sh_degree = packed.sh_degree
         self._count = n
         self.gaussians = packed
+        self._gl_frame = None
         self._version += 1
         ms = (time.perf_counter() - t0) * 1e3
         self.timings.upload_ms = ms
         return ms
 
+    def set_frame(self, frame: object) -> None:
+        """Show a frame: :class:`PackedGaussians` are uploaded, a GL-decoded frame is used in place."""
+        if isinstance(frame, PackedGaussians):
+            self.set_gaussians(frame)
+        else:
+            self.set_gl_frame(frame)
+
+    @property
+    def count(self) -> int:
+        """Gaussians (GL-decoded frames: slots) of the current frame."""
+        return self._count
+
+    def set_gl_frame(self, frame: object) -> None:
+        """Draw a frame decoded on the GL (:class:`viewer.gl_decode.GLFrame`: ``count`` Gaussians
+        in the packing layout in its ``columns`` buffers): nothing is uploaded, and the depth sort
+        runs on the GL as well (OpenGL 4.3)."""
+        self._gl_frame = frame
+        self.gaussians = None
+        self._sh_degree = -1
+        self._count = int(getattr(frame, "count"))
+        self._version += 1
+        self.timings.upload_ms = 0.0
+
+    def drawn_count(self) -> int:
+        """Gaussians that may touch the image in the last sort (a GL-sorted frame reads its count back)."""
+        if self._gl_frame is not None and self._gl_order is not None and self._count:
+            return int(self._gl_order.drawn())
+        return self._drawn if self._count else 0
+
     def _vertex_array(self) -> moderngl.VertexArray | None:
         """The VAO of the current buffers and colour mode (rebuilt when either changed)."""
+        if self._gl_frame is not None:
+            return self._gl_vertex_array()
         g = self.gaussians
         if g is None or self._index_buf is None:
             return None
@@ -206,6 +234,22 @@ class SplatRenderer:
                 content.append((used[-1], f"{g.sh.shape[1]}f2", "a_sh"))
             self._vao = self.ctx.vertex_array(self._program(self._sh_degree), content,
                                               index_buffer=self._index_buf, index_element_size=4)
+            self._vao_key = key
+        return self._vao
+
+    def _gl_vertex_array(self) -> moderngl.VertexArray | None:
+        order = self._gl_order
+        if order is None:
+            return None
+        columns = tuple(getattr(self._gl_frame, "columns"))
+        # keyed by the buffer objects themselves (held by the key, so never reused by a new one)
+        key = ("gl", columns, order.index_buffer)
+        if self._vao is None or key != self._vao_key:
+            if self._vao is not None:
+                self._vao.release()
+            content = [(buf, fmt, name) for buf, fmt, name in zip(columns, COLUMN_FORMATS, ATTRIBUTES)]
+            self._vao = self.ctx.vertex_array(self._program(-1), content, index_buffer=order.index_buffer,
+                                              index_element_size=4)
             self._vao_key = key
         return self._vao
 
@@ -236,7 +280,9 @@ class SplatRenderer:
         t0 = time.perf_counter()
         self._drawn = 0
         g = self.gaussians
-        if g is not None and self._count:
+        if self._gl_frame is not None and self._count:
+            self._sort_on_gl(camera, scale_modifier, min_alpha)
+        elif g is not None and self._count:
             # Off-screen Gaussians are dropped here (conservatively), and so are those too faint
             # to reach the alpha cutoff anywhere: they cost no vertex or setup work.
             cull = FrustumCull(camera.K, camera.width, camera.height,
@@ -254,6 +300,19 @@ class SplatRenderer:
         self._sort_key = _SortKey(key, self._version, exact, view)
         self.timings.sort_ms = (time.perf_counter() - t0) * 1e3
         self.timings.sorted_again = True
+
+    def _sort_on_gl(self, camera: Camera, scale_modifier: float, min_alpha: float) -> None:
+        """The GL frame's order, on the GL (the count stays there: the draw is indirect)."""
+        if self._gl_sort is None:
+            from atgs.viewer.gl_sort import GLDepthSort
+
+            self._gl_sort = GLDepthSort(self.ctx)
+        cull = FrustumCull(camera.K, camera.width, camera.height, clamp_limits(camera.K, camera.width, camera.height),
+                           scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
+        means, _quat, scales, opacity_rgb = getattr(self._gl_frame, "columns")[:4]
+        self._gl_order = self._gl_sort.sort(means, scales, opacity_rgb, self._count, camera.w2c, NEAR, cull,
+                                            float(min_alpha))
+        self._drawn = -1  # known to the GL only (drawn_count() reads it back)
 
     # --- drawing --------------------------------------------------------------------------
     def render(self, camera: Camera, settings: RenderSettings | None = None, sync: bool = True) -> moderngl.Framebuffer:
@@ -278,6 +337,9 @@ class SplatRenderer:
         else:
             fbo.clear(bg[0], bg[1], bg[2], 0.0)
         vao = self._vertex_array() if self._count and self._drawn else None
+        gl_order = self._gl_order if self._gl_frame is not None else None
+        if gl_order is not None and s.mode == "depth":
+            self.depth_range = gl_order.depth_range()  # the depth display's range (a readback)
         if vao is not None:
             uniforms = {
                 "u_intr": (camera.fx, camera.fy, camera.cx, camera.cy),
@@ -303,12 +365,15 @@ class SplatRenderer:
             self.ctx.enable(moderngl.BLEND)
             self.ctx.blend_equation = moderngl.FUNC_ADD
             self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
-            vao.render(moderngl.POINTS, vertices=self._drawn)
+            if gl_order is not None:
+                vao.render_indirect(gl_order.indirect_buffer, moderngl.POINTS, count=1)
+            else:
+                vao.render(moderngl.POINTS, vertices=self._drawn)
             self.ctx.disable(moderngl.BLEND)
         if sync:
             self.ctx.finish()  # so that draw_ms measures the draw, not the next readback
         self.timings.draw_ms = (time.perf_counter() - t0) * 1e3
-        self.timings.drawn = self._drawn if self._count else 0
+        self.timings.drawn = self._drawn if self._count else 0  # -1: a GL-sorted frame (drawn_count())
         return fbo
 
     def _draw_environment(self, camera: Camera, env: object) -> None:
@@ -379,6 +444,8 @@ class SplatRenderer:
             obj.release()
 
     def release(self) -> None:
+        if self._gl_sort is not None:
+            self._gl_sort.release()
         for obj in (self._vao, self._index_buf, *self._columns, self.present_vao, *self._programs.values(),
                     self.present_prog, self.present_color_vao, self.present_color_prog, self.environment_vao,
                     self.environment_prog, self._env_texture):
