@@ -36,6 +36,8 @@ class WindowBenchConfig:
     checkpoint: Path | None = None
     """A trained ckpt.pt: adds its streaming rows (first loop, then with every frame cached)."""
     size: str = "640x480"
+    decode: str = "torch"
+    """The checkpoint's frames: torch (decode thread, cache) or gl (compute-shader decode, --decode gl)."""
     frames: int = 120
     """UI frames measured per row (after 30 to settle the adaptive resolution)."""
     out: Path = Path("bench/results/viewer_window.json")
@@ -76,7 +78,8 @@ def run_rows(cfg: WindowBenchConfig) -> list[dict]:
         sources.append((str(cfg.checkpoint), str(cfg.checkpoint)))
     for spec, name in sources:
         source = load_source(spec, 20000)
-        app = PlayerApp(source, size=cfg.size)
+        decode = "torch" if spec == "demo" else cfg.decode  # the demo has nothing to decode
+        app = PlayerApp(source, size=cfg.size, decode=decode)
         try:
             deadline = time.monotonic() + 120
             while app.feeder.shown is None and time.monotonic() < deadline:
@@ -86,6 +89,8 @@ def run_rows(cfg: WindowBenchConfig) -> list[dict]:
             variants = [("streaming decode", None)]
             if spec == "demo":
                 variants.append(("UI hidden", "hide"))
+            elif decode == "gl":  # no cache: every frame is decoded on the GL when it is shown
+                variants = [("decoded on the GL (--decode gl)", None)]
             else:
                 variants.append(("every frame cached (second loop)", "cached"))
             for label, how in variants:
@@ -97,7 +102,7 @@ def run_rows(cfg: WindowBenchConfig) -> list[dict]:
                         play(app, 30, warm=0)
                 load = os.getloadavg()
                 row = {"scene": f"{name} ({source.num_frames} frames)", "mode": label, "size": cfg.size,
-                       "gaussians": len(app.renderer.gaussians) if app.renderer.gaussians is not None else 0,
+                       "gaussians": app.renderer.count,
                        "gl": gl, "loadavg_before": load, **play(app, cfg.frames), "loadavg_after": os.getloadavg()}
                 print(json.dumps(row), flush=True)
                 rows.append(row)

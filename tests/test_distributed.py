@@ -212,3 +212,32 @@ def test_a_killed_worker_stops_the_other_in_one_line_and_the_checkpoint_resumes(
                          "--resume")
     resumed = Trainer.resume(PreparedScene.load(toy_scene_dir), out / "ckpt.pt", out)
     assert resumed.step == _step(out / "ckpt.pt") > 0
+
+
+def test_torchrun_restarts_a_killed_worker_and_the_run_continues_from_its_checkpoint(toy_scene_dir, tmp_path):
+    """--max-restarts 1: a worker killed after the first checkpoint; torchrun starts both again,
+    they continue that checkpoint (as --resume) and the run ends normally at its step count."""
+    out = tmp_path / "run"
+    steps = 40
+    proc = subprocess.Popen([sys.executable, "-m", "atgs.cli.train", "--data", str(toy_scene_dir), "--out", str(out),
+                             "--preset", "tiny", "--iterations", str(steps), "--train.views-per-step", "2",
+                             "--train.save-every", "3", "--train.eval-every", "0", "--workers", "2",
+                             "--max-restarts", "1", "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO)
+    deadline = time.monotonic() + 120
+    while not (out / "ckpt.pt").is_file():
+        assert proc.poll() is None, proc.communicate()[1].decode(errors="replace")
+        assert time.monotonic() < deadline, "no checkpoint within 120 s"
+        time.sleep(0.05)
+    killed_at = _step(out / "ckpt.pt")
+    assert killed_at < steps, "the run ended before the kill: make it longer"
+    os.kill(_worker_pid(proc.pid, 1), signal.SIGKILL)
+    stdout, stderr = proc.communicate(timeout=300)
+    stdout, stderr = stdout.decode(errors="replace"), stderr.decode(errors="replace")
+    assert proc.returncode == 0, stderr[-2000:]
+    assert "restarted by the launcher after a worker failed (restart 1)" in stdout, stdout
+    resumed_at = int(re.search(r"resuming at step (\d+) of", stdout).group(1))
+    assert killed_at <= resumed_at < steps
+    assert _step(out / "ckpt.pt") == steps
+    logged = [int(r.split(",")[0]) for r in (out / "train_log.csv").read_text().strip().splitlines()[1:]]
+    assert logged == list(range(1, steps + 1)), "one log, one row per step"

@@ -293,3 +293,31 @@ def test_shared_flags_mean_the_same_in_both_commands() -> None:
     assert (view.out, render.out) == (Path("frame.png"), Path("video.mp4"))
     with pytest.raises(SystemExit):
         tyro.cli(RenderConfig, args=["ckpt.pt", "--mode", "normals"])
+
+
+def test_decode_gl_option(ckpt: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """--decode gl (decode and sort in compute shaders) renders what --decode torch renders, in
+    atgs-view --headless and atgs-render; what it cannot decode is one line and exit 2."""
+    import av
+
+    imgs = []
+    for route in ("torch", "gl"):
+        out = tmp_path / f"{route}.png"
+        assert main([str(ckpt), "--headless", "--frame", "5", "--out", str(out), "--decode", route]) == 0
+        imgs.append(np.asarray(Image.open(out), dtype=np.float64) / 255.0)
+    assert imgs[0].std() > 0.01 and _psnr(imgs[0], imgs[1]) >= 45.0
+    videos = []
+    for route in ("torch", "gl"):
+        out = tmp_path / f"{route}.mp4"
+        assert render_main([str(ckpt), "--path", "orbit", "--out", str(out), "--frames", "4", "--size", "64x48",
+                            "--decode", route]) == 0
+        with av.open(str(out)) as c:
+            videos.append([f.to_ndarray(format="rgb24") for f in c.decode(video=0)])
+    assert len(videos[1]) == 4
+    for a, b in zip(*videos):
+        assert _psnr8(a, b) >= 40.0
+    out = tmp_path / "demo.png"
+    capsys.readouterr()  # (the renders' progress bars)
+    assert main(["demo", "--headless", "--out", str(out), "--decode", "gl"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--decode gl" in err and "--decode torch" in err and err.count("\n") == 0 and not out.exists()

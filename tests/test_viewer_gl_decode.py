@@ -141,3 +141,22 @@ def test_decode_gl_refuses_what_it_cannot_decode_in_one_line(tmp_path) -> None:
 
     with pytest.raises(ViewerError, match="--decode gl: only ATGS checkpoints"):
         HeadlessRenderer(load_source("demo", 500, None), "auto", "cpu", "gl")
+
+
+def test_the_gl_route_holds_the_training_rasterizer_to_45_db() -> None:
+    """The issue's bound for any change to the player: the headless image of a frame decoded,
+    sorted and drawn on the GL against atgs.render on the torch decode of that frame."""
+    from atgs.render import rasterize_gaussians
+
+    model = decode_case_model("everything")
+    cam = resized(side_camera(), (128, 96))
+    f = 9
+    ref = rasterize_gaussians(model.gaussians_at_frame(f), cam, torch.zeros(3), backend="torch").image
+    hr = HeadlessRenderer(model, "auto", "cpu", "gl")
+    try:
+        hr.show_frame(f)
+        img = hr.renderer.render_image(cam, RenderSettings())
+    finally:
+        hr.close()
+    assert float(ref.max()) > 0.2
+    assert _psnr(img, ref.detach().numpy(), 1.0) > 45

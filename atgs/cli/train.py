@@ -72,6 +72,10 @@ class TrainArgs:
     gradients summed (torch.distributed: gloo on the CPU, NCCL on CUDA; docs/training.md, "Several
     workers"). N > 1 runs torchrun's launcher here (as torchrun --nproc-per-node N -m
     atgs.cli.train would); --train.views-per-step must be at least N."""
+    max_restarts: int = 0
+    """With --workers N: after a worker fails (killed, crashed, lost), torchrun restarts all of
+    them this many times; the restarted workers continue from the last checkpoint, as --resume
+    does (steps after it are trained again). 0: a failure stops the run with one line."""
     worker_timeout: float = 1800.0
     """Seconds a worker waits for the others in an exchange before it stops (several workers;
     rank 0's set-up of the velocities from optical flow and its periodic evaluations must fit in
@@ -86,6 +90,7 @@ class TrainArgs:
         check_fields(self, "--", {"iterations": at_least(1, "a step count"),
                                   "minutes": at_least(0, "a time budget", "0 runs the preset's fixed step count"),
                                   "workers": at_least(1, "a number of processes"),
+                                  "max_restarts": at_least(0, "a number of restarts"),
                                   "worker_timeout": above(0, "seconds")})
 
 
@@ -236,7 +241,21 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
             workers.close(together=sys.exc_info()[0] is None)  # (on an error the others may be gone)
 
 
+def restarted_run(args: TrainArgs) -> bool:
+    """True in a worker that torchrun restarted after a failure (--max-restarts) while --out holds
+    a checkpoint: it continues that checkpoint, as --resume does (--overwrite applied to the
+    first start only)."""
+    restart = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0"))
+    if restart <= 0 or not (args.out / "ckpt.pt").is_file():
+        return False
+    print(f"{PROG}: restarted by the launcher after a worker failed (restart {restart}); continuing from "
+          f"{args.out / 'ckpt.pt'}", flush=True)
+    return True
+
+
 def _train(args: TrainArgs, explicit: set[str], workers) -> dict:
+    if restarted_run(args):
+        args.resume = True
     trainer = make_trainer(args, explicit, workers)
     notice = f"{PROG}: stopping after this step and saving a checkpoint (Ctrl-C again to abort)"
     with stop_on_sigint(notice if trainer.leads else "") as stop:
@@ -320,8 +339,8 @@ def launch_workers(argv: list[str], args: TrainArgs) -> int:
     partition = args.train.partition if "partition" in given_flags(argv, "--train.") else cfg.partition
     check_settings(cfg.views_per_step, cfg.drop_gaussians, n, partition)
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
-    launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}", "--module", "atgs.cli.train",
-                                             *argv])
+    launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}",
+                                             f"--max-restarts={args.max_restarts}", "--module", "atgs.cli.train", *argv])
     try:
         torchrun(launcher)
     except SignalException:  # Ctrl-C: torchrun passed it on; rank 0 said what it saved

@@ -129,6 +129,19 @@ def _backend(device: torch.device, local_world: int) -> str:
     return "gloo"
 
 
+def _attempt_store(rank: int, world: int, timeout_s: float) -> dist.Store:
+    """The rendezvous store of torchrun's environment (MASTER_ADDR/PORT: the launcher's own store,
+    or rank 0's) under a prefix of this attempt (torchrun's TORCHELASTIC_RESTART_COUNT). With
+    ``init_method="env://"`` the workers that torchrun restarted after a failure (--max-restarts)
+    failed to connect to each other in most tries here (gloo, torch 2.13: "connectFullMesh
+    failed ... Connection refused", as in pytorch/pytorch#167288); with a prefix of ours per
+    attempt every try connected."""
+    agent_store = os.environ.get("TORCHELASTIC_USE_AGENT_STORE") == "True"  # the launcher hosts it
+    store = dist.TCPStore(os.environ["MASTER_ADDR"], int(os.environ["MASTER_PORT"]), world,
+                          is_master=rank == 0 and not agent_store, timeout=timedelta(seconds=timeout_s))
+    return dist.PrefixStore(f"atgs/attempt_{os.environ.get('TORCHELASTIC_RESTART_COUNT', '0')}/", store)
+
+
 class Workers:
     """This process among the workers of a run: its rank, the process group and the collectives
     of a step. Every method is collective (all workers call it, in the same order) unless it says
@@ -154,7 +167,7 @@ class Workers:
             device = torch.device("cuda", local_rank % torch.cuda.device_count())
             torch.cuda.set_device(device)
         backend = _backend(device, local_world)
-        dist.init_process_group(backend, init_method="env://", rank=rank, world_size=world,
+        dist.init_process_group(backend, store=_attempt_store(rank, world, timeout_s), rank=rank, world_size=world,
                                 timeout=timedelta(seconds=timeout_s))
         return cls(rank, world, device, backend)
 
