@@ -20,7 +20,7 @@ The memory part (``--part memory``, its own entry of the JSON): a synthetic capt
 500 and 1,000 frames (4 cameras at 64x48, a keyframe every 10 frames; synthesized and prepared
 once into the cache, seconds each) trained for a few steps by N workers of one partition
 (torch.multiprocessing, gloo), a model whose per-segment tables dominate (a segment every 10
-frames, 8 levels of 2^15 rows), each worker reporting its peak resident memory (ru_maxrss)
+frames, 8 levels of 2^15 rows), each worker reporting its peak resident memory (VmHWM)
 after its set-up, after the steps, and after the checkpoint (rank 0 gathers the whole model).
 Cases "FRAMESxWORKERS[views|time]", e.g. 500x2time.
 """
@@ -165,7 +165,12 @@ def memory_overrides(partition: str, world: int, frames: int) -> tuple[dict, dic
 
 
 def _peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # (Linux: kilobytes)
+    """This process's peak resident memory (VmHWM). Not ru_maxrss: Linux carries that across the
+    exec of a spawned worker, so every worker read at least its launcher's peak (up to 990 MB here)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024  # kB
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _resident_mb() -> float:

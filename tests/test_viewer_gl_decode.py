@@ -83,6 +83,26 @@ def test_gl_decode_equals_the_torch_decode(ctx, case: str) -> None:
     decoder.release()
 
 
+def test_a_hash_table_over_the_gl_limit_is_kept_one_segment_at_a_time(ctx) -> None:
+    """A GL whose storage buffers cannot hold the whole table (block_bytes below it): the current
+    segment's grid is uploaded when playback reaches it, with the same result; an anchor table
+    over the limit is a one-line refusal."""
+    model = decode_case_model("motion")
+    just_under = 4 * model.hash.table.numel() - 4  # (the anchor table and the MLPs still fit here)
+    whole, small = GLFrameDecoder(ctx, model), GLFrameDecoder(ctx, model, block_bytes=just_under)
+    assert small._one_grid_at_a_time and not whole._one_grid_at_a_time
+    segments = set()
+    for f in (0, 8, DECODE_FRAMES - 1, 3):  # through every segment and back
+        segments.add(model.timeline.segment_of_frame(f))
+        a, b = read_columns(whole.decode(f)), read_columns(small.decode(f))
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    assert len(segments) == model.timeline.num_segments > 1
+    with pytest.raises(GLDecodeUnavailable, match="anchor table needs"):
+        GLFrameDecoder(ctx, model, block_bytes=1024)
+    whole.release(), small.release()
+
+
 def test_frames_alternate_between_buffer_sets(ctx) -> None:
     """Frame t+1 decodes into other buffers than frame t (t may still be drawn), then they repeat."""
     model = decode_case_model("motion")

@@ -142,6 +142,12 @@ def _attempt_store(rank: int, world: int, timeout_s: float) -> dist.Store:
     return dist.PrefixStore(f"atgs/attempt_{os.environ.get('TORCHELASTIC_RESTART_COUNT', '0')}/", store)
 
 
+def _wire(t: torch.Tensor) -> torch.Tensor:
+    """``t`` as the collectives carry it: contiguous, bool as bytes (gloo sends no bool)."""
+    t = t.contiguous()
+    return t.view(torch.uint8) if t.dtype == torch.bool else t
+
+
 class Workers:
     """This process among the workers of a run: its rank, the process group and the collectives
     of a step. Every method is collective (all workers call it, in the same order) unless it says
@@ -224,6 +230,34 @@ class Workers:
         """Every worker's ``obj`` (picklable), in rank order, on rank 0; None on the others."""
         out = [None] * self.world if self.leads else None
         self._call(dist.gather_object, obj, out, dst=0)
+        return out
+
+    def concat_to_leader(self, part: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:
+        """Every worker's ``part`` (CPU tensors, the same keys and trailing shapes everywhere),
+        concatenated along the first dimension in rank order, on rank 0; None on the others.
+        Tensor by tensor into one buffer per key that rank 0 allocates once: nothing is pickled,
+        so rank 0 holds the whole once and the others nothing beyond their part (gather_object
+        pickled every part and held it several times over: docs/training.md, "Memory per worker")."""
+        rows = self.gather_to_leader({k: int(v.shape[0]) for k, v in part.items()})  # a few numbers
+        if not self.leads:
+            for key, t in part.items():
+                if t.numel():
+                    self._call(dist.send, _wire(t).to(self.comm), dst=0)
+            return None
+        out = {}
+        for key, t in part.items():
+            whole = torch.empty((sum(r[key] for r in rows), *t.shape[1:]), dtype=t.dtype)
+            at = 0
+            for rank, counts in enumerate(rows):
+                piece = whole[at:at + counts[key]]
+                at += counts[key]
+                if rank == 0:
+                    piece.copy_(t)
+                elif piece.numel():
+                    buf = torch.empty(_wire(piece).shape, dtype=_wire(piece).dtype, device=self.comm)
+                    self._call(dist.recv, buf, src=rank)
+                    _wire(piece).copy_(buf.cpu())
+            out[key] = whole
         return out
 
     def broadcast_floats(self, values: Sequence[float]) -> list[float]:

@@ -213,11 +213,11 @@ def local_part(model: ATGSModel, opt, stats, grid_visits: torch.Tensor, part: Ti
     return {k: v.detach().cpu() for k, v in out.items()}
 
 
-def fill_payload(payload: dict, parts: list[dict[str, torch.Tensor]]) -> dict:
-    """Rank 0's checkpoint payload with every worker's ``parts`` (rank order) in place of its own."""
+def fill_payload(payload: dict, gathered: dict[str, torch.Tensor]) -> dict:
+    """Rank 0's checkpoint payload with the workers' parts (:func:`local_part`, concatenated in
+    rank order by ``Workers.concat_to_leader``) in place of its own."""
     st = payload["trainer"]
-    for key in parts[0]:
-        whole = torch.cat([p[key] for p in parts])
+    for key, whole in gathered.items():
         where, _, name = key.rpartition("/")
         if where == "model":
             payload["model"][name] = whole

@@ -617,13 +617,13 @@ class Trainer:
         with self._stats_of_all_views():
             parts = None
             if self.part is not None:  # partitioned by time: rank 0 gathers every worker's part
-                parts = self.workers.gather_to_leader(time_partition.local_part(
+                parts = self.workers.concat_to_leader(time_partition.local_part(
                     self.model, self.sparse_opt, self.stats, self.grid_visits, self.part))
             if not self.leads:
                 return self.run.ckpt_path if path is None else Path(path)
             payload = self.checkpoint_payload()
             if parts is not None:
-                payload = time_partition.fill_payload(payload, parts)
+                payload = time_partition.fill_payload(payload, parts)  # the workers' parts, concatenated
             if path is None:
                 return self.run.save_checkpoint(payload)
             save_checkpoint(path, payload)

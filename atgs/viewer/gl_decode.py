@@ -85,15 +85,25 @@ class GLFrameDecoder:
     are used in turn, so a frame being drawn is never overwritten by the next one's decode
     (2: decode t+1 while t is drawn)."""
 
-    def __init__(self, ctx: moderngl.Context, model: ATGSModel, slots: int = 2) -> None:
+    def __init__(self, ctx: moderngl.Context, model: ATGSModel, slots: int = 2,
+                 block_bytes: int | None = None) -> None:
+        """``block_bytes``: the largest storage buffer the shader may bind (default: the GL's
+        GL_MAX_SHADER_STORAGE_BLOCK_SIZE); a hash table larger than it is kept one segment's grid
+        at a time."""
         problem = gl_decode_problem(ctx, model)
         if problem:
             raise GLDecodeUnavailable(problem)
         self.ctx, self.model = ctx, model
         cfg, hg = model.cfg, model.hash
         self.q = int(cfg.gaussians_per_anchor)
-        weights, offsets = self._weights(model)
-        max_block = int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 27))
+        weights, offsets = self._weight_array(model)
+        max_block = int(block_bytes or ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 27))
+        anchors = self._anchor_rows(model)
+        for what, nbytes in (("anchor table", anchors.nbytes), ("MLP weights", weights.nbytes),
+                             ("hash grid of one segment", 4 * hg.levels * hg.table_size * hg.features)):
+            if nbytes > max_block:
+                raise GLDecodeUnavailable(f"the model's {what} needs {nbytes / 2**20:.0f} MiB in one storage buffer, "
+                                          f"the GL allows {max_block / 2**20:.0f} MiB")
         per_grid = hg.levels * hg.table_size
         table = _f32(hg.table)
         # the whole table when the GL takes it in one block, else the current segment's grid
@@ -112,7 +122,7 @@ class GLFrameDecoder:
             **offsets,
         }
         self.program = ctx.compute_shader(load_shader("decode.comp", defines))
-        self._anchors = ctx.buffer(self._anchor_rows(model).tobytes())
+        self._anchors = ctx.buffer(anchors.tobytes())
         self._table = ctx.buffer(table.tobytes() if not self._one_grid_at_a_time
                                  else table[:per_grid].tobytes())
         self._weights = ctx.buffer(weights.tobytes())
@@ -151,7 +161,7 @@ class GLFrameDecoder:
         return _f32(rows)
 
     @staticmethod
-    def _weights(model: ATGSModel) -> tuple[np.ndarray, dict[str, int]]:
+    def _weight_array(model: ATGSModel) -> tuple[np.ndarray, dict[str, int]]:
         """Every MLP weight and the clearance centres in one float32 array, and the #defines of
         their offsets (the shader indexes it: temporal MLPs as stored, the heads' first layers
         row by hidden unit, their second layers transposed)."""
