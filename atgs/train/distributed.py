@@ -246,7 +246,7 @@ class Workers:
             return None
         out = {}
         for key, t in part.items():
-            whole = torch.empty((sum(r[key] for r in rows), *t.shape[1:]), dtype=t.dtype)
+            whole = torch.empty((sum(r[key] for r in rows), *t.shape[1:]), dtype=t.dtype, device="cpu")
             at = 0
             for rank, counts in enumerate(rows):
                 piece = whole[at:at + counts[key]]
