@@ -137,12 +137,18 @@ def test_shaders_are_found_through_the_atgs_namespace() -> None:
 
 
 def test_the_wheel_ships_the_shaders_and_the_web_player(tmp_path) -> None:
-    """pip install ships every file the desktop and web players read at run time (package data)."""
+    """pip install ships every file the desktop and web players read at run time (package data).
+    Built from a copy of the tree: a build in the tree leaves build/ behind, whose stale copies
+    of the package would hide a missing package-data glob from the next build."""
+    import shutil
     import subprocess
     import sys
     import zipfile
 
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", str(REPO),
+    src = tmp_path / "src"
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".git", ".venv", "build", "*.egg-info", "__pycache__",
+                                                             ".pytest_cache", "runs", "outputs", ".whl", ".gpu", ".gl"))
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", str(src),
                     "-w", str(tmp_path)], check=True, capture_output=True)
     (wheel,) = tmp_path.glob("atgs-*.whl")
     shipped = set(zipfile.ZipFile(wheel).namelist())
