@@ -179,8 +179,8 @@ def test_a_wrong_exchange_fails_the_checks(tmp_path: Path, variant: str) -> None
 
 
 def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes(toy_scene_dir, tmp_path):
-    """The command line: --workers 2 --train.partition time to the end (periodic evaluations of
-    rank 0's frames, its final evaluation of the gathered checkpoint, every frame), then resumed
+    """The command line: --workers 2 --train.partition time to the end (periodic evaluations spread over the workers,
+    its final evaluation of the gathered checkpoint, every frame), then resumed
     on two workers again."""
     import json
 
@@ -192,7 +192,7 @@ def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes
                                "4", "--workers", "2", "--train.partition", "time", "--train.eval-every", "2"))
     assert code == 0 and "Traceback" not in err, err
     evaluated = [r.split(",") for r in (out / "train_log.csv").read_text().strip().splitlines()]
-    assert evaluated[2][evaluated[0].index("eval_psnr")], "the periodic evaluation (rank 0's frames) at step 2"
+    assert evaluated[2][evaluated[0].index("eval_psnr")], "the periodic evaluation (spread over the workers) at step 2"
     result = json.loads((out / "result.json").read_text())
     assert result["eval"]["psnr"] > 5 and result["eval"]["views"] == 6, result["eval"]
     code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "6",
@@ -204,3 +204,44 @@ def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes
     assert code == 0 and "Traceback" not in err, err
     data = torch.load(out / "ckpt.pt", weights_only=True)
     assert data["step"] == 6 and data["train_config"]["partition"] == "time"
+
+
+def _eval_worker(rank: int, world: int, port: int, d: Path) -> None:
+    """Each partition trained 3 steps, then the periodic evaluation spread over the workers."""
+    import json
+
+    workers = _join(rank, world, port)
+    try:
+        out = {}
+        for partition in ("time", "views"):
+            tr = _trainer(d / partition, workers, partition=partition)
+            tr.run_steps(progress=False, stop_at=3)
+            out[partition] = {"ev": tr._evaluate_on_every_worker(), "own": tr.own_eval_frames(),
+                              "all": tr.eval_frames()}
+            tr.save(d / f"{partition}.pt")
+        (d / f"eval{rank}.json").write_text(json.dumps(out))
+    finally:
+        workers.close()
+
+
+def test_the_periodic_evaluation_is_spread_over_the_workers_and_scores_every_frame(tmp_path: Path) -> None:
+    """Each worker scores its share of the evaluation frames (by time: the frames its segments
+    decode, so worker 1's frames count too); the summed scores are one process's evaluation of the
+    gathered checkpoint over all of those frames."""
+    import json
+
+    from atgs.train.trainer import Trainer
+
+    _spawn(_eval_worker, (2, _free_port(), tmp_path))
+    got = [json.loads((tmp_path / f"eval{r}.json").read_text()) for r in (0, 1)]
+    for partition in ("time", "views"):
+        a, b = got[0][partition], got[1][partition]
+        assert a["all"] == b["all"] and len(a["all"]) > 2
+        assert sorted(a["own"] + b["own"]) == a["all"] and a["own"] and b["own"], "every frame scored once"
+        assert a["ev"] == b["ev"]  # (every worker gets the sums)
+        one = Trainer.resume(_scene(), tmp_path / f"{partition}.pt", tmp_path / f"one-{partition}")
+        ref = one.evaluate(frames=a["all"])
+        assert a["ev"]["views"] == ref["views"] > 0
+        assert a["ev"]["psnr"] == pytest.approx(ref["psnr"], rel=1e-4)
+        assert a["ev"]["ssim"] == pytest.approx(ref["ssim"], rel=1e-4)
+    assert max(got[1]["time"]["own"]) > max(got[0]["time"]["own"])  # worker 1 holds the later frames

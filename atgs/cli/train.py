@@ -78,8 +78,7 @@ class TrainArgs:
     does (steps after it are trained again). 0: a failure stops the run with one line."""
     worker_timeout: float = 1800.0
     """Seconds a worker waits for the others in an exchange before it stops (several workers;
-    rank 0's set-up of the velocities from optical flow and its periodic evaluations must fit in
-    it; a worker that dies is noticed at once)."""
+    rank 0's set-up of the velocities from optical flow must fit in it; a worker that dies is noticed at once)."""
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
@@ -230,7 +229,8 @@ def _where(device, workers) -> str:
 def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
     """Train; the first Ctrl-C during the steps finishes the current one, saves ckpt.pt and raises
     Interrupted. Then the final evaluation (a Ctrl-C there leaves the complete checkpoint).
-    Under torchrun (several workers) this process trains its share; rank 0 evaluates, writes and
+    Under torchrun (several workers) this process trains its share (and scores its share of the
+    periodic evaluations); rank 0 runs the final evaluation, writes and
     raises Interrupted, the others return (``result["stopped_early"]`` after a Ctrl-C)."""
     workers = join_workers(args)
     try:

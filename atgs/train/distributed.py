@@ -260,6 +260,12 @@ class Workers:
             out[key] = whole
         return out
 
+    def sum_floats(self, values: Sequence[float]) -> list[float]:
+        """The sums over the workers of ``values`` (float64), on every worker."""
+        t = torch.tensor(list(values), dtype=torch.float64, device=self.comm)
+        self._call(dist.all_reduce, t, op=dist.ReduceOp.SUM)
+        return [float(x) for x in t.tolist()]
+
     def broadcast_floats(self, values: Sequence[float]) -> list[float]:
         """Rank 0's ``values`` on every worker (e.g. its clock, so that all size one schedule)."""
         t = torch.tensor(list(values), dtype=torch.float64, device=self.comm)

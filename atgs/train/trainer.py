@@ -530,10 +530,21 @@ class Trainer:
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
-        """The frames of periodic and final evaluation: ``eval_max_frames`` evenly spaced (of
-        rank 0's frames when partitioned by time: those its model decodes)."""
-        frames = self.model.decodable_frames
-        return [frames[i] for i in evenly_spaced(len(frames), max(1, self.cfg.eval_max_frames))]
+        """The frames of the periodic evaluation: ``eval_max_frames`` evenly spaced over the
+        capture. Several workers split them (:meth:`own_eval_frames`) and sum their scores."""
+        n = self.model.timeline.num_frames
+        return list(evenly_spaced(n, max(1, self.cfg.eval_max_frames)))
+
+    def own_eval_frames(self) -> list[int]:
+        """This worker's share of :meth:`eval_frames`: the frames its model decodes when the
+        workers are partitioned by time (each frame is one worker's), every world-th otherwise."""
+        frames = self.eval_frames()
+        if self.workers is None:
+            return frames
+        if self.part is not None:
+            own = self.model.decodable_frames
+            return [f for f in frames if f in own]
+        return frames[self.workers.rank::self.workers.world]
 
     @_in_run_threads
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
@@ -797,16 +808,28 @@ class Trainer:
         if not self._due(self.cfg.eval_every, self._last_eval):
             return
         self._last_eval = self.step
-        if not self.leads:  # rank 0 evaluates (the others go on to the next step's exchange)
-            return
         t_eval = self.clock()
-        ev = self.evaluate()
+        ev = self.evaluate() if self.workers is None else self._evaluate_on_every_worker()
         self._overhead += self.clock() - t_eval  # not step time: the budget's pace excludes it
+        if not self.leads:  # rank 0 logs it
+            return
         row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
         warning = evaluation_gap_warning(self.step, ev["psnr"], ema_psnr, ev["on_test_cameras"])
         if warning is not None and not self.warnings:  # once a run: the log has every figure
             self.warnings.append(warning)
             bar.write(warning)
+
+    def _evaluate_on_every_worker(self) -> dict:
+        """The periodic evaluation spread over the workers: each scores its share of the frames
+        (a worker of the time partition: those its model decodes, so every frame of the capture
+        is scored, not only rank 0's), and the sums of the views' PSNR and SSIM are all-reduced:
+        the mean over all views, as one process computes it (up to summation order)."""
+        frames = self.own_eval_frames()
+        ev = self.evaluate(frames=frames) if frames else {"psnr": 0.0, "ssim": 0.0, "views": 0}
+        n = ev["views"]
+        psnr, ssim, views = self.workers.sum_floats([ev["psnr"] * n, ev["ssim"] * n, n])
+        return {"psnr": psnr / max(views, 1), "ssim": ssim / max(views, 1), "views": int(views),
+                "on_test_cameras": bool(self.test_idx)}
 
     def _save_if_due(self) -> None:
         if not self._due(self.cfg.save_every, self._last_save):
