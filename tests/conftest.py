@@ -32,3 +32,19 @@ def toy_scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("scene") / "toy"
     write_prepared_scene(out, s)  # colours: grey
     return out
+
+
+@pytest.fixture(scope="module")
+def compute_ctx():
+    """A headless GL context with compute shaders (OpenGL 4.3: the GL decode and sort), one per
+    test module. Mesa's llvmpipe gives 4.5 (scripts/setup.sh installs it); without it the tests
+    fail with the fix rather than skip, since the feature would go untested."""
+    from atgs.headless_gl import create_headless_context
+
+    ctx = create_headless_context("auto")  # (no GL at all: HeadlessGLError names the package)
+    if ctx.version_code < 430:
+        ctx.release()
+        pytest.fail(f"OpenGL {ctx.version_code // 100}.{ctx.version_code % 100 // 10} has no compute shaders; "
+                    "the GL decode and sort need 4.3: install Mesa 20 or newer (apt-get install libegl-mesa0)")
+    yield ctx
+    ctx.release()
