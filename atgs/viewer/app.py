@@ -151,13 +151,13 @@ class PlayerApp:
 
     def _gl_feeder(self, source: GaussianSource):
         """Frames decoded on the GL (``--decode gl``), or a one-line error saying why not."""
-        from atgs.viewer.gl_decode import GLFrameDecoder, GLFrameFeeder, gl_decode_problem
+        from atgs.viewer.gl_decode import GLFrameFeeder, gl_decoder_for
 
-        problem = gl_decode_problem(self.ctx, source)
-        if problem:
+        try:
+            return GLFrameFeeder(gl_decoder_for(self.ctx, source))
+        except ViewerError:
             self._terminate()
-            raise ViewerError(f"--decode gl: {problem}; use --decode torch")
-        return GLFrameFeeder(GLFrameDecoder(self.ctx, source))
+            raise
 
     # --- main loop ---------------------------------------------------------------------------
     def run(self) -> None:

@@ -33,6 +33,7 @@ from atgs.model.atgs_model import ATGSModel
 from atgs.model.decoder import GaussianDecoder
 from atgs.model.fast_decode import plain_heads
 from atgs.shaders import load_shader
+from atgs.viewer.errors import ViewerError
 
 DecodeRoute = Literal["torch", "gl"]
 """Where the player decodes frames: torch (on --device, then uploaded) or GL compute shaders."""
@@ -61,6 +62,14 @@ def gl_decode_problem(ctx: moderngl.Context, model: object) -> str | None:
     if plain_heads(model.decoder) is None:
         return "the decoder is not the plain float32 MLPs (e.g. a reduced-precision view)"
     return None
+
+
+def gl_decoder_for(ctx: moderngl.Context, source: object) -> "GLFrameDecoder":
+    """``--decode gl``'s decoder of ``source``, or a one-line ViewerError saying why it cannot be."""
+    try:
+        return GLFrameDecoder(ctx, source)  # type: ignore[arg-type]
+    except GLDecodeUnavailable as e:
+        raise ViewerError(f"--decode gl: {e}; use --decode torch") from None
 
 
 @dataclass

@@ -35,13 +35,13 @@ class HeadlessRenderer:
         self._frame = -1
         self.gl_decoder = None
         if self.decode == "gl":
-            from atgs.viewer.gl_decode import GLFrameDecoder, gl_decode_problem
+            from atgs.viewer.gl_decode import gl_decoder_for
 
-            problem = gl_decode_problem(self.ctx, self.source)
-            if problem:
+            try:
+                self.gl_decoder = gl_decoder_for(self.ctx, self.source)
+            except ViewerError:
                 self.close()
-                raise ViewerError(f"--decode gl: {problem}; use --decode torch")
-            self.gl_decoder = GLFrameDecoder(self.ctx, self.source)
+                raise
 
     def set_frame(self, packed: PackedGaussians) -> None:
         if packed.frame != self._frame or packed.frame < 0:

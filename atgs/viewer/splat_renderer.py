@@ -216,40 +216,31 @@ class SplatRenderer:
 
     def _vertex_array(self) -> moderngl.VertexArray | None:
         """The VAO of the current buffers and colour mode (rebuilt when either changed)."""
-        if self._gl_frame is not None:
-            return self._gl_vertex_array()
-        g = self.gaussians
-        if g is None or self._index_buf is None:
-            return None
-        used = self._columns[: len(g.columns)]
-        # Keyed by allocation count, not GL names: NVIDIA's driver gives a new buffer the name of
-        # the one just released, and a VAO kept for that name would still read the old (smaller)
-        # buffer, which it keeps alive, and crash the process in the draw.
-        key = (self._sh_degree, len(used), self._allocations)
+        if self._gl_frame is not None:  # the GL-decoded frame's columns and the GL sort's order
+            if self._gl_order is None:
+                return None
+            used = list(getattr(self._gl_frame, "columns"))
+            index, sh_format = self._gl_order.index_buffer, None
+            # keyed by the buffer objects themselves (held by the key, so never reused by a new one)
+            key: tuple = ("gl", tuple(used), index)
+        else:
+            g = self.gaussians
+            if g is None or self._index_buf is None:
+                return None
+            used = self._columns[: len(g.columns)]
+            index, sh_format = self._index_buf, None if g.sh is None else f"{g.sh.shape[1]}f2"
+            # Keyed by allocation count, not GL names: NVIDIA's driver gives a new buffer the name of
+            # the one just released, and a VAO kept for that name would still read the old (smaller)
+            # buffer, which it keeps alive, and crash the process in the draw.
+            key = (self._sh_degree, len(used), self._allocations)
         if self._vao is None or key != self._vao_key:
             if self._vao is not None:
                 self._vao.release()
             content = [(buf, fmt, name) for buf, fmt, name in zip(used, COLUMN_FORMATS, ATTRIBUTES)]
-            if g.sh is not None:
-                content.append((used[-1], f"{g.sh.shape[1]}f2", "a_sh"))
+            if sh_format is not None:
+                content.append((used[-1], sh_format, "a_sh"))
             self._vao = self.ctx.vertex_array(self._program(self._sh_degree), content,
-                                              index_buffer=self._index_buf, index_element_size=4)
-            self._vao_key = key
-        return self._vao
-
-    def _gl_vertex_array(self) -> moderngl.VertexArray | None:
-        order = self._gl_order
-        if order is None:
-            return None
-        columns = tuple(getattr(self._gl_frame, "columns"))
-        # keyed by the buffer objects themselves (held by the key, so never reused by a new one)
-        key = ("gl", columns, order.index_buffer)
-        if self._vao is None or key != self._vao_key:
-            if self._vao is not None:
-                self._vao.release()
-            content = [(buf, fmt, name) for buf, fmt, name in zip(columns, COLUMN_FORMATS, ATTRIBUTES)]
-            self._vao = self.ctx.vertex_array(self._program(-1), content, index_buffer=order.index_buffer,
-                                              index_element_size=4)
+                                              index_buffer=index, index_element_size=4)
             self._vao_key = key
         return self._vao
 
@@ -285,9 +276,7 @@ class SplatRenderer:
         elif g is not None and self._count:
             # Off-screen Gaussians are dropped here (conservatively), and so are those too faint
             # to reach the alpha cutoff anywhere: they cost no vertex or setup work.
-            cull = FrustumCull(camera.K, camera.width, camera.height,
-                               clamp_limits(camera.K, camera.width, camera.height),
-                               scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
+            cull = self._frustum_cull(camera, scale_modifier)
             order = back_to_front(g.means, camera.w2c, NEAR, exact=exact, extent=g.extent, cull=cull,
                                   opacity=g.opacity, min_alpha=float(min_alpha))
             self._drawn = int(order.shape[0])
@@ -301,14 +290,19 @@ class SplatRenderer:
         self.timings.sort_ms = (time.perf_counter() - t0) * 1e3
         self.timings.sorted_again = True
 
+    @staticmethod
+    def _frustum_cull(camera: Camera, scale_modifier: float) -> FrustumCull:
+        """The screen-space cull of both sorts: the splat shader's extent, dilation and clamp."""
+        return FrustumCull(camera.K, camera.width, camera.height, clamp_limits(camera.K, camera.width, camera.height),
+                           scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
+
     def _sort_on_gl(self, camera: Camera, scale_modifier: float, min_alpha: float) -> None:
         """The GL frame's order, on the GL (the count stays there: the draw is indirect)."""
         if self._gl_sort is None:
             from atgs.viewer.gl_sort import GLDepthSort
 
             self._gl_sort = GLDepthSort(self.ctx)
-        cull = FrustumCull(camera.K, camera.width, camera.height, clamp_limits(camera.K, camera.width, camera.height),
-                           scale_modifier=float(scale_modifier), sigmas=RADIUS_SIGMAS, dilation=DILATION)
+        cull = self._frustum_cull(camera, scale_modifier)
         means, _quat, scales, opacity_rgb = getattr(self._gl_frame, "columns")[:4]
         self._gl_order = self._gl_sort.sort(means, scales, opacity_rgb, self._count, camera.w2c, NEAR, cull,
                                             float(min_alpha))
