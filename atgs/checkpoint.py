@@ -23,6 +23,7 @@ from atgs.cameras import Camera
 from atgs.device import usable_device
 from atgs.errors import UserError
 from atgs.io.atomic import atomic_file
+from atgs.io.torch_zip import has_streamed, save_streamed
 from atgs.render.environment import EnvironmentMap
 
 FORMAT = "atgs-checkpoint"
@@ -36,9 +37,14 @@ class CheckpointError(UserError, ValueError):
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:
     """Write ``payload`` to ``path`` atomically (atgs.io.atomic: temp file, fsync, rename), its
-    tensors on the CPU."""
+    tensors on the CPU. Tables gathered from several workers may come as
+    :class:`~atgs.io.torch_zip.Streamed` tensors: written piece by piece, the same file."""
+    data = {"format": FORMAT, "version": VERSION, **on_cpu(payload)}
     with atomic_file(path) as tmp:
-        torch.save({"format": FORMAT, "version": VERSION, **on_cpu(payload)}, tmp)
+        if has_streamed(data):
+            save_streamed(data, tmp)
+        else:
+            torch.save(data, tmp)
 
 
 def on_cpu(tree):
@@ -52,13 +58,15 @@ def on_cpu(tree):
     return tree
 
 
-def read_checkpoint(path: str | Path) -> dict:
-    """Load and validate a checkpoint dict; raises :class:`CheckpointError` with the fix."""
+def read_checkpoint(path: str | Path, mmap: bool = False) -> dict:
+    """Load and validate a checkpoint dict; raises :class:`CheckpointError` with the fix.
+    ``mmap``: its tensors map the file (copy on write), so that a reader that keeps a slice of
+    a table (a worker of the time partition) reads only that slice's pages."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found; pass the ckpt.pt written by atgs-train")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        data = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except Exception as e:  # truncated zip, foreign pickle with code, random bytes ...
         raise CheckpointError(f"{path}: not a readable ATGS checkpoint (corrupt, truncated or foreign file: "
                               f"{type(e).__name__}); re-train or pick another file") from None
@@ -78,8 +86,10 @@ def read_checkpoint(path: str | Path) -> dict:
     return data
 
 
-def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>", device: torch.device | str = "cpu"):
-    """The model of a checkpoint dict (:func:`read_checkpoint`), on ``device``."""
+def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>", device: torch.device | str = "cpu",
+                          segments: range | None = None):
+    """The model of a checkpoint dict (:func:`read_checkpoint`), on ``device``; ``segments``:
+    only these time segments' per-segment rows (a worker of the time partition)."""
     from atgs.model.atgs_model import ATGSModel
     from atgs.config_dict import from_dict
     from atgs.model.config import ModelConfig
@@ -87,7 +97,8 @@ def model_from_checkpoint(data: dict, path: str | Path = "<checkpoint>", device:
     try:
         cfg = from_dict(ModelConfig, data["model_config"])
         cameras = [Camera.from_dict(c) for c in data["cameras"]]
-        model = ATGSModel.from_state(cfg, data["model"], int(data["num_frames"]), float(data["fps"]), cameras)
+        model = ATGSModel.from_state(cfg, data["model"], int(data["num_frames"]), float(data["fps"]), cameras,
+                                     segments)
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path}: checkpoint contents are inconsistent ({type(e).__name__}: {e})") from None
     model.test_camera_names = list(data.get("test_cameras", []))

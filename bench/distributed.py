@@ -21,7 +21,9 @@ The memory part (``--part memory``, its own entry of the JSON): a synthetic capt
 once into the cache, seconds each) trained for a few steps by N workers of one partition
 (torch.multiprocessing, gloo), a model whose per-segment tables dominate (a segment every 10
 frames, 8 levels of 2^15 rows), each worker reporting its peak resident memory (VmHWM)
-after its set-up, after the steps, and after the checkpoint (rank 0 gathers the whole model).
+after its set-up, after the steps, and after the checkpoint (rank 0 writes the whole model, each
+worker's part received as it writes); then the checkpoint resumed by as many fresh workers, each
+reporting its peak after ``Trainer.resume`` and one step.
 Cases "FRAMESxWORKERS[views|time]", e.g. 500x2time.
 """
 
@@ -177,15 +179,20 @@ def _resident_mb() -> float:
     return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, partition: str, steps: int) -> None:
-    """One worker of a memory case: its peaks (MB) after the set-up, the steps and the checkpoint."""
+def _join(rank: int, world: int, port: int):
+    """This spawned worker's place among ``world`` (gloo on the CPU, one thread); None alone."""
     from atgs.train.distributed import Workers
 
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
                       LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world), OMP_NUM_THREADS="1")
     import torch
 
-    workers = Workers.from_env(torch.device("cpu"), timeout_s=600) if world > 1 else None
+    return Workers.from_env(torch.device("cpu"), timeout_s=600) if world > 1 else None
+
+
+def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, partition: str, steps: int) -> None:
+    """One worker of a memory case: its peaks (MB) after the set-up, the steps and the checkpoint."""
+    workers = _join(rank, world, port)
     try:
         peaks = {"start": _peak_mb()}
         scene = PreparedScene.load(scene_dir)
@@ -212,9 +219,36 @@ def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, pa
             workers.close()
 
 
-def memory_case(name: str, args: Distributed) -> dict:
+def memory_resume_worker(rank: int, world: int, port: int, scene_dir: str, out: str, partition: str) -> None:
+    """One worker resuming a memory case's checkpoint (a fresh process, as after a restart): its
+    peaks (MB) after ``Trainer.resume`` and after one step."""
+    from atgs.train.trainer import Trainer
+
+    workers = _join(rank, world, port)
+    try:
+        peaks = {"start": _peak_mb()}
+        scene = PreparedScene.load(scene_dir)
+        tr = Trainer.resume(scene, Path(out) / "ckpt.pt", Path(out) / "resumed", workers=workers,
+                            partition=partition)
+        peaks["resumed"] = _peak_mb()
+        tr.train_step()
+        peaks["step"] = _peak_mb()
+        Path(out, f"resume{rank}.json").write_text(json.dumps({k: round(v, 1) for k, v in peaks.items()}))
+    finally:
+        if workers is not None:
+            workers.close()
+
+
+def _spawn_workers(fn, world: int, args: tuple) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
     import torch.multiprocessing as mp
 
+    mp.start_processes(fn, args=(world, port, *args), nprocs=world, start_method="spawn")
+
+
+def memory_case(name: str, args: Distributed) -> dict:
     from atgs.data.synth.scene import SynthConfig
 
     frames, world, partition = re.fullmatch(r"(\d+)x(\d+)(views|time)", name).groups()
@@ -225,21 +259,21 @@ def memory_case(name: str, args: Distributed) -> dict:
     synth = time.perf_counter() - t0
     out = args.work_dir / f"memory-{name}"
     out.mkdir(parents=True, exist_ok=True)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     t0 = time.perf_counter()
     os.environ["PYTHONPATH"] = str(ROOT)  # the workers import this checkout's atgs
-    mp.start_processes(memory_worker, args=(world, port, str(scene_dir), str(out), partition, args.memory_steps),
-                       nprocs=world, start_method="spawn")
+    _spawn_workers(memory_worker, world, (str(scene_dir), str(out), partition, args.memory_steps))
     workers = [json.loads((out / f"memory{r}.json").read_text()) for r in range(world)]
+    _spawn_workers(memory_resume_worker, world, (str(scene_dir), str(out), partition))  # its checkpoint resumed
+    for r, w in enumerate(workers):
+        w["resume_peak_mb"] = json.loads((out / f"resume{r}.json").read_text())
     return {"frames": frames, "workers": world, "partition": partition, "steps": args.memory_steps,
             "scene_seconds": round(synth, 1), "run_seconds": round(time.perf_counter() - t0, 1),
             "per_worker": workers,
             "largest_peak_mb_before_checkpoint": max(w["peak_mb"]["steps"] for w in workers),
             "largest_resident_mb_after_steps": max(w["resident_mb_after_steps"] for w in workers),
             "largest_peak_mb_of_a_worker_not_writing": max((w["peak_mb"]["checkpoint"] for w in workers[1:]),
-                                                           default=None)}
+                                                           default=None),
+            "largest_peak_mb_resuming": max(w["resume_peak_mb"]["resumed"] for w in workers)}
 
 
 def memory(args: Distributed) -> None:

@@ -30,9 +30,11 @@ def _scene():
 def _configs():
     """The tiny preset, growing from step 4 on; four views of two cameras per step (two for each
     worker: their gradients merge locally first), random backgrounds (drawn ahead for the whole
-    step), learned camera exposure (a second dense gradient)."""
+    step), learned camera exposure (a second dense gradient), Gaussian dropout (each render's
+    draw its own, whichever worker renders it)."""
     m, t = growing_tiny_config(STEPS)
     t.views_per_step, t.cameras_per_frame, t.random_background, t.camera_exposure = 4, 2, True, "on"
+    t.drop_gaussians = 0.4
     return m, t
 
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from builders import growing_tiny_config, make_toy_scene
-from test_distributed import _free_port, _spawn
+from test_distributed import _free_port, _spawn, _tensors
 
 STEPS, HALF = 12, 6
 
@@ -79,6 +79,7 @@ def _run_recorded(tr, stop_at=None) -> dict:
 def _worker(rank: int, world: int, port: int, d: Path) -> None:
     """The time-partitioned run in two halves (its checkpoint at HALF for the 2 -> 1 resume), and
     the one-process checkpoint at HALF resumed on two workers partitioned by time (1 -> 2)."""
+    from atgs.train import distributed
     from atgs.train.trainer import Trainer
 
     workers = _join(rank, world, port)
@@ -88,6 +89,8 @@ def _worker(rank: int, world: int, port: int, d: Path) -> None:
         tr.save(d / "two_half.pt")
         torch.save(_run_recorded(tr), d / f"worker{rank}.pt")
         tr.save(d / "two.pt")
+        distributed.SEND_BYTES = 200  # the same state again, sent in runs of a few rows (one if wider)
+        tr.save(d / "two_in_runs.pt")
         tr = Trainer.resume(_scene(), d / "one_half.pt", d / "one_then_two", workers=workers, partition="time")
         assert tr.model.hash.num_grids == 1 and tr.step == HALF
         tr.run_steps(progress=False)
@@ -153,6 +156,11 @@ def test_two_workers_partitioned_by_time_hold_their_segments_share_the_rest_and_
     _spawn(_worker, (2, _free_port(), tmp_path))
     w = [torch.load(tmp_path / f"worker{r}.pt", weights_only=True) for r in (0, 1)]
     _check_partition(w, tmp_path / "two.pt")
+    small_runs, whole = (_tensors(torch.load(tmp_path / p, weights_only=True)) for p in ("two_in_runs.pt", "two.pt"))
+    assert small_runs.keys() == whole.keys()
+    for k, v in whole.items():
+        if isinstance(v, torch.Tensor):
+            assert v.dtype == small_runs[k].dtype and torch.equal(v, small_runs[k]), k
 
     model = load_model(tmp_path / "two.pt")  # (b) the gathered checkpoint in one process
     assert model.num_anchors > 100, "anchors grew (46 at the start): densification on the workers"

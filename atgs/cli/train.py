@@ -337,7 +337,7 @@ def launch_workers(argv: list[str], args: TrainArgs) -> int:
 
         cfg = from_dict(TrainConfig, read_checkpoint(resumed_checkpoint(args))["train_config"])
     partition = args.train.partition if "partition" in given_flags(argv, "--train.") else cfg.partition
-    check_settings(cfg.views_per_step, cfg.drop_gaussians, n, partition)
+    check_settings(cfg.views_per_step, n, partition)
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
     launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}",
                                              f"--max-restarts={args.max_restarts}", "--module", "atgs.cli.train", *argv])

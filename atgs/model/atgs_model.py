@@ -46,6 +46,15 @@ from atgs.timeline import Timeline
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
 ANCHOR_TABLES = ("anchor_feature", "anchor_log_scale") + MOTION_TABLES
 TEMPORAL_MLP = ("tmlp_w1", "tmlp_b1", "tmlp_w2", "tmlp_b2")
+SEGMENT_TABLES = ("hash",) + TEMPORAL_MLP  # per-segment tables: rows of one time segment after another
+
+
+def segment_rows(name: str, table: torch.Tensor, segments: range, rows_per_grid: int) -> torch.Tensor:
+    """The rows of ``segments`` of a per-segment table (:data:`SEGMENT_TABLES`) that holds all
+    segments' (a copy: of a memory-mapped checkpoint it reads only those rows). ``rows_per_grid``:
+    the hash's rows per segment (levels x table size)."""
+    per = rows_per_grid if name == "hash" else 1
+    return table[segments.start * per:segments.stop * per].clone()
 ANCHOR_LAYOUTS: tuple[str, ...] = get_args(get_type_hints(ModelConfig)["anchor_layout"])  # its Literal
 
 
@@ -559,7 +568,9 @@ class ATGSModel:
 
     @classmethod
     def from_state(cls, cfg: ModelConfig, state: dict, num_frames: int, fps: float,
-                   cameras: list[Camera]) -> "ATGSModel":
+                   cameras: list[Camera], segments: range | None = None) -> "ATGSModel":
+        """The model of a state dict of all segments; ``segments``: keep only these segments'
+        per-segment rows (a worker of the time partition, see ``__init__``)."""
         tl = Timeline(num_frames, int(state["num_keyframes"]), cfg.window, int(state["num_segments"]))
         a = AnchorInit(state["anchor_mu"], state["anchor_log_scale"], state["anchor_keyframe"],
                        float(state["voxel_size"]))
@@ -568,11 +579,13 @@ class ATGSModel:
             cfg = replace(cfg, temporal_fade=False, anchor_velocity=False)
         # checkpoints from before the clearance decode as they were trained: without one
         model = cls(cfg, tl, cameras, fps, a, state["bbox_min"], state["bbox_max"], float(state["extent"]),
-                    clearance=float(state.get("camera_clearance", 0.0)))
+                    clearance=float(state.get("camera_clearance", 0.0)), segments=segments)
         for name, ref in model.sparse_tensors().items():
             if name in MOTION_TABLES and name not in state:
                 continue
             value = state[name]
+            if segments is not None and name in SEGMENT_TABLES:
+                value = segment_rows(name, value, segments, model.hash.levels * model.hash.table_size)
             if name not in ANCHOR_TABLES and value.shape != ref.shape:
                 raise ValueError(f"tensor {name!r} has shape {tuple(value.shape)}, config expects {tuple(ref.shape)}")
             model.set_sparse_tensor(name, value.float().contiguous())

@@ -32,6 +32,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from datetime import timedelta
 import math
 import os
@@ -44,6 +45,7 @@ import torch.distributed as dist
 
 from atgs.config_checks import ConfigError
 from atgs.errors import UserError
+from atgs.io.torch_zip import Streamed
 from atgs.model.culling import AnchorReach
 from atgs.train.optim import merge_rows
 
@@ -57,7 +59,7 @@ class WorkerLost(UserError, RuntimeError):
     resumes)."""
 
 
-def check_settings(views_per_step: int, drop_gaussians: float, workers: int, partition: str = "views") -> None:
+def check_settings(views_per_step: int, workers: int, partition: str = "views") -> None:
     """Refuse settings that N workers cannot train as one process would (partitioned by views;
     partitioned by time, every worker draws its own views: atgs.train.time_partition)."""
     if workers <= 1 or partition == "time":
@@ -65,9 +67,6 @@ def check_settings(views_per_step: int, drop_gaussians: float, workers: int, par
     if views_per_step < workers:
         raise ConfigError(f"{workers} workers share each step's views, but --train.views-per-step is "
                           f"{views_per_step}; pass --train.views-per-step {workers} (or a multiple of it)")
-    if drop_gaussians > 0:
-        raise ConfigError("--train.drop-gaussians is not supported on several workers yet (its draws depend "
-                          "on each view's decode); train on one worker or without it")
 
 
 @dataclass
@@ -146,6 +145,17 @@ def _wire(t: torch.Tensor) -> torch.Tensor:
     """``t`` as the collectives carry it: contiguous, bool as bytes (gloo sends no bool)."""
     t = t.contiguous()
     return t.view(torch.uint8) if t.dtype == torch.bool else t
+
+
+SEND_BYTES = 16 * 2**20  # the most one send of the checkpoint's rows carries (rank 0 holds one)
+
+
+def _runs(rows: int, like: torch.Tensor) -> list[tuple[int, int]]:
+    """``rows`` rows shaped as ``like``'s (one row, or none) in runs of at most SEND_BYTES
+    (one row at least): what both ends of :meth:`Workers.rows_to_leader` cut a table into."""
+    row_bytes = max(1, math.prod(like.shape[1:]) * like.element_size())
+    step = max(1, SEND_BYTES // row_bytes)
+    return [(a, min(a + step, rows)) for a in range(0, rows, step)]
 
 
 class Workers:
@@ -232,33 +242,36 @@ class Workers:
         self._call(dist.gather_object, obj, out, dst=0)
         return out
 
-    def concat_to_leader(self, part: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:
+    def rows_to_leader(self, part: dict[str, torch.Tensor]) -> dict[str, Streamed] | None:
         """Every worker's ``part`` (CPU tensors, the same keys and trailing shapes everywhere),
-        concatenated along the first dimension in rank order, on rank 0; None on the others.
-        Tensor by tensor into one buffer per key that rank 0 allocates once: nothing is pickled,
-        so rank 0 holds the whole once and the others nothing beyond their part (gather_object
-        pickled every part and held it several times over: docs/training.md, "Memory per worker")."""
+        concatenated along the first dimension in rank order, for rank 0 to write
+        (atgs.io.torch_zip): on rank 0, a :class:`Streamed` per key, whose pieces are its own
+        rows and then the others' in runs of at most :data:`SEND_BYTES`, received when the file
+        is written; None on the others, which send their part run by run (nothing pickled). So
+        no worker holds more than its part and one run (docs/training.md, "Memory per worker").
+        Rank 0 must write them in their ``sequence``, the order the others send in
+        (atgs.io.torch_zip does)."""
         rows = self.gather_to_leader({k: int(v.shape[0]) for k, v in part.items()})  # a few numbers
         if not self.leads:
-            for key, t in part.items():
-                if t.numel():
-                    self._call(dist.send, _wire(t).to(self.comm), dst=0)
+            for t in part.values():
+                for a, b in _runs(t.shape[0], t[0:1]):
+                    self._call(dist.send, _wire(t[a:b]).to(self.comm), dst=0)
             return None
-        out = {}
-        for key, t in part.items():
-            whole = torch.empty((sum(r[key] for r in rows), *t.shape[1:]), dtype=t.dtype, device="cpu")
-            at = 0
-            for rank, counts in enumerate(rows):
-                piece = whole[at:at + counts[key]]
-                at += counts[key]
-                if rank == 0:
-                    piece.copy_(t)
-                elif piece.numel():
-                    buf = torch.empty(_wire(piece).shape, dtype=_wire(piece).dtype, device=self.comm)
-                    self._call(dist.recv, buf, src=rank)
-                    _wire(piece).copy_(buf.cpu())
-            out[key] = whole
-        return out
+
+        def pieces(key: str, own: torch.Tensor) -> Iterator[torch.Tensor]:
+            yield own
+            for rank in range(1, self.world):
+                for a, b in _runs(rows[rank][key], own[0:1]):
+                    run = torch.empty((b - a, *own.shape[1:]), dtype=own.dtype, device="cpu")
+                    wire = _wire(run) if self.comm.type == "cpu" else torch.empty(
+                        _wire(run).shape, dtype=_wire(run).dtype, device=self.comm)
+                    self._call(dist.recv, wire, src=rank)
+                    if wire.device != run.device:
+                        _wire(run).copy_(wire.cpu())
+                    yield run
+
+        return {key: Streamed((sum(r[key] for r in rows), *t.shape[1:]), t.dtype, partial(pieces, key, t), i)
+                for i, (key, t) in enumerate(part.items())}
 
     def sum_floats(self, values: Sequence[float]) -> list[float]:
         """The sums over the workers of ``values`` (float64), on every worker."""

@@ -24,6 +24,15 @@ def drop_rate(max_rate: float, step: int, total_steps: int) -> float:
     return max_rate * min(1.0, step / total_steps)
 
 
+def render_generator(seed: int, step: int, view: int, camera: int, device: torch.device | str) -> torch.Generator:
+    """The generator of one render's draw: a function of the run's seed and the render's place
+    (step, view of the step, camera of the view), not of what was drawn before it. So workers
+    that share a step's renders drop what one process would, and a resumed run what the
+    uninterrupted one did."""
+    mixed = ((seed * 1_000_003 + step) * 65_537 + view) * 257 + camera
+    return torch.Generator(device=device).manual_seed(mixed % 2**63)
+
+
 def drop_gaussians(g: Gaussians, rate: float, generator: torch.Generator) -> Gaussians:
     """``g`` with a random ``rate`` of its Gaussians at zero opacity and the others' opacities
     divided by ``1 - rate`` (at most 1). Shapes stay as they are (the densification statistics

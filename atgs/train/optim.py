@@ -36,15 +36,40 @@ def _compiled_kernel():
     return None if cpu_backend_error(SPARSE_ADAM) else load_extension(SPARSE_ADAM)
 
 
+def _taken_over(saved: dict[str, torch.Tensor], tables: dict[str, torch.Tensor], key: str) -> dict[str, torch.Tensor]:
+    """A saved store of moments or step counts, one per table, on the tables' devices (zeros
+    for a table the state lacks: a checkpoint from before that table existed)."""
+    unknown = sorted(set(saved) - set(tables))
+    if unknown:
+        raise ValueError(f"optimizer state has unknown tables {unknown}")
+    out = {}
+    for name, t in tables.items():
+        if name not in saved:
+            out[name] = torch.zeros_like(t) if key != "steps" else torch.zeros(
+                t.shape[0], dtype=torch.int64, device=t.device)
+            continue
+        if saved[name].shape[0] != t.shape[0]:
+            raise ValueError(f"optimizer state {key}/{name} has {saved[name].shape[0]} rows, the table {t.shape[0]}")
+        out[name] = saved[name].to(t.device).contiguous()
+    return out
+
+
 class SparseAdam:
     def __init__(self, tables: dict[str, torch.Tensor], betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-15, backend: str = "auto") -> None:
+                 eps: float = 1e-15, backend: str = "auto", state: dict | None = None) -> None:
+        """``state``: a saved :meth:`state_dict` of these tables to continue from, taken over
+        (moved to the tables' devices, not copied: a resumed run never holds it twice); None:
+        zero moments."""
         if backend not in OPTIM_BACKENDS:
             raise ValueError(f"SparseAdam backend must be one of {OPTIM_BACKENDS}, got {backend!r}")
         self.betas, self.eps, self.backend = betas, eps, backend
-        self.exp_avg = {n: torch.zeros_like(t) for n, t in tables.items()}
-        self.exp_avg_sq = {n: torch.zeros_like(t) for n, t in tables.items()}
-        self.steps = {n: torch.zeros(t.shape[0], dtype=torch.int64, device=t.device) for n, t in tables.items()}
+        if state is None:
+            self.exp_avg = {n: torch.zeros_like(t) for n, t in tables.items()}
+            self.exp_avg_sq = {n: torch.zeros_like(t) for n, t in tables.items()}
+            self.steps = {n: torch.zeros(t.shape[0], dtype=torch.int64, device=t.device) for n, t in tables.items()}
+        else:
+            for key in ("exp_avg", "exp_avg_sq", "steps"):
+                setattr(self, key, _taken_over(state[key], tables, key))
         # build the kernel now (seconds, once per version), not inside a time-budgeted step
         self._kernel = _compiled_kernel() if backend == "auto" and any(
             t.device.type == "cpu" and t.dtype == torch.float32 for t in tables.values()) else None
@@ -112,12 +137,3 @@ class SparseAdam:
 
     def state_dict(self) -> dict:
         return {"exp_avg": dict(self.exp_avg), "exp_avg_sq": dict(self.exp_avg_sq), "steps": dict(self.steps)}
-
-    def load_state_dict(self, state: dict) -> None:
-        """Load a state saved on any device onto the device of this optimizer's tables."""
-        for key in ("exp_avg", "exp_avg_sq", "steps"):
-            mine = getattr(self, key)
-            for name, value in state[key].items():
-                if name not in mine:
-                    raise ValueError(f"optimizer state has unknown table {name!r}")
-                mine[name] = value.to(mine[name].device, copy=True)

@@ -21,10 +21,10 @@ generator; the shared anchors' statistics are summed over the workers and every 
 them with the same generator (seeded by the step) and prunes them alike, so they stay replicas.
 A new anchor takes its parent's keyframe, so it is shared or own as its parent.
 
-Checkpoints: rank 0 gathers every worker's part (:func:`local_part`: its own anchors, segment
-rows, their optimizer state and statistics) and writes one ``ckpt.pt`` in the usual format (the
-anchors shared first, then each worker's own ones in rank order; the segments in order); any
-number of workers, and either partition, resume from it (the trainer slices what it loaded).
+Checkpoints: rank 0 writes every worker's part (:func:`local_part`: its own anchors, segment
+rows, their optimizer state and statistics), received piece by piece as it writes, into one
+``ckpt.pt`` in the usual format (the anchors shared first, then each worker's own ones in rank
+order; the segments in order); any number of workers, and either partition, resume from it (the trainer slices what it loaded).
 """
 
 from __future__ import annotations
@@ -35,12 +35,12 @@ from dataclasses import dataclass
 import torch
 
 from atgs.config_checks import ConfigError
+from atgs.io.torch_zip import Streamed
 from atgs.model.anchors import STATIC
-from atgs.model.atgs_model import ANCHOR_TABLES, TEMPORAL_MLP, ATGSModel
+from atgs.model.atgs_model import ANCHOR_TABLES, SEGMENT_TABLES, ATGSModel, segment_rows
 from atgs.timeline import Timeline
 from atgs.train.distributed import StepViews
 
-SEGMENT_TABLES = ("hash",) + TEMPORAL_MLP  # per-segment tables: a worker holds its segments' rows
 # the sparse tables whose gradients the workers reduce: every row, or the shared anchors' rows
 EXCHANGED = {"spatial": "all", **{name: "shared" for name in ANCHOR_TABLES}}
 _STAT_SLOTS = ("grad_accum", "grad_count", "last_pos")  # per Gaussian slot (anchor * q + slot)
@@ -111,37 +111,14 @@ class TimeSlice:
                      timeline.frames_of_segment(self.segments.stop - 1).stop)
 
     # --- slicing a whole model's state ------------------------------------------------------------
-    def rows_of_segments(self, name: str, table: torch.Tensor, per_grid: int) -> torch.Tensor:
-        """This worker's rows of a whole model's per-segment table ``name``."""
-        s = self.segments
-        if name == "hash":
-            return table[s.start * per_grid:s.stop * per_grid].clone()
-        return table[s.start:s.stop].clone()
-
     def take_model(self, model: ATGSModel) -> torch.Tensor:
-        """Keep this worker's anchors (and, of a whole model, its segments' rows); returns the
-        indices of the anchors kept (for :meth:`take_state`)."""
+        """Keep this worker's anchors of a model of its segments (built with them, or loaded
+        with ``ATGSModel.from_state(segments=...)``); returns the indices of the anchors kept."""
+        if model.hash.num_grids != len(self.segments) or model.first_segment != self.segments.start:
+            raise AssertionError("the model holds other segments than this worker's")
         ids = self.order(model.anchor_keyframe)
         model.keep_anchors(ids)
-        if model.hash.num_grids != len(self.segments):  # a whole model (a resumed checkpoint's)
-            per_grid = model.hash.levels * model.hash.table_size
-            for name in SEGMENT_TABLES:
-                model.set_sparse_tensor(name, self.rows_of_segments(name, model.sparse_tensors()[name], per_grid))
-            model.hash.num_grids = len(self.segments)
-            model.first_segment = self.segments.start
-            model.inference_cache.clear()
-        return ids
-
-    def take_state(self, opt, stats, ids: torch.Tensor, per_grid: int, q: int) -> None:
-        """Slice a whole model's sparse optimizer state and densification statistics (loaded
-        from a checkpoint) to the anchors ``ids`` and this worker's segments."""
-        for name in ANCHOR_TABLES:
-            opt.keep_rows(name, ids)
-        for key in _OPT_STORES:
-            store = getattr(opt, key)
-            for name in SEGMENT_TABLES:
-                store[name] = self.rows_of_segments(name, store[name], per_grid)
-        stats.keep(ids, q)
+        return ids  # (the optimizer state: held_anchors_of_state; the statistics: DensifyStats.keep)
 
     def reorder(self, model: ATGSModel, stats, opt) -> None:
         """Put the shared anchors first again (after growth appended some)."""
@@ -152,6 +129,23 @@ class TimeSlice:
         stats.keep(perm, model.cfg.gaussians_per_anchor)
         for name in ANCHOR_TABLES:
             opt.keep_rows(name, perm)
+
+
+def held_anchors_of_state(sparse_opt: dict, ids: torch.Tensor) -> dict:
+    """A whole model's sparse optimizer state with only the rows of the anchors ``ids`` (of
+    :meth:`TimeSlice.take_model`) in the anchor tables."""
+    ids = ids.cpu()
+    return {key: {name: (rows[ids.to(rows.device)].contiguous() if name in ANCHOR_TABLES else rows)
+                  for name, rows in sparse_opt[key].items()} for key in _OPT_STORES}
+
+
+def keep_segments_of_state(sparse_opt: dict, segments: range, rows_per_grid: int) -> None:
+    """A checkpoint's sparse optimizer state (``trainer.sparse_opt``, all segments) with only
+    ``segments``' rows of the per-segment tables, before it is loaded (of a memory-mapped
+    checkpoint, only those rows are read)."""
+    for key in _OPT_STORES:
+        for name in SEGMENT_TABLES:
+            sparse_opt[key][name] = segment_rows(name, sparse_opt[key][name], segments, rows_per_grid)
 
 
 # --- the step's exchange -------------------------------------------------------------------------------
@@ -213,9 +207,9 @@ def local_part(model: ATGSModel, opt, stats, grid_visits: torch.Tensor, part: Ti
     return {k: v.detach().cpu() for k, v in out.items()}
 
 
-def fill_payload(payload: dict, gathered: dict[str, torch.Tensor]) -> dict:
+def fill_payload(payload: dict, gathered: dict[str, Streamed]) -> dict:
     """Rank 0's checkpoint payload with the workers' parts (:func:`local_part`, concatenated in
-    rank order by ``Workers.concat_to_leader``) in place of its own."""
+    rank order as ``Workers.rows_to_leader`` streams them into the file) in place of its own."""
     st = payload["trainer"]
     for key, whole in gathered.items():
         where, _, name = key.rpartition("/")

@@ -47,7 +47,7 @@ from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_
 from atgs.train.distributed import StepViews, Workers, check_settings
 from atgs.train import time_partition
 from atgs.train.time_partition import TimeSlice, segment_block
-from atgs.train.dropout import drop_gaussians, drop_rate
+from atgs.train.dropout import drop_gaussians, drop_rate, render_generator
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.generalisation import evaluation_gap_warning
 from atgs.train.loss_terms import LossInputs, total_loss, weighted_terms
@@ -126,11 +126,12 @@ def _in_run_threads(method: Callable) -> Callable:
 class Trainer:
     def __init__(self, scene: SceneData, model_cfg: ModelConfig, cfg: TrainConfig, out_dir: str | Path,
                  model: ATGSModel | None = None, device: torch.device | str = "cpu", progress: bool = True,
-                 workers: Workers | None = None) -> None:
+                 workers: Workers | None = None, sparse_state: dict | None = None) -> None:
         """``device``: where training runs (``atgs.device.resolve_device`` picks it for the CLI);
         a given ``model`` is moved there. ``progress``: a bar for the set-up's longer steps.
         ``workers``: this process's place among several training the run together
         (atgs.train.distributed; every worker builds its Trainer alike); None: one process.
+        ``sparse_state``: the given model's sparse optimizer state (:meth:`resume`), taken over.
         The set-up, in order (each step one method below):"""
         self.scene, self.device, self.out = scene, torch.device(device), Path(out_dir)
         self.workers = workers
@@ -147,7 +148,7 @@ class Trainer:
         with self.run_threads():
             self._set_up_views()
             self._set_up_model(model_cfg, model)
-            self._set_up_optimizers()
+            self._set_up_optimizers(sparse_state)
             self._set_up_step_state()
             self._set_up_images_and_exposure()
             self._set_up_loss_inputs()
@@ -162,8 +163,7 @@ class Trainer:
         cfg.validate()
         model_cfg.validate()
         check_backend(self.device, cfg.render_backend)
-        check_settings(cfg.views_per_step, cfg.drop_gaussians, 1 if self.workers is None else self.workers.world,
-                       cfg.partition)
+        check_settings(cfg.views_per_step, 1 if self.workers is None else self.workers.world, cfg.partition)
 
     def _resolve_scene_settings(self, cfg: TrainConfig, environment: EnvironmentMap | None) -> None:
         """Background and camera exposure from the scene, once for the run (scene_setup)."""
@@ -184,8 +184,8 @@ class Trainer:
         s = self.cfg.resolution_scale
         self.cams = [c.scaled(s) if s != 1.0 else c for c in self.scene.cameras]
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
-        self.gen = torch.Generator(device="cpu").manual_seed(
-            self.cfg.seed + (7919 * self.workers.rank if self.timed else 0))
+        self.draw_seed = self.cfg.seed + (7919 * self.workers.rank if self.timed else 0)
+        self.gen = torch.Generator(device="cpu").manual_seed(self.draw_seed)
 
     def _set_up_model(self, model_cfg: ModelConfig, model: ATGSModel | None) -> None:
         """A new model from the scene (on the CPU, then moved) or the given one, on the device."""
@@ -217,9 +217,12 @@ class Trainer:
         self.part = TimeSlice.plan(m.timeline, m, self.workers.rank, self.workers.world)
         self._taken = self.part.take_model(m)
 
-    def _set_up_optimizers(self) -> None:
-        """Sparse Adam for the tables (rows a step touches), dense Adam for the decoder heads."""
-        self.sparse_opt = SparseAdam(self.model.sparse_tensors(), eps=self.cfg.adam_eps)
+    def _set_up_optimizers(self, sparse_state: dict | None) -> None:
+        """Sparse Adam for the tables (rows a step touches; ``sparse_state``: a resumed run's,
+        of the anchors this worker kept), dense Adam for the decoder heads."""
+        if sparse_state is not None and self._taken is not None:
+            sparse_state = time_partition.held_anchors_of_state(sparse_state, self._taken)
+        self.sparse_opt = SparseAdam(self.model.sparse_tensors(), eps=self.cfg.adam_eps, state=sparse_state)
         dec = self.model.decoder
         self.dense_opt = torch.optim.Adam(
             [{"params": list(getattr(dec, h).parameters()), "name": h} for h in dec.HEADS], lr=0.0,
@@ -423,7 +426,8 @@ class Trainer:
         outs, total = [], None
         for k, (ci, cam) in enumerate(zip(view.cams, cams)):  # one decode, rendered from each camera
             gt = self.images.get(ci, view.frame)
-            shown = drop_gaussians(dec.gaussians, rate, self.gen)  # all of them unless dropout is on
+            shown = dec.gaussians if rate <= 0 else drop_gaussians(  # (a draw of its own: dropout.py)
+                dec.gaussians, rate, render_generator(self.draw_seed, self.step, view.index, k, self.gen.device))
             background = self._background() if view.backgrounds is None else view.backgrounds[k]
             out = rasterize_gaussians(shown, cam, background=background, backend=cfg.render_backend)
             out.means2d.retain_grad()
@@ -627,14 +631,14 @@ class Trainer:
         call it (the statistics are summed over them), rank 0 writes."""
         with self._stats_of_all_views():
             parts = None
-            if self.part is not None:  # partitioned by time: rank 0 gathers every worker's part
-                parts = self.workers.concat_to_leader(time_partition.local_part(
+            if self.part is not None:  # partitioned by time: rank 0 writes every worker's part
+                parts = self.workers.rows_to_leader(time_partition.local_part(
                     self.model, self.sparse_opt, self.stats, self.grid_visits, self.part))
             if not self.leads:
                 return self.run.ckpt_path if path is None else Path(path)
             payload = self.checkpoint_payload()
             if parts is not None:
-                payload = time_partition.fill_payload(payload, parts)  # the workers' parts, concatenated
+                payload = time_partition.fill_payload(payload, parts)  # received as the file is written
             if path is None:
                 return self.run.save_checkpoint(payload)
             save_checkpoint(path, payload)
@@ -651,7 +655,8 @@ class Trainer:
         sized to it as ``--iterations`` sizes it); ``minutes``: a new total time budget (the
         time already used counts); ``partition``: how several workers split the run from here
         (default: as it was saved; a checkpoint of either resumes with either)."""
-        data = read_checkpoint(path)
+        # several workers: memory-mapped, so that a worker reads only the rows it keeps
+        data = read_checkpoint(path, mmap=workers is not None)
         if data.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
         model_cfg = from_dict(ModelConfig, data["model_config"])
@@ -668,18 +673,21 @@ class Trainer:
         if int(data["num_frames"]) != scene.num_frames:
             raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
-        model = model_from_checkpoint(data, path, device)
-        tr = cls(scene, model_cfg, cfg, out_dir, model=model, device=device, workers=workers)
+        segments = None
+        if workers is not None and cfg.partition == "time":  # this worker's segments' rows, no others
+            segments = segment_block(int(data["model"]["num_segments"]), workers.rank, workers.world)
+            time_partition.keep_segments_of_state(data["trainer"]["sparse_opt"], segments,
+                                                  data["model"]["hash"].shape[0] // int(data["model"]["num_segments"]))
+        model = model_from_checkpoint(data, path, device, segments)
         st = data["trainer"]
-        tr.sparse_opt.load_state_dict(st["sparse_opt"])
+        tr = cls(scene, model_cfg, cfg, out_dir, model=model, device=device, workers=workers,
+                 sparse_state=st["sparse_opt"])
         tr.dense_opt.load_state_dict(st["dense_opt"])  # torch.optim moves the state to the parameters
         if tr.exposure is not None and st.get("exposure") is not None:
             tr.exposure.load_state_dict(st["exposure"])
         tr.stats = DensifyStats.from_state(st["densify"], tr.device)
         if tr.part is not None:  # partitioned by time: this worker's share of the whole state
-            h = tr.model.hash
-            tr.part.take_state(tr.sparse_opt, tr.stats, tr._taken, h.levels * h.table_size,
-                               tr.model_cfg.gaussians_per_anchor)
+            tr.stats.keep(tr._taken, tr.model_cfg.gaussians_per_anchor)
         if tr.workers is not None:  # the saved sums are all views': rank 0 carries them on
             tr.workers.own_sums(tr.stats, None if tr.part is None else tr.part.num_shared(tr.model))
         tr.sampler.load_state_dict(st["sampler"])
