@@ -110,3 +110,32 @@ def test_pieces_that_do_not_add_up_fail_and_leave_the_old_checkpoint(tmp_path):
         save_checkpoint(path, short)
     assert read_checkpoint(path)["step"] == 1
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt.pt"]  # no temporary left behind
+
+
+@pytest.mark.parametrize("streamed", [False, True])
+def test_read_rows_gives_the_rows_a_full_load_gives(tmp_path, streamed):
+    from atgs.io.torch_zip import read_rows
+
+    obj = _case()
+    g = torch.Generator().manual_seed(1)
+    base = torch.randn(40, 3, generator=g)
+    obj["offset_view"] = base[10:30]  # a tensor at an offset into its storage
+    obj["ints"] = torch.arange(24, dtype=torch.int64).reshape(12, 2)
+    if streamed:
+        save_streamed(obj, tmp_path / "f.pt")
+    else:
+        torch.save(_materialized(obj), tmp_path / "f.pt")
+    full = torch.load(tmp_path / "f.pt", weights_only=True)
+    wanted = {("model", "table"): range(250, 731), ("offset_view",): range(3, 9), ("flags",): range(0, 300),
+              ("ints",): range(12, 12), ("nested", 3): range(49, 50)}
+    data = torch.load(tmp_path / "f.pt", weights_only=True, mmap=True)
+    read_rows(tmp_path / "f.pt", data, wanted)
+    for keys, rows in wanted.items():
+        got, ref = data, full
+        for k in keys:
+            got, ref = got[k], ref[k]
+        assert got.dtype == ref.dtype and torch.equal(got, ref[rows.start:rows.stop]), keys
+    assert torch.equal(data["shared"], full["shared"])  # the rest as loaded
+    with pytest.raises(ValueError, match="cannot give rows"):
+        read_rows(tmp_path / "f.pt", torch.load(tmp_path / "f.pt", weights_only=True, mmap=True),
+                  {("ints",): range(5, 13)})

@@ -1,4 +1,5 @@
-"""``torch.save`` files some of whose tensors are written piece by piece as they arrive.
+"""``torch.save`` files some of whose tensors are written piece by piece as they arrive, and
+reading some tensors' rows out of such a file without reading the rest.
 
 A writer that gathers a large table from several processes (the time-partitioned trainer's
 checkpoint) would otherwise hold the whole table once before ``torch.save`` could write it.
@@ -12,7 +13,8 @@ bytes are written at its offset in the file (``PyTorchFileReader.get_record_offs
 records' CRC-32s, left 0 by ``skip_data``, are set in their data descriptors and the central
 directory, so the file is a valid zip archive (``zipfile.testzip`` passes) as torch's own is.
 Which record holds which tensor is read back from the written pickle, not assumed from the
-order of pickling.
+order of pickling. :func:`read_rows` uses the same map of records to read a slice of rows of a
+tensor of a memory-mapped checkpoint with ordinary reads (a worker resuming its share).
 """
 
 from __future__ import annotations
@@ -121,8 +123,7 @@ def save_streamed(obj, path: str | Path) -> None:
     laid_out = _placeholders(obj, streamed)
     with torch.serialization.skip_data():
         torch.save(laid_out, path)
-    reader = torch._C.PyTorchFileReader(str(path))
-    slots = _RecordKeys(io.BytesIO(reader.get_record("data.pkl"))).load()
+    reader, slots = _records(path)
     pairs: list = []
     _pairs(laid_out, slots, pairs)
     stored: dict[str, torch.UntypedStorage] = {}
@@ -153,6 +154,36 @@ def save_streamed(obj, path: str | Path) -> None:
                 raise ValueError(f"{path}: a streamed tensor of {s.nbytes} bytes received {written}")
             crcs[key] = crc
         _set_crcs(fh, path, crcs)
+
+
+def _records(path: Path):
+    """The file's reader and its pickle's tree with every tensor as its :class:`_Slot`."""
+    reader = torch._C.PyTorchFileReader(str(path))
+    return reader, _RecordKeys(io.BytesIO(reader.get_record("data.pkl"))).load()
+
+
+def read_rows(path: str | Path, data: dict, wanted: dict[tuple[str, ...], range]) -> None:
+    """Replace, in ``data`` (``torch.load(path, mmap=True)`` of the same file), each tensor at a
+    key path of ``wanted`` by a new tensor of only those rows (of its first dimension), read
+    from the file with ordinary reads: the map's pages of the tensor are never touched, so the
+    reader's resident memory holds the rows it keeps and nothing of the rest."""
+    path = Path(path)
+    reader, slots = _records(path)
+    with open(path, "rb") as fh:
+        for keys, rows in wanted.items():
+            t, slot = data, slots
+            for k in keys[:-1]:
+                t, slot = t[k], slot[k]
+            whole, slot = t[keys[-1]], slot[keys[-1]]
+            if not whole.is_contiguous() or not 0 <= rows.start <= rows.stop <= whole.shape[0]:
+                raise ValueError(f"{path}: {'/'.join(keys)} cannot give rows {rows.start}..{rows.stop}")
+            out = torch.empty((len(rows), *whole.shape[1:]), dtype=whole.dtype, device="cpu")
+            row = out[0:1].numel() * out.element_size() if len(rows) else 0
+            fh.seek(reader.get_record_offset(f"data/{slot.key}") + slot.offset * whole.element_size()
+                    + rows.start * row)
+            if len(rows) and fh.readinto(out.reshape(-1).view(torch.uint8).numpy()) != out.numel() * out.element_size():
+                raise ValueError(f"{path}: {'/'.join(keys)} is truncated; the file is damaged")
+            t[keys[-1]] = out
 
 
 def _set_crcs(fh, path: Path, crcs: dict[str, int]) -> None:

@@ -49,12 +49,11 @@ TEMPORAL_MLP = ("tmlp_w1", "tmlp_b1", "tmlp_w2", "tmlp_b2")
 SEGMENT_TABLES = ("hash",) + TEMPORAL_MLP  # per-segment tables: rows of one time segment after another
 
 
-def segment_rows(name: str, table: torch.Tensor, segments: range, rows_per_grid: int) -> torch.Tensor:
-    """The rows of ``segments`` of a per-segment table (:data:`SEGMENT_TABLES`) that holds all
-    segments' (a copy: of a memory-mapped checkpoint it reads only those rows). ``rows_per_grid``:
-    the hash's rows per segment (levels x table size)."""
+def segment_rows(name: str, segments: range, rows_per_grid: int) -> range:
+    """The rows of ``segments`` in a per-segment table (:data:`SEGMENT_TABLES`) of all segments.
+    ``rows_per_grid``: the hash's rows per segment (levels x table size)."""
     per = rows_per_grid if name == "hash" else 1
-    return table[segments.start * per:segments.stop * per].clone()
+    return range(segments.start * per, segments.stop * per)
 ANCHOR_LAYOUTS: tuple[str, ...] = get_args(get_type_hints(ModelConfig)["anchor_layout"])  # its Literal
 
 
@@ -129,10 +128,12 @@ def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Te
 class ATGSModel:
     def __init__(self, cfg: ModelConfig, timeline: Timeline, cameras: list[Camera], fps: float,
                  anchors: AnchorInit, bbox_min: torch.Tensor, bbox_max: torch.Tensor, extent: float,
-                 seed: int = 0, clearance: float = 0.0, segments: range | None = None) -> None:
+                 seed: int = 0, clearance: float = 0.0, segments: range | None = None,
+                 draw_hash: bool = True) -> None:
         """``segments``: the per-segment tables (hash grids, temporal MLPs) hold only these
         segments' rows (a worker of the time partition, atgs.train.time_partition): decoding
-        then reaches only frames of these segments; None: all of them."""
+        then reaches only frames of these segments; None: all of them. ``draw_hash=False``: the
+        hash table is left uninitialised, for a loaded one (:meth:`from_state`)."""
         self.cfg, self.timeline = cfg, timeline
         # the first segment of the per-segment tables (their row 0); see ``segments``
         self.first_segment = 0 if segments is None else segments.start
@@ -161,7 +162,7 @@ class ATGSModel:
         h = cfg.hash
         M = timeline.num_segments
         self.hash = HashGrid4D(M, h.levels, h.features_per_level, h.log2_table_size, h.base_resolution,
-                               h.growth, h.max_time_resolution, generator=gen, grids=segments)
+                               h.growth, h.max_time_resolution, generator=gen, grids=segments, draw=draw_hash)
         n_in = h.levels * h.features_per_level
 
         def uni(shape: tuple[int, ...], fan_in: int) -> torch.Tensor:
@@ -569,8 +570,8 @@ class ATGSModel:
     @classmethod
     def from_state(cls, cfg: ModelConfig, state: dict, num_frames: int, fps: float,
                    cameras: list[Camera], segments: range | None = None) -> "ATGSModel":
-        """The model of a state dict of all segments; ``segments``: keep only these segments'
-        per-segment rows (a worker of the time partition, see ``__init__``)."""
+        """The model of a state dict; ``segments``: the state's per-segment tables hold only
+        these segments' rows (a worker of the time partition, see ``__init__``)."""
         tl = Timeline(num_frames, int(state["num_keyframes"]), cfg.window, int(state["num_segments"]))
         a = AnchorInit(state["anchor_mu"], state["anchor_log_scale"], state["anchor_keyframe"],
                        float(state["voxel_size"]))
@@ -579,13 +580,11 @@ class ATGSModel:
             cfg = replace(cfg, temporal_fade=False, anchor_velocity=False)
         # checkpoints from before the clearance decode as they were trained: without one
         model = cls(cfg, tl, cameras, fps, a, state["bbox_min"], state["bbox_max"], float(state["extent"]),
-                    clearance=float(state.get("camera_clearance", 0.0)), segments=segments)
+                    clearance=float(state.get("camera_clearance", 0.0)), segments=segments, draw_hash=False)
         for name, ref in model.sparse_tensors().items():
             if name in MOTION_TABLES and name not in state:
                 continue
             value = state[name]
-            if segments is not None and name in SEGMENT_TABLES:
-                value = segment_rows(name, value, segments, model.hash.levels * model.hash.table_size)
             if name not in ANCHOR_TABLES and value.shape != ref.shape:
                 raise ValueError(f"tensor {name!r} has shape {tuple(value.shape)}, config expects {tuple(ref.shape)}")
             model.set_sparse_tensor(name, value.float().contiguous())

@@ -167,17 +167,21 @@ class HashGrid4D:
     def __init__(self, num_grids: int, levels: int, features: int, log2_table: int, base_res: int,
                  growth: float, max_time_res: int, init_scale: float = 1e-4,
                  generator: torch.Generator | None = None, backend: str = "auto",
-                 grids: range | None = None) -> None:
+                 grids: range | None = None, draw: bool = True) -> None:
         """``grids``: keep only these grids' rows (a worker of the time partition,
         atgs.train.time_partition; the generator is still advanced over all of them, one grid's
-        draws at a time); the table then holds ``len(grids)`` grids, queried by local index."""
+        draws at a time); the table then holds ``len(grids)`` grids, queried by local index.
+        ``draw=False``: leave the table uninitialised (a loaded table replaces it)."""
         self.levels, self.features = int(levels), int(features)
         self.table_size = 2 ** int(log2_table)
         self.res = [max(1, int(math.floor(base_res * growth**lv))) for lv in range(self.levels)]
         self.time_res = [max(1, min(r, int(max_time_res))) for r in self.res]
         # Instant-NGP initializes uniformly in [-1e-4, 1e-4].
         device = generator.device if generator is not None else "cpu"
-        if grids is None:
+        if not draw:
+            self.num_grids = int(num_grids) if grids is None else len(grids)
+            self.table = torch.empty(self.num_grids * self.levels * self.table_size, self.features, device=device)
+        elif grids is None:
             self.num_grids = int(num_grids)
             rows = self.num_grids * self.levels * self.table_size
             self.table = (torch.rand(rows, self.features, generator=generator, device=device) * 2 - 1) * init_scale

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import torch
 
 from atgs.config_checks import ConfigError
-from atgs.io.torch_zip import Streamed
+from atgs.io.torch_zip import Streamed, read_rows
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ANCHOR_TABLES, SEGMENT_TABLES, ATGSModel, segment_rows
 from atgs.timeline import Timeline
@@ -139,13 +139,16 @@ def held_anchors_of_state(sparse_opt: dict, ids: torch.Tensor) -> dict:
                   for name, rows in sparse_opt[key].items()} for key in _OPT_STORES}
 
 
-def keep_segments_of_state(sparse_opt: dict, segments: range, rows_per_grid: int) -> None:
-    """A checkpoint's sparse optimizer state (``trainer.sparse_opt``, all segments) with only
-    ``segments``' rows of the per-segment tables, before it is loaded (of a memory-mapped
-    checkpoint, only those rows are read)."""
-    for key in _OPT_STORES:
-        for name in SEGMENT_TABLES:
-            sparse_opt[key][name] = segment_rows(name, sparse_opt[key][name], segments, rows_per_grid)
+def read_segment_rows(path, data: dict, segments: range) -> None:
+    """Put in ``data`` (a memory-mapped checkpoint of all segments, ``path``'s) only
+    ``segments``' rows of the per-segment tables and of their optimizer state, read from the
+    file (atgs.io.torch_zip.read_rows: nothing of the other segments is read)."""
+    num = int(data["model"]["num_segments"])
+    per_grid = data["model"]["hash"].shape[0] // num
+    wanted = {("model", name): segment_rows(name, segments, per_grid) for name in SEGMENT_TABLES}
+    wanted.update({("trainer", "sparse_opt", key, name): segment_rows(name, segments, per_grid)
+                   for key in _OPT_STORES for name in SEGMENT_TABLES})
+    read_rows(path, data, wanted)
 
 
 # --- the step's exchange -------------------------------------------------------------------------------

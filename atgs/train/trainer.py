@@ -676,8 +676,7 @@ class Trainer:
         segments = None
         if workers is not None and cfg.partition == "time":  # this worker's segments' rows, no others
             segments = segment_block(int(data["model"]["num_segments"]), workers.rank, workers.world)
-            time_partition.keep_segments_of_state(data["trainer"]["sparse_opt"], segments,
-                                                  data["model"]["hash"].shape[0] // int(data["model"]["num_segments"]))
+            time_partition.read_segment_rows(path, data, segments)
         model = model_from_checkpoint(data, path, device, segments)
         st = data["trainer"]
         tr = cls(scene, model_cfg, cfg, out_dir, model=model, device=device, workers=workers,
