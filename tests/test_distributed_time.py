@@ -215,7 +215,8 @@ def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes
 
 
 def _eval_worker(rank: int, world: int, port: int, d: Path) -> None:
-    """Each partition trained 3 steps, then the periodic evaluation spread over the workers."""
+    """Each partition trained 3 steps, then the periodic and the final evaluation spread over the
+    workers."""
     import json
 
     workers = _join(rank, world, port)
@@ -227,21 +228,29 @@ def _eval_worker(rank: int, world: int, port: int, d: Path) -> None:
             out[partition] = {"ev": tr._evaluate_on_every_worker(), "own": tr.own_eval_frames(),
                               "all": tr.eval_frames()}
             tr.save(d / f"{partition}.pt")
+            out[partition]["final"] = tr.final_evaluation(d / f"{partition}-eval")  # rank 0: the figures
         (d / f"eval{rank}.json").write_text(json.dumps(out))
     finally:
         workers.close()
 
 
-def test_the_periodic_evaluation_is_spread_over_the_workers_and_scores_every_frame(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def spread_evaluations(tmp_path_factory) -> tuple[Path, list[dict]]:
+    """Two workers of each partition after 3 steps: their evaluations and checkpoints."""
+    import json
+
+    d = tmp_path_factory.mktemp("spread")
+    _spawn(_eval_worker, (2, _free_port(), d))
+    return d, [json.loads((d / f"eval{r}.json").read_text()) for r in (0, 1)]
+
+
+def test_the_periodic_evaluation_is_spread_over_the_workers_and_scores_every_frame(spread_evaluations) -> None:
     """Each worker scores its share of the evaluation frames (by time: the frames its segments
     decode, so worker 1's frames count too); the summed scores are one process's evaluation of the
     gathered checkpoint over all of those frames."""
-    import json
-
     from atgs.train.trainer import Trainer
 
-    _spawn(_eval_worker, (2, _free_port(), tmp_path))
-    got = [json.loads((tmp_path / f"eval{r}.json").read_text()) for r in (0, 1)]
+    tmp_path, got = spread_evaluations
     for partition in ("time", "views"):
         a, b = got[0][partition], got[1][partition]
         assert a["all"] == b["all"] and len(a["all"]) > 2
@@ -253,3 +262,31 @@ def test_the_periodic_evaluation_is_spread_over_the_workers_and_scores_every_fra
         assert a["ev"]["psnr"] == pytest.approx(ref["psnr"], rel=1e-4)
         assert a["ev"]["ssim"] == pytest.approx(ref["ssim"], rel=1e-4)
     assert max(got[1]["time"]["own"]) > max(got[0]["time"]["own"])  # worker 1 holds the later frames
+
+
+def test_the_final_evaluation_is_spread_over_the_workers_and_writes_what_one_process_writes(spread_evaluations):
+    """The final evaluation (every frame, full resolution, three pictures per camera): each
+    worker scores the frames it holds, rank 0 writes the directory. Reference: one process
+    evaluating the checkpoint the workers wrote (per_view.csv row by row, the same pictures)."""
+    import csv
+    import json
+
+    from atgs.train.trainer import Trainer
+
+    tmp_path, got = spread_evaluations
+    for partition in ("time", "views"):
+        assert got[1][partition]["final"] is None  # rank 0 reports
+        one = Trainer.resume(_scene(), tmp_path / f"{partition}.pt", tmp_path / f"one-final-{partition}")
+        ref = one.final_evaluation(tmp_path / f"one-{partition}-eval")
+        spread, alone = tmp_path / f"{partition}-eval", tmp_path / f"one-{partition}-eval"
+        cameras = len(one.test_idx or [0])
+        assert got[0][partition]["final"]["views"] == ref["views"] == 8 * cameras  # every frame
+        assert got[0][partition]["final"]["psnr"] == pytest.approx(ref["psnr"], rel=1e-4)
+        rows = [list(csv.reader(open(d / "per_view.csv"))) for d in (spread, alone)]
+        assert [r[:2] for r in rows[0]] == [r[:2] for r in rows[1]]  # the same views in the same order
+        for a, b in zip(rows[0][1:], rows[1][1:]):
+            assert [float(x) for x in a[2:4]] == pytest.approx([float(x) for x in b[2:4]], rel=1e-4)
+        pictures = [sorted(p.relative_to(d).as_posix() for p in (d / "images").rglob("*.png")) for d in (spread, alone)]
+        assert pictures[0] == pictures[1] and len(pictures[0]) == 3 * cameras
+        summary = json.loads((spread / "summary.json").read_text())
+        assert summary["num_views"] == ref["views"] and summary["settings"]["frames"] == list(range(8))

@@ -261,14 +261,17 @@ def _train(args: TrainArgs, explicit: set[str], workers) -> dict:
     with stop_on_sigint(notice if trainer.leads else "") as stop:
         result = trainer.run_steps(progress=args.progress, should_stop=stop)
     ckpt = trainer.run.ckpt_path
-    if not trainer.leads:  # rank 0 evaluates, writes and says what happened
-        return result
-    if "stopped_early" in result:
+    if "stopped_early" in result:  # (every worker stopped after the same step)
+        if not trainer.leads:
+            return result
         if not result["steps"]:
             raise Interrupted(f"stopped before the first step; nothing was written to {args.out}")
         raise Interrupted(f"checkpoint of step {trainer.step} saved to {ckpt}; continue with "
                           f"atgs-train --out {args.out} --resume")
-    result["eval"] = trainer.final_evaluation(args.out / "eval")  # the figure atgs-eval gives
+    ev = trainer.final_evaluation(args.out / "eval")  # the figure atgs-eval gives; every worker scores its frames
+    if not trainer.leads:  # rank 0 writes and says what happened
+        return result
+    result["eval"] = ev
     trainer.run.write_result(result)
     ev = result.get("eval", {})
     # a scene without held-out cameras is scored on a training camera: say so, not "test"

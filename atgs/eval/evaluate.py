@@ -18,6 +18,7 @@ run leaves a previous OUT untouched.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import time
@@ -193,10 +194,31 @@ def comparison_image(render: np.ndarray, gt: np.ndarray, gain: float) -> np.ndar
 
 # --- the evaluation --------------------------------------------------------------------------------
 
+@dataclass
+class Share:
+    """An evaluation spread over several processes (the trainer's workers): this one scores the
+    selected frames that are in ``frames``; ``gather(obj)`` returns every process's ``obj`` in rank
+    order on the process that writes and None on the others
+    (``atgs.train.distributed.Workers.gather_to_leader``)."""
+
+    frames: Sequence[int]
+    gather: Callable[[Any], list | None]
+
+
+@dataclass
+class _Scored:
+    """One process's share of an evaluation: its views' rows and its frames' Gaussian counts."""
+
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    gaussians: dict[int, int] = field(default_factory=dict)  # frame -> Gaussians drawn
+    renders: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
+
+
 def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, out: Path | None = None,
              *, background: "Sequence[float] | torch.Tensor | EnvironmentMap | None" = None,
              settings: dict[str, Any] | None = None, keep_renders: bool = False,
-             camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
+             camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None = None,
+             share: Share | None = None) -> EvalResult | None:
     """Evaluate ``model`` on ``scene`` (see the module docstring).
 
     ``background``: what the model was trained over, an RGB or an
@@ -205,7 +227,10 @@ def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, 
     summary.json (e.g. checkpoint and data paths). ``keep_renders`` keeps the (H,W,3) renders in
     the result. ``camera_transform(camera index, render)``: what a camera did to the image before
     it is compared (the trainer's per-camera exposure when it evaluates a training camera); the
-    result is clipped to [0, 1]. Raises :class:`EvalError` on bad input.
+    result is clipped to [0, 1]. ``share``: spread over several processes, each scoring its
+    frames; the one that gathers writes ``out`` and returns what one process would (the same rows
+    in the same order, the same pictures), the others return None. Raises :class:`EvalError` on
+    bad input.
     """
     cfg = cfg or EvalConfig()
     if background is None:  # the model's own: its environment map if it has one, else its colour
@@ -218,37 +243,102 @@ def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, 
     frames = select_frames(model, scene, cfg.frames, cfg.every)
     if not 0.0 < cfg.resolution_scale <= 1.0:
         raise EvalError(f"--resolution-scale must be in (0, 1], got {cfg.resolution_scale}")
+    if keep_renders and share is not None:
+        raise ValueError("keep_renders: the renders of a shared evaluation stay with each process")
     if cfg.lpips:
         lpips_net, lpips_reason = load_lpips(cfg.lpips_backbone, cfg.lpips_linear)
     else:
         lpips_net, lpips_reason = None, "disabled (--no-lpips)"
-    small = [c.name for c in _eval_cameras(scene, cam_indices, cfg.resolution_scale)
-             if min(c.width, c.height) < LPIPS.MIN_SIZE]
+    cams = _eval_cameras(scene, cam_indices, cfg.resolution_scale)
+    small = [c.name for c in cams if min(c.width, c.height) < LPIPS.MIN_SIZE]
     if lpips_net is not None and small:
         lpips_net, lpips_reason = None, f"images of {', '.join(small)} are smaller than {LPIPS.MIN_SIZE} px"
+    if out is not None:
+        out = Path(out)
+        if out.exists() and not out.is_dir():
+            raise EvalError(f"--out {out}: exists and is not a directory; choose another --out")
+    pictured = image_frames(frames, cfg.images_per_camera) if out is not None else set()
+    t0 = time.perf_counter()
+
+    def score(own: list[int], picture: Callable[[str, int, np.ndarray], None]) -> _Scored:
+        return _score(model, scene, cfg, cam_indices, cams, own, lpips_net, bg, keep_renders, camera_transform,
+                      pictured, picture)
+
+    def finish(scored: _Scored, tmp: Path | None) -> EvalResult:
+        summary = _summary(scored.rows, cams, frames, cfg, lpips_net is not None, lpips_reason,
+                           [scored.gaussians[f] for f in frames if f in scored.gaussians],
+                           time.perf_counter() - t0, bg, settings or {})
+        if tmp is not None:
+            write_csv(tmp / "per_view.csv", scored.rows)
+            (tmp / "summary.json").write_text(json.dumps(json_safe(summary), indent=1) + "\n")
+        return EvalResult(rows=scored.rows, summary=summary, renders=scored.renders)
+
+    if share is not None:
+        return _shared(share, frames, cam_indices, scene, out, score, finish)
     if out is None:
-        return _run(model, scene, cfg, cam_indices, frames, lpips_net, lpips_reason, None, bg, settings,
-                    keep_renders, camera_transform)
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise EvalError(f"--out {out}: exists and is not a directory; choose another --out")
+        return finish(score(frames, _no_picture), None)
     with atomic_dir(out, overwrite=True) as tmp:
-        result = _run(model, scene, cfg, cam_indices, frames, lpips_net, lpips_reason, tmp, bg, settings,
-                      keep_renders, camera_transform)
+        result = finish(score(frames, _picture_writer(tmp)), tmp)
     result.out_dir = out
     return result
 
 
-def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[int], frames: list[int],
-         lpips_net: Any, lpips_reason: str, tmp: Path | None, background: torch.Tensor | EnvironmentMap | None,
-         settings: dict[str, Any] | None, keep_renders: bool,
-         camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
-    t0 = time.perf_counter()
-    cams = _eval_cameras(scene, cam_indices, cfg.resolution_scale)
-    picture_frames = image_frames(frames, cfg.images_per_camera) if tmp is not None else set()
-    rows: list[dict[str, Any]] = []
-    renders: dict[tuple[str, int], np.ndarray] = {}
-    num_gaussians: list[int] = []
+def _no_picture(camera: str, frame: int, image: np.ndarray) -> None:
+    raise AssertionError("no pictures without an output directory")
+
+
+def _picture_writer(root: Path) -> Callable[[str, int, np.ndarray], None]:
+    def write(camera: str, frame: int, image: np.ndarray) -> None:
+        d = root / "images" / camera
+        d.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(image).save(d / f"{frame:06d}.png", compress_level=1)
+    return write
+
+
+def _shared(share: Share, frames: list[int], cam_indices: list[int], scene: EvalScene, out: Path | None,
+            score: Callable, finish: Callable) -> EvalResult | None:
+    """Each process scores its frames (and encodes its pictures); the writer merges them in one
+    process's order (frames, then cameras) and writes ``out``."""
+    own = set(int(f) for f in share.frames)
+    pictures: dict[tuple[str, int], bytes] = {}
+
+    def keep(camera: str, frame: int, image: np.ndarray) -> None:
+        buf = io.BytesIO()
+        Image.fromarray(image).save(buf, format="png", compress_level=1)
+        pictures[(camera, frame)] = buf.getvalue()
+
+    mine = score([f for f in frames if f in own], keep)
+    parts = share.gather((mine.rows, mine.gaussians, pictures))
+    if parts is None:
+        return None
+    frame_at = {f: k for k, f in enumerate(frames)}
+    camera_at = {scene.cameras[i].name: k for k, i in enumerate(cam_indices)}
+    merged = _Scored(rows=sorted((r for rows, _, _ in parts for r in rows),
+                                 key=lambda r: (frame_at[r["frame"]], camera_at[r["camera"]])),
+                     gaussians={f: n for _, counts, _ in parts for f, n in counts.items()})
+    scored_frames = [r["frame"] for r in merged.rows]
+    if sorted(set(scored_frames)) != frames or len(merged.rows) != len(frames) * len(cam_indices):
+        raise AssertionError("the processes' frames do not cover the evaluation exactly once")
+    if out is None:
+        return finish(merged, None)
+    with atomic_dir(out, overwrite=True) as tmp:
+        for _, _, pngs in parts:
+            for (camera, frame), png in pngs.items():
+                d = tmp / "images" / camera
+                d.mkdir(parents=True, exist_ok=True)
+                (d / f"{frame:06d}.png").write_bytes(png)
+        result = finish(merged, tmp)
+    result.out_dir = out
+    return result
+
+
+def _score(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[int], cams: list[Camera],
+           frames: list[int], lpips_net: Any, background: torch.Tensor | EnvironmentMap | None,
+           keep_renders: bool, camera_transform: Callable[[int, torch.Tensor], torch.Tensor] | None,
+           pictured: set[int], picture: Callable[[str, int, np.ndarray], None]) -> _Scored:
+    """Render and score ``frames`` x cameras; the comparison image of each view at a ``pictured``
+    frame goes to ``picture``."""
+    scored = _Scored()
     was_training = getattr(model, "training", None)
     if was_training and hasattr(model, "train"):
         model.train(False)
@@ -257,7 +347,7 @@ def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[
                                            enabled=cfg.progress) as bar:
             for f in frames:
                 g = model.gaussians_at_frame(f).detach()
-                num_gaussians.append(len(g))
+                scored.gaussians[f] = len(g)
                 for ci, cam in zip(cam_indices, cams):
                     gt_np = _ground_truth(scene, ci, f, cam)  # checked against the scene, resized to cam
                     bg = background
@@ -269,27 +359,18 @@ def _run(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: list[
                     gt = torch.from_numpy(gt_np).to(render.device, render.dtype)
                     row: dict[str, Any] = {"camera": cam.name, "frame": f, **all_metrics(render, gt)}
                     row["lpips"] = UNAVAILABLE if lpips_net is None else float(lpips_net(render.cpu(), gt.cpu()))
-                    rows.append(row)
+                    scored.rows.append(row)
                     render_np = render.cpu().numpy().astype(np.float32)
                     if keep_renders:
-                        renders[(cam.name, f)] = render_np
-                    if f in picture_frames:
-                        d = tmp / "images" / cam.name
-                        d.mkdir(parents=True, exist_ok=True)
-                        Image.fromarray(comparison_image(render_np, gt_np, cfg.error_gain)).save(
-                            d / f"{f:06d}.png", compress_level=1)
+                        scored.renders[(cam.name, f)] = render_np
+                    if f in pictured:
+                        picture(cam.name, f, comparison_image(render_np, gt_np, cfg.error_gain))
                     bar.update(1)
                     bar.set_postfix(cam=cam.name, frame=f, psnr=f"{row['psnr']:.2f}")
     finally:
         if was_training and hasattr(model, "train"):
             model.train(True)
-    elapsed = time.perf_counter() - t0
-    summary = _summary(rows, cams, frames, cfg, lpips_net is not None, lpips_reason, num_gaussians, elapsed,
-                       background, settings or {})
-    if tmp is not None:
-        write_csv(tmp / "per_view.csv", rows)
-        (tmp / "summary.json").write_text(json.dumps(json_safe(summary), indent=1) + "\n")
-    return EvalResult(rows=rows, summary=summary, renders=renders)
+    return scored
 
 
 def _eval_cameras(scene: EvalScene, cam_indices: list[int], scale: float) -> list[Camera]:

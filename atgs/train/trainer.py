@@ -539,10 +539,11 @@ class Trainer:
         n = self.model.timeline.num_frames
         return list(evenly_spaced(n, max(1, self.cfg.eval_max_frames)))
 
-    def own_eval_frames(self) -> list[int]:
-        """This worker's share of :meth:`eval_frames`: the frames its model decodes when the
-        workers are partitioned by time (each frame is one worker's), every world-th otherwise."""
-        frames = self.eval_frames()
+    def own_eval_frames(self, frames: Sequence[int] | None = None) -> list[int]:
+        """This worker's share of ``frames`` (default :meth:`eval_frames`): the frames its model
+        decodes when the workers are partitioned by time (each frame is one worker's), every
+        world-th otherwise."""
+        frames = self.eval_frames() if frames is None else list(frames)
         if self.workers is None:
             return frames
         if self.part is not None:
@@ -552,13 +553,16 @@ class Trainer:
 
     @_in_run_threads
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
-                 resolution_scale: float | None = None, images_per_camera: int | None = None) -> dict:
+                 resolution_scale: float | None = None, images_per_camera: int | None = None,
+                 spread: bool = False) -> dict | None:
         """PSNR and SSIM on the test cameras (or the first training camera, with its learned
         exposure, when there are none) through :func:`atgs.eval.evaluate.evaluate`, over
         ``frames`` (default :meth:`eval_frames`) at ``resolution_scale`` (default the training resolution). ``out``: also write that
         evaluation directory (per_view.csv, summary.json and ``images_per_camera`` comparison
-        images per camera, default one per evaluated frame)."""
-        from atgs.eval.evaluate import EvalConfig, evaluate
+        images per camera, default one per evaluated frame). ``spread`` (several workers, all
+        call it): each scores its share of the frames (:meth:`own_eval_frames`), rank 0 writes
+        and returns the whole evaluation, the others None."""
+        from atgs.eval.evaluate import EvalConfig, Share, evaluate
 
         cams = self.test_idx or self.train_idx[:1]
         frames = tuple(self.eval_frames() if frames is None else frames)
@@ -576,8 +580,11 @@ class Trainer:
         def as_exposed(ci: int, img: torch.Tensor) -> torch.Tensor:
             return exposure.apply(img, self.train_slot[ci])
 
+        share = Share(self.own_eval_frames(frames), self.workers.gather_to_leader) if spread else None
         res = evaluate(self.model, self.scene, cfg, out, background=self.model.environment or self.cfg.background,
-                       camera_transform=as_exposed if exposure is not None else None)
+                       camera_transform=as_exposed if exposure is not None else None, share=share)
+        if res is None:  # (spread: another worker's result)
+            return None
         return {"psnr": res.mean("psnr"), "ssim": res.mean("ssim"), "views": res.summary["num_views"],
                 "on_test_cameras": bool(self.test_idx)}
 
@@ -586,21 +593,15 @@ class Trainer:
         return len(self.test_idx or self.train_idx[:1]) * self.model.num_frames
 
     @_in_run_threads
-    def final_evaluation(self, out: Path | None) -> dict:
+    def final_evaluation(self, out: Path | None) -> dict | None:
         """What ``atgs-eval`` reports by default (every frame of the test cameras at full
         resolution, three comparison images per camera; LPIPS aside), so the figure that
-        atgs-train prints at the end is the figure atgs-eval gives for the same checkpoint."""
-        if self.part is None:
-            return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3)
-        # partitioned by time (rank 0 only): the whole model, as the checkpoint gathered it
-        from atgs.checkpoint import load_model
-
-        own, self.model = self.model, load_model(self.run.ckpt_path, self.device)
-        self.model.environment = own.environment
-        try:
-            return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3)
-        finally:
-            self.model = own
+        atgs-train prints at the end is the figure atgs-eval gives for the same checkpoint.
+        Several workers (all call it): each scores its frames with the model it holds (partitioned
+        by time: its segments' frames; no worker loads the whole model), rank 0 writes ``out`` and
+        returns the figures, the others None."""
+        return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3,
+                             spread=self.workers is not None)
 
     # --- checkpoints ----------------------------------------------------------------------------
     def checkpoint_payload(self) -> dict:
@@ -745,8 +746,10 @@ class Trainer:
         """:meth:`run_steps`, then the final evaluation (``result["eval"]``; written to ``eval/``
         with ``final_renders``) unless the run stopped early."""
         result = self.run_steps(progress, stop_at, should_stop)
-        if "stopped_early" not in result and (final_renders or self.cfg.eval_every > 0) and self.leads:
-            result["eval"] = self.final_evaluation(self.out / "eval" if final_renders else None)
+        if "stopped_early" not in result and (final_renders or self.cfg.eval_every > 0):
+            ev = self.final_evaluation(self.out / "eval" if final_renders else None)  # (every worker)
+            if self.leads:
+                result["eval"] = ev
         return result
 
     @_in_run_threads
