@@ -96,3 +96,19 @@ def test_training_with_dropout_changes_the_run_and_resumes_exactly(tmp_path):
     assert a.keys() == b.keys() == c.keys()
     assert any(a[k].shape != b[k].shape or not torch.equal(a[k], b[k]) for k in a)
     assert all(torch.equal(b[k], c[k]) for k in b)
+
+
+def test_a_gaussian_with_an_identity_is_dropped_whichever_others_were_decoded():
+    """The trainer draws per identity (anchor * q + slot): the same Gaussian meets the same draw
+    in a decode of every anchor and in one that culled some (several workers' culling may differ
+    from one process's by a few anchors). Reference: the full decode's decisions."""
+    g = _gaussians(1000)
+    ids = torch.randperm(5000, generator=torch.Generator().manual_seed(3))[:1000]
+    full = drop_gaussians(g, 0.3, torch.Generator().manual_seed(9), ids, 5000).opacities
+    subset = torch.arange(0, 1000, 3)
+    sub = Gaussians(*(t[subset] for t in g.as_tuple()))
+    part = drop_gaussians(sub, 0.3, torch.Generator().manual_seed(9), ids[subset], 5000).opacities
+    assert torch.equal(part, full[subset])
+    assert 0.2 < float((full == 0).float().mean()) < 0.4
+    # in order (no identities), the same subset meets other draws
+    assert not torch.equal(drop_gaussians(sub, 0.3, torch.Generator().manual_seed(9)).opacities, full[subset])

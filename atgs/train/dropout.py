@@ -33,16 +33,24 @@ def render_generator(seed: int, step: int, view: int, camera: int, device: torch
     return torch.Generator(device=device).manual_seed(mixed % 2**63)
 
 
-def drop_gaussians(g: Gaussians, rate: float, generator: torch.Generator) -> Gaussians:
+def drop_gaussians(g: Gaussians, rate: float, generator: torch.Generator, ids: torch.Tensor | None = None,
+                   num_ids: int = 0) -> Gaussians:
     """``g`` with a random ``rate`` of its Gaussians at zero opacity and the others' opacities
     divided by ``1 - rate`` (at most 1). Shapes stay as they are (the densification statistics
     index the decoded Gaussians); the draw is on ``generator``'s device, so a seed drops the same Gaussians
-    on every device."""
+    on every device. ``ids``: each Gaussian's identity in ``0..num_ids - 1`` (the model's
+    anchor * q + slot): one draw per identity, so a Gaussian is dropped or kept whichever others
+    were decoded with it (a worker's culling may decode a few anchors more or fewer than one
+    process's); None: one draw per Gaussian of ``g``, in order."""
     if rate <= 0 or len(g) == 0:
         return g
     if not rate < 1:
         raise ValueError(f"a drop rate must be below 1, got {rate}")
-    keep = torch.rand(len(g), generator=generator, device=generator.device) >= rate
+    if ids is None:
+        keep = torch.rand(len(g), generator=generator, device=generator.device) >= rate
+    else:
+        draws = torch.rand(num_ids, generator=generator, device=generator.device)
+        keep = draws.index_select(0, ids.to(draws.device)) >= rate
     scale = keep.to(device=g.opacities.device, dtype=g.opacities.dtype) / (1.0 - rate)
     # capped at 1 (the rasterizer's domain; its alpha is capped below that anyway)
     return replace(g, opacities=(g.opacities * scale).clamp(max=1.0))

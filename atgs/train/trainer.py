@@ -427,7 +427,8 @@ class Trainer:
         for k, (ci, cam) in enumerate(zip(view.cams, cams)):  # one decode, rendered from each camera
             gt = self.images.get(ci, view.frame)
             shown = dec.gaussians if rate <= 0 else drop_gaussians(  # (a draw of its own: dropout.py)
-                dec.gaussians, rate, render_generator(self.draw_seed, self.step, view.index, k, self.gen.device))
+                dec.gaussians, rate, render_generator(self.draw_seed, self.step, view.index, k, self.gen.device),
+                dec.anchor_ids * q + dec.slot_ids, model.num_anchors * q)
             background = self._background() if view.backgrounds is None else view.backgrounds[k]
             out = rasterize_gaussians(shown, cam, background=background, backend=cfg.render_backend)
             out.means2d.retain_grad()
