@@ -22,8 +22,9 @@ once into the cache, seconds each) trained for a few steps by N workers of one p
 (torch.multiprocessing, gloo), a model whose per-segment tables dominate (a segment every 10
 frames, 8 levels of 2^15 rows), each worker reporting its peak resident memory (VmHWM)
 after its set-up, after the steps, and after the checkpoint (rank 0 writes the whole model, each
-worker's part received as it writes); then the checkpoint resumed by as many fresh workers, each
-reporting its peak after ``Trainer.resume`` and one step.
+worker's part received as it writes), and after the final evaluation (every frame, each worker
+its own); then the checkpoint resumed by as many fresh workers, each reporting its peak after
+``Trainer.resume`` and one step.
 Cases "FRAMESxWORKERS[views|time]", e.g. 500x2time.
 """
 
@@ -207,12 +208,17 @@ def memory_worker(rank: int, world: int, port: int, scene_dir: str, out: str, pa
         resident = _resident_mb()  # now: what training holds, without the set-up's passing peak
         tr.save(Path(out) / "ckpt.pt")
         peaks["checkpoint"] = _peak_mb()
+        t1 = time.perf_counter()
+        final = tr.final_evaluation(None)  # every frame of the held-out camera, spread over the workers
+        peaks["final_evaluation"] = _peak_mb()
+        final_seconds = time.perf_counter() - t1
         tables = {n: t.numel() * t.element_size() for n, t in tr.model.sparse_tensors().items()}
         Path(out, f"memory{rank}.json").write_text(json.dumps({
             "rank": rank, "peak_mb": {k: round(v, 1) for k, v in peaks.items()},
             "resident_mb_after_steps": round(resident, 1), "anchors": tr.model.num_anchors,
             "segments_held": tr.model.hash.num_grids, "table_mb": round(sum(tables.values()) / 2**20, 1),
-            "seconds_per_step": round(seconds / steps, 3),
+            "seconds_per_step": round(seconds / steps, 3), "final_evaluation_seconds": round(final_seconds, 1),
+            "final_evaluation_views": None if final is None else final["views"],
             "exchange": None if workers is None else workers.traffic.summary(world)}))
     finally:
         if workers is not None:
