@@ -23,7 +23,7 @@ from atgs.cameras import Camera
 from atgs.device import usable_device
 from atgs.errors import UserError
 from atgs.io.atomic import atomic_file
-from atgs.io.torch_zip import has_streamed, save_streamed
+from atgs.io.torch_zip import save_streamed
 from atgs.render.environment import EnvironmentMap
 
 FORMAT = "atgs-checkpoint"
@@ -39,12 +39,8 @@ def save_checkpoint(path: str | Path, payload: dict) -> None:
     """Write ``payload`` to ``path`` atomically (atgs.io.atomic: temp file, fsync, rename), its
     tensors on the CPU. Tables gathered from several workers may come as
     :class:`~atgs.io.torch_zip.Streamed` tensors: written piece by piece, the same file."""
-    data = {"format": FORMAT, "version": VERSION, **on_cpu(payload)}
     with atomic_file(path) as tmp:
-        if has_streamed(data):
-            save_streamed(data, tmp)
-        else:
-            torch.save(data, tmp)
+        save_streamed({"format": FORMAT, "version": VERSION, **on_cpu(payload)}, tmp)
 
 
 def on_cpu(tree):

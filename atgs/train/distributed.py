@@ -273,12 +273,6 @@ class Workers:
         return {key: Streamed((sum(r[key] for r in rows), *t.shape[1:]), t.dtype, partial(pieces, key, t), i)
                 for i, (key, t) in enumerate(part.items())}
 
-    def sum_floats(self, values: Sequence[float]) -> list[float]:
-        """The sums over the workers of ``values`` (float64), on every worker."""
-        t = torch.tensor(list(values), dtype=torch.float64, device=self.comm)
-        self._call(dist.all_reduce, t, op=dist.ReduceOp.SUM)
-        return [float(x) for x in t.tolist()]
-
     def broadcast_floats(self, values: Sequence[float]) -> list[float]:
         """Rank 0's ``values`` on every worker (e.g. its clock, so that all size one schedule)."""
         t = torch.tensor(list(values), dtype=torch.float64, device=self.comm)

@@ -37,8 +37,8 @@ def _compiled_kernel():
 
 
 def _taken_over(saved: dict[str, torch.Tensor], tables: dict[str, torch.Tensor], key: str) -> dict[str, torch.Tensor]:
-    """A saved store of moments or step counts, one per table, on the tables' devices (zeros
-    for a table the state lacks: a checkpoint from before that table existed)."""
+    """A saved store of moments or step counts, one per table, on the tables' devices; zeros
+    for a table the store lacks (a new optimizer, or a checkpoint from before that table)."""
     unknown = sorted(set(saved) - set(tables))
     if unknown:
         raise ValueError(f"optimizer state has unknown tables {unknown}")
@@ -63,13 +63,8 @@ class SparseAdam:
         if backend not in OPTIM_BACKENDS:
             raise ValueError(f"SparseAdam backend must be one of {OPTIM_BACKENDS}, got {backend!r}")
         self.betas, self.eps, self.backend = betas, eps, backend
-        if state is None:
-            self.exp_avg = {n: torch.zeros_like(t) for n, t in tables.items()}
-            self.exp_avg_sq = {n: torch.zeros_like(t) for n, t in tables.items()}
-            self.steps = {n: torch.zeros(t.shape[0], dtype=torch.int64, device=t.device) for n, t in tables.items()}
-        else:
-            for key in ("exp_avg", "exp_avg_sq", "steps"):
-                setattr(self, key, _taken_over(state[key], tables, key))
+        for key in ("exp_avg", "exp_avg_sq", "steps"):
+            setattr(self, key, _taken_over({} if state is None else state[key], tables, key))
         # build the kernel now (seconds, once per version), not inside a time-budgeted step
         self._kernel = _compiled_kernel() if backend == "auto" and any(
             t.device.type == "cpu" and t.dtype == torch.float32 for t in tables.values()) else None

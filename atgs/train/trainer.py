@@ -831,16 +831,14 @@ class Trainer:
             bar.write(warning)
 
     def _evaluate_on_every_worker(self) -> dict:
-        """The periodic evaluation spread over the workers: each scores its share of the frames
-        (a worker of the time partition: those its model decodes, so every frame of the capture
-        is scored, not only rank 0's), and the sums of the views' PSNR and SSIM are all-reduced:
-        the mean over all views, as one process computes it (up to summation order)."""
-        frames = self.own_eval_frames()
-        ev = self.evaluate(frames=frames) if frames else {"psnr": 0.0, "ssim": 0.0, "views": 0}
-        n = ev["views"]
-        psnr, ssim, views = self.workers.sum_floats([ev["psnr"] * n, ev["ssim"] * n, n])
-        return {"psnr": psnr / max(views, 1), "ssim": ssim / max(views, 1), "views": int(views),
-                "on_test_cameras": bool(self.test_idx)}
+        """The periodic evaluation spread over the workers (:meth:`evaluate` with ``spread``: each
+        scores its share of the frames, a worker of the time partition those its model decodes, so
+        every frame of the capture is scored, not only rank 0's; rank 0 takes the mean over all
+        views, as one process does), its figures on every worker."""
+        ev = self.evaluate(spread=True)
+        mine = [0.0, 0.0, 0.0] if ev is None else [float(ev["psnr"]), float(ev["ssim"]), float(ev["views"])]
+        psnr, ssim, views = self.workers.broadcast_floats(mine)
+        return {"psnr": psnr, "ssim": ssim, "views": int(views), "on_test_cameras": bool(self.test_idx)}
 
     def _save_if_due(self) -> None:
         if not self._due(self.cfg.save_every, self._last_save):
