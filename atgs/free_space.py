@@ -53,9 +53,23 @@ class FreeSpace:
     @classmethod
     def of(cls, cameras: Sequence[Camera], points: np.ndarray, margin: float = MARGIN, cells: int = GRID_CELLS,
            device: torch.device | str = "cpu") -> "FreeSpace":
-        made = [nearest_depth_grid(c, points, cells) for c in cameras]
-        return cls(list(cameras), [torch.as_tensor(g, dtype=torch.float32, device=device) for g, _ in made],
-                   [c for _, c in made], margin)
+        return cls.of_grids(cameras, depth_grids(cameras, points, cells), margin, cells, device)
+
+    @classmethod
+    def of_grids(cls, cameras: Sequence[Camera], grids: list[np.ndarray], margin: float = MARGIN,
+                 cells: int = GRID_CELLS, device: torch.device | str = "cpu") -> "FreeSpace":
+        """From :func:`depth_grids` (of all the points, or the elementwise minimum of those of
+        parts of them: a scene's keyframes one at a time)."""
+        sizes = [max(c.width, c.height) / cells for c in cameras]
+        return cls(list(cameras), [torch.as_tensor(g, dtype=torch.float32, device=device) for g in grids],
+                   sizes, margin)
+
+    def kept(self, samples: np.ndarray) -> np.ndarray:
+        """(N,) bool: the samples seen by at least one camera and in front of no camera's points."""
+        if len(samples) == 0:
+            return np.zeros(0, bool)
+        empty, seen = self.test(torch.as_tensor(np.asarray(samples, np.float64)))
+        return (seen & ~empty).numpy()
 
     def test(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(empty, seen): (N,) bool masks of the positions X (N, 3) in empty space, and of those
@@ -76,10 +90,12 @@ class FreeSpace:
         return empty, seen
 
 
+def depth_grids(cameras: Sequence[Camera], points: np.ndarray, cells: int = GRID_CELLS) -> list[np.ndarray]:
+    """Each camera's :func:`nearest_depth_grid` of ``points``."""
+    return [nearest_depth_grid(c, points, cells)[0] for c in cameras]
+
+
 def carve(samples: np.ndarray, points: np.ndarray, cameras: Sequence[Camera], margin: float = MARGIN,
           cells: int = GRID_CELLS) -> np.ndarray:
     """(N,) bool: the samples seen by at least one camera and in front of no camera's points."""
-    if len(samples) == 0:
-        return np.zeros(0, bool)
-    empty, seen = FreeSpace.of(cameras, points, margin, cells).test(torch.as_tensor(np.asarray(samples, np.float64)))
-    return (seen & ~empty).numpy()
+    return FreeSpace.of(cameras, points, margin, cells).kept(samples)

@@ -11,6 +11,7 @@ from plyfile import PlyData
 from atgs.cameras import Camera, look_at
 from atgs.data.errors import DataError
 from atgs.errors import OutputError
+from atgs.data.point_cloud import PlyPointCloud
 from atgs.data.scene import MemoryScene, PreparedScene, write_prepared_scene
 
 K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
@@ -55,9 +56,13 @@ def test_layout_and_reader(tmp_path) -> None:
     assert s.num_frames == 5 and s.fps == 25.0 and s.keyframes == [0, 4]
     assert s.train_indices == [0, 2] and s.test_indices == [1]
     assert s.bounds.shape == (2, 3) and np.all(s.bounds[0] < s.bounds[1])
-    np.testing.assert_allclose(s.points, pts.astype(np.float32))
-    np.testing.assert_allclose(s.point_colors, np.round(cols * 255) / 255, atol=1e-6)
-    assert s.point_keyframes.dtype == np.int64 and np.array_equal(s.point_keyframes, kf)
+    order = np.argsort(kf, kind="stable")  # the file holds each keyframe's rows together
+    np.testing.assert_allclose(s.points, pts[order].astype(np.float32))
+    np.testing.assert_allclose(s.point_colors, np.round(cols[order] * 255) / 255, atol=1e-6)
+    assert s.point_keyframes.dtype == np.int64 and np.array_equal(s.point_keyframes, kf[order])
+    assert isinstance(s.point_cloud, PlyPointCloud)
+    for k in (0, 1):
+        np.testing.assert_array_equal(s.point_cloud.read(k), pts[kf == k].astype(np.float32))
     img = s.image(2, 3)
     assert img.dtype == np.float32 and img.shape == (24, 32, 3)
     np.testing.assert_allclose(img * 255, _frame(2, 3), atol=1e-4)

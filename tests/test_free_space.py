@@ -11,6 +11,7 @@ import torch
 from builders import ring_cameras
 from atgs.data.keyframe_points import _fill
 from atgs.data.mvs import FillConfig, StereoConfig
+from atgs.point_cloud import ArrayPointCloud
 from atgs.data.scene import PreparedScene
 from atgs.free_space import GRID_CELLS, MARGIN, FreeSpace, carve
 from atgs.train.losses import free_space_loss
@@ -73,8 +74,8 @@ def test_the_fill_never_lands_where_a_camera_sees_a_measured_surface_behind():
 def test_the_measured_points_of_a_prepared_scene_come_from_its_counts():
     kf = np.array([0] * 7 + [1] * 5)
     scene = PreparedScene(root=None, name="s", fps=1.0, num_frames=2, cameras=ring_cameras(2), test_cameras=[],
-                          keyframes=[0, 1], bounds=np.zeros((2, 3)), points=np.zeros((12, 3), np.float32),
-                          point_colors=np.zeros((12, 3), np.float32), point_keyframes=kf,
+                          keyframes=[0, 1], bounds=np.zeros((2, 3)),
+                          point_cloud=ArrayPointCloud(np.zeros((12, 3), np.float32), kf, 2),
                           point_counts={"sift": [1, 1], "stereo": [2, 0], "fill": [3, 4], "extend": [1, 0]})
     assert scene.measured_points.tolist() == [True] * 3 + [False] * 4 + [True] + [False] * 4
     scene.point_counts = {"sift": [1, 1], "stereo": [2, 0], "fill": [3, 9], "extend": [1, 0]}  # disagrees

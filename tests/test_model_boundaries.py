@@ -19,7 +19,7 @@ def _reachable(graph: dict[str, set[str]], start: str) -> set[str]:
 
 def test_the_model_does_not_depend_on_data_preparation() -> None:
     graph = import_graph()
-    assert "atgs.seen_space" in graph["atgs.model.atgs_model"]
+    assert "atgs.seen_space" in graph["atgs.model.anchor_setup"]
     for name in (m for m in graph if m.startswith("atgs.model.")):
         reached = sorted(m for m in _reachable(graph, name) if m.startswith("atgs.data"))
         assert not reached, f"{name} imports {reached}"

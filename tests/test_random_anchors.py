@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from atgs.cameras import Camera
-from atgs.free_space import carve, nearest_depth_grid
+from atgs.free_space import FreeSpace, carve, nearest_depth_grid
 from atgs.model.random_anchors import random_anchor_points
 
 
@@ -51,14 +51,14 @@ def test_random_anchor_points_fill_only_the_carved_box():
     wall = _wall(10.0)
     box = torch.tensor([[-3.0, -2.0, 2.0], [3.0, 2.0, 14.0]])
     gen = torch.Generator().manual_seed(0)
-    pts = random_anchor_points(500, box, torch.as_tensor(wall), [cam], gen)
+    pts = random_anchor_points(500, box, FreeSpace.of([cam], wall), gen)
     assert len(pts) == 500
     assert ((pts >= box[0]) & (pts <= box[1])).all()
     # the wall is seen everywhere in this box: nothing is left in front of 0.8 x its depth
     assert float(pts[:, 2].min()) >= 8.0
     assert carve(pts.double().numpy(), wall, [cam]).all()
     # without cameras: the plain uniform samples of the whole box
-    plain = random_anchor_points(500, box, torch.as_tensor(wall), [], torch.Generator().manual_seed(0))
+    plain = random_anchor_points(500, box, None, torch.Generator().manual_seed(0))
     assert len(plain) == 500 and float(plain[:, 2].min()) < 4.0
 
 
@@ -66,5 +66,5 @@ def test_random_anchor_points_return_fewer_when_the_box_is_empty_space():
     cam = _camera()
     wall = _wall(10.0)
     box = torch.tensor([[-1.0, -1.0, 2.0], [1.0, 1.0, 6.0]])  # all in front of the wall
-    pts = random_anchor_points(100, box, torch.as_tensor(wall), [cam], torch.Generator().manual_seed(0))
+    pts = random_anchor_points(100, box, FreeSpace.of([cam], wall), torch.Generator().manual_seed(0))
     assert len(pts) == 0

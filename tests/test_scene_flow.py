@@ -146,6 +146,12 @@ def test_initial_velocities_of_a_moving_textured_plane(long_side):
     err = (vel[moving] - want).norm(dim=1)
     assert float(err.median()) < 0.1 * float(want.norm())
     assert (vel[~moving] == 0).all()
+    # measured a share of the keyframes at a time (workers, atgs.train.scene_setup): the same
+    # velocities for those keyframes, 0 for the others (max_tracked 30 of 60: a random subset)
+    flow_cfg = SceneFlowConfig(max_tracked=30, min_cameras=3, long_side=long_side)
+    part, _ = initial_velocities(mu, kf, 0.1, [0, 3, 6], frames, cams, grey, flow_cfg, keyframes=[2, 0])
+    assert torch.equal(part[(kf == 0) | (kf == 2)], vel[(kf == 0) | (kf == 2)])
+    assert (part[kf == 1] == 0).all() and (vel[kf == 1] != 0).any()
 
 
 def test_the_prior_keeps_a_direction_the_cameras_hardly_see_near_zero():

@@ -33,6 +33,8 @@ from atgs.io.atomic import atomic_dir
 from atgs.io.images import read_rgb8
 from atgs.progress import progress_bar
 from atgs.data.errors import DataError
+from atgs.data.point_cloud import PlyPointCloud
+from atgs.point_cloud import ArrayPointCloud, PointCloud
 
 SCENE_FORMAT = "atgs-scene"
 SCENE_VERSION = 1
@@ -59,15 +61,13 @@ class PreparedScene:
     test_cameras: list[str]
     keyframes: list[int]
     bounds: np.ndarray  # (2,3) float64: row 0 = min corner, row 1 = max corner
-    points: np.ndarray  # (P,3) float32
-    point_colors: np.ndarray  # (P,3) float32 in [0,1]
-    point_keyframes: np.ndarray  # (P,) int64, index into ``keyframes``
+    # points.ply, read one keyframe at a time (atgs.data.point_cloud); ``points`` & co. read it whole
+    point_cloud: PointCloud
     source: dict = field(default_factory=dict)
     image_ext: str = ".png"
     # points on moving content at more keyframes than ``keyframes`` (empty: none, or a static scene)
     motion_keyframes: list[int] = field(default_factory=list)
-    motion_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
-    motion_point_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    motion_cloud: PointCloud = field(default_factory=lambda: ArrayPointCloud(np.zeros((0, 3)), np.zeros(0), 0))
     has_masks: bool = False  # masks/<camera>/<frame>.png: foreground masks from the source
     # per keyframe, how many of its points came from each step of atgs-prepare (scene.json)
     point_counts: dict = field(default_factory=dict)
@@ -112,10 +112,8 @@ class PreparedScene:
         ext = next((e for e in IMAGE_EXTS if frame_path(root, names[0], 0, e).is_file()), None)
         if ext is None:
             raise DataError(f"{frame_path(root, names[0], 0)}: first frame of camera {names[0]} not found in {cam_dir}")
-        pts, cols, kfs = read_points_ply(root / "points.ply")
-        if len(kfs) and (kfs.min() < 0 or kfs.max() >= len(keyframes)):
-            raise DataError(f"{root / 'points.ply'}: keyframe index out of range [0, {len(keyframes)})")
-        mkfs, mpts, mk = _read_motion_points(root, meta, meta_path, num_frames)
+        cloud = PlyPointCloud.open(root / "points.ply", len(keyframes))
+        mkfs, motion = _read_motion_points(root, meta, meta_path, num_frames)
         has_masks = meta.get("masks") is True
         if has_masks and not mask_path(root, names[0], 0).is_file():
             raise DataError(f"{mask_path(root, names[0], 0)}: not found but scene.json says the scene has masks; "
@@ -123,31 +121,48 @@ class PreparedScene:
         return cls(
             root=root, name=str(meta.get("name", root.name)), fps=fps, num_frames=num_frames,
             cameras=cameras, test_cameras=test_cameras, keyframes=keyframes, bounds=bounds,
-            points=pts, point_colors=cols, point_keyframes=kfs, source=dict(meta.get("source", {})),
-            image_ext=ext, motion_keyframes=mkfs, motion_points=mpts, motion_point_keyframes=mk, has_masks=has_masks,
+            point_cloud=cloud, source=dict(meta.get("source", {})),
+            image_ext=ext, motion_keyframes=mkfs, motion_cloud=motion, has_masks=has_masks,
             point_counts=dict(meta.get("keyframe_points") or {}), coverage=dict(meta.get("coverage") or {}),
         )
 
+    # --- the points, whole (what training reads, it reads per keyframe: point_cloud) ---------
+    @property
+    def points(self) -> np.ndarray:
+        """(P, 3) float32, in keyframe order (read from the file at each use)."""
+        return self.point_cloud.whole()[0]
+
+    @property
+    def point_colors(self) -> np.ndarray:
+        """(P, 3) float32 in [0, 1]."""
+        return self.point_cloud.whole()[1]
+
+    @property
+    def point_keyframes(self) -> np.ndarray:
+        """(P,) int64, index into ``keyframes``."""
+        return self.point_cloud.whole()[2]
+
+    @property
+    def motion_points(self) -> np.ndarray:
+        return self.motion_cloud.whole()[0]
+
+    @property
+    def motion_point_keyframes(self) -> np.ndarray:
+        return self.motion_cloud.whole()[2]
+
+    @property
+    def measured_counts(self) -> list[int] | None:
+        """Per keyframe, how many of its first points SIFT or stereo measured, not filled in
+        (keyframe_points writes each keyframe's measured points first, then its fill and
+        extension; ``point_counts`` says how many). None (all measured) where the counts are
+        missing or disagree with points.ply: treating a fill point as measured only ever makes
+        less space look empty (atgs.free_space)."""
+        return _measured_counts(self.point_counts, self.point_cloud)
+
     @property
     def measured_points(self) -> np.ndarray:
-        """(P,) bool: the points measured by SIFT or stereo, not filled in (keyframe_points writes
-        each keyframe's measured points first, then its fill and extension; ``point_counts`` says
-        how many). All True where the counts are missing or disagree with points.ply: treating a
-        fill point as measured only ever makes less space look empty (atgs.free_space)."""
-        c = self.point_counts
-        kf = np.asarray(self.point_keyframes)
-        keep = np.ones(len(kf), bool)
-        try:
-            steps = [[int(x) for x in c[k]] for k in ("sift", "stereo", "fill", "extend")]
-        except (KeyError, TypeError, ValueError):
-            return keep
-        for j in range(len(self.keyframes)):
-            idx = np.nonzero(kf == j)[0]
-            if j >= len(steps[0]) or any(len(s) != len(steps[0]) for s in steps) or \
-                    len(idx) != sum(s[j] for s in steps):
-                return np.ones(len(kf), bool)
-            keep[idx[steps[0][j] + steps[1][j]:]] = False
-        return keep
+        """(P,) bool over ``points``: the measured points (``measured_counts``)."""
+        return self.point_cloud.measured_mask(self.measured_counts)
 
     # --- camera splits ------------------------------------------------------------------
     @property
@@ -233,6 +248,21 @@ class MemoryScene:
         return np.ones(len(self.points), bool)
 
     @property
+    def measured_counts(self) -> None:
+        """As PreparedScene's: all measured."""
+        return None
+
+    @property
+    def point_cloud(self) -> PointCloud:
+        """``points`` by keyframe, as PreparedScene's."""
+        return ArrayPointCloud(self.points, self.point_keyframes, len(self.keyframes), self.point_colors)
+
+    @property
+    def motion_cloud(self) -> PointCloud:
+        return ArrayPointCloud(self.motion_points, self.motion_point_keyframes, len(self.motion_keyframes),
+                               self.motion_point_colors)
+
+    @property
     def train_indices(self) -> list[int]:
         return [i for i, c in enumerate(self.cameras) if c.name not in self.test_cameras]
 
@@ -280,23 +310,33 @@ def resize_frame(img: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def _read_motion_points(root: Path, meta: dict, meta_path: Path, num_frames: int
-                        ) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """The optional moving-content points: (motion keyframes, points, their keyframe indices)."""
+                        ) -> tuple[list[int], PointCloud]:
+    """The optional moving-content points: (motion keyframes, their cloud)."""
     try:
         mkfs = [int(k) for k in meta.get("motion_keyframes", [])]
     except (TypeError, ValueError):
         raise DataError(f"{meta_path}: 'motion_keyframes' must be a list of frame indices; re-run atgs-prepare") from None
     path = root / "motion_points.ply"
     if not mkfs:
-        return [], np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+        return [], ArrayPointCloud(np.zeros((0, 3)), np.zeros(0), 0)
     if sorted(set(mkfs)) != mkfs or mkfs[0] < 0 or mkfs[-1] >= num_frames:
         raise DataError(f"{meta_path}: 'motion_keyframes' must be ascending unique frame indices in [0, {num_frames})")
     if not path.is_file():
         raise DataError(f"{path}: not found but scene.json lists motion keyframes; re-run atgs-prepare")
-    pts, _, kfs = read_points_ply(path)
-    if len(kfs) and (kfs.min() < 0 or kfs.max() >= len(mkfs)):
-        raise DataError(f"{path}: keyframe index out of range [0, {len(mkfs)}); re-run atgs-prepare")
-    return mkfs, pts, kfs
+    return mkfs, PlyPointCloud.open(path, len(mkfs))
+
+
+def _measured_counts(counts: dict, cloud: PointCloud) -> list[int] | None:
+    """PreparedScene.measured_counts of ``counts`` (scene.json's "keyframe_points")."""
+    try:
+        steps = [[int(x) for x in counts[k]] for k in ("sift", "stereo", "fill", "extend")]
+    except (KeyError, TypeError, ValueError):
+        return None
+    K = cloud.num_keyframes
+    if any(len(st) < K or len(st) != len(steps[0]) for st in steps) or \
+            any(cloud.count(j) != sum(st[j] for st in steps) for j in range(K)):
+        return None
+    return [steps[0][j] + steps[1][j] for j in range(K)]
 
 
 # --- points.ply -----------------------------------------------------------------------------
@@ -318,23 +358,9 @@ def write_points_ply(path: Path, points: np.ndarray, colors: np.ndarray, keyfram
     c = np.clip(np.round(colors), 0, 255).astype(np.uint8)
     v["red"], v["green"], v["blue"] = c.T
     v["keyframe"] = keyframes
+    # each keyframe's rows together, in their given order: readers take a keyframe at a time
+    v = v[np.argsort(keyframes, kind="stable")]
     PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(path))
-
-
-def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    from plyfile import PlyData
-
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: not found; re-run atgs-prepare")
-    try:
-        v = PlyData.read(str(path))["vertex"].data
-        pts = np.stack([v["x"], v["y"], v["z"]], axis=-1).astype(np.float32)
-        cols = np.stack([v["red"], v["green"], v["blue"]], axis=-1).astype(np.float32) / 255.0
-        kfs = np.asarray(v["keyframe"], dtype=np.int64)
-    except Exception as e:  # plyfile raises several types for truncated/odd files
-        raise DataError(f"{path}: unreadable point cloud ({type(e).__name__}: {e})") from None
-    return pts.reshape(-1, 3), cols.reshape(-1, 3), kfs.reshape(-1)
 
 
 # --- builder (used by atgs-prepare and by tests to make toy scenes) --------------------------

@@ -46,6 +46,7 @@ def knn_mean_sq_dist(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_sel
                      skip_zero: bool = False, chunk: int = 2048) -> torch.Tensor:
     """Mean squared distance from each query point to its k nearest reference points."""
     out = []
+    chunk = max(1, min(chunk, (1 << 23) // max(1, ref.shape[0])))  # at most 64 MB of distances at once
     extra = 1 if (exclude_self or skip_zero) else 0
     kk = min(k + extra, ref.shape[0])
     for i in range(0, query.shape[0], chunk):

@@ -20,7 +20,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 import math
-import sys
 from typing import get_args, get_type_hints
 
 import numpy as np
@@ -30,17 +29,17 @@ from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
 from atgs.model.anchor_motion import (MIN_FADE, MOTION_TABLES, fade_weight, faded_and_moved, initial_fade,
                                       keyframe_distance, max_fade_width)
-from atgs.model.anchors import STATIC, AnchorInit, anchor_voxel_size, init_anchors, split_static
+from atgs.point_cloud import ArrayPointCloud, PointCloud
+from atgs.model.anchor_setup import Spread, anchors_from_clouds
+from atgs.model.anchors import STATIC, AnchorInit
 from atgs.model.clearance import CameraClearance, clearance_radius
 from atgs.model.config import ModelConfig
 from atgs.model.culling import AnchorReach, gaussian_reach, visible_anchors
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import DecodeTables, InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
-from atgs.model.random_anchors import random_anchor_points
 from atgs.model.smoothing import filter_variance, sampling_rates, smooth
 from atgs.render.environment import EnvironmentMap
-from atgs.seen_space import fallback_points
 from atgs.timeline import Timeline
 
 # Sparse (row-updated) tensors of the model; anchors are rows of the first three.
@@ -92,37 +91,6 @@ def num_segments_for(cfg: ModelConfig, num_frames: int) -> int:
     if cfg.frames_per_segment > 0:
         return max(1, math.ceil(num_frames / cfg.frames_per_segment))
     return max(1, cfg.num_segments)
-
-
-def select_keyframe_points(scene_keyframes: list[int], point_keyframes: torch.Tensor, timeline: Timeline,
-                           share: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-    """Map points of the scene's keyframes onto the model's K keyframes: keyframe j takes the
-    points of the scene keyframe nearest to its frame. Without ``share`` a scene keyframe goes to
-    one model keyframe only, the one nearest its frame (the rest start empty); with ``share`` every
-    model keyframe takes a copy of its nearest scene keyframe's points, so a model with more
-    keyframes than the scene was prepared with has anchors at each (the split layout then merges
-    the copies of static content into one static anchor). Returns (point indices, keyframe index)."""
-    dev = point_keyframes.device
-    sk = torch.tensor(scene_keyframes, dtype=torch.int64, device=dev)
-    frames = timeline.keyframe_frames()
-    mk = torch.tensor(frames, dtype=torch.int64, device=dev)
-    idx, kf, taken = [], [], set()
-    for j, f in enumerate(frames):
-        s = int((sk - f).abs().argmin())
-        # without sharing, a scene keyframe goes to the model keyframe nearest to it: with more
-        # model keyframes, the first one that picks it may be frames earlier than its own
-        if not share and (s in taken or int((mk - scene_keyframes[s]).abs().argmin()) != j):
-            continue
-        taken.add(s)
-        sel = torch.nonzero(point_keyframes == s).flatten()
-        idx.append(sel)
-        kf.append(torch.full_like(sel, j))
-    if not idx:
-        empty = torch.zeros(0, dtype=torch.int64, device=dev)
-        return empty, empty.clone()
-    idx, kf = torch.cat(idx), torch.cat(kf)
-    order = torch.sort(idx, stable=True).indices  # the scene's point order, as the anchor init expects
-    return idx[order], kf[order]
 
 
 class ATGSModel:
@@ -192,44 +160,37 @@ class ATGSModel:
                     bounds: torch.Tensor | None = None, motion_points: torch.Tensor | None = None,
                     motion_point_keyframes: torch.Tensor | None = None,
                     motion_keyframes: list[int] | None = None, segments: range | None = None) -> "ATGSModel":
-        """Anchors from the scene's keyframe points. ``motion_points`` (points on moving content
-        only, at ``motion_keyframes``, atgs.data.moving_points) become per-keyframe anchors of the
-        model keyframe nearest their frame; by default the model then has as many keyframes as
-        the denser of the two lists."""
-        has_motion = motion_points is not None and len(motion_points) > 0 and bool(motion_keyframes)
-        K = cfg.num_keyframes if cfg.num_keyframes > 0 else max(
-            len(scene_keyframes), len(motion_keyframes) if has_motion else 0)
+        """:meth:`from_clouds` of points in memory."""
+        def cloud(pts, kfs, n: int) -> ArrayPointCloud:
+            def arr(x):
+                return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+            return ArrayPointCloud(arr(pts), arr(kfs), n)
+
+        motion = None
+        if motion_points is not None and motion_keyframes:
+            motion = cloud(motion_points, motion_point_keyframes, len(motion_keyframes))
+        return cls.from_clouds(cfg, cloud(points, point_keyframes, len(scene_keyframes)), scene_keyframes,
+                               num_frames, fps, cameras, train_cameras, seed, bounds, motion,
+                               list(motion_keyframes or []), segments)
+
+    @classmethod
+    def from_clouds(cls, cfg: ModelConfig, cloud: PointCloud, scene_keyframes: list[int], num_frames: int,
+                    fps: float, cameras: list[Camera], train_cameras: list[Camera] | None = None, seed: int = 0,
+                    bounds: torch.Tensor | None = None, motion_cloud: PointCloud | None = None,
+                    motion_keyframes: list[int] | None = None, segments: range | None = None,
+                    spread: Spread | None = None) -> "ATGSModel":
+        """Anchors from the scene's keyframe points, read a keyframe at a time
+        (atgs.model.anchor_setup; ``spread``: shared by several workers). ``motion_cloud``
+        (points on moving content only, at ``motion_keyframes``, atgs.data.moving_points) become
+        per-keyframe anchors of the model keyframe nearest their frame; by default the model then
+        has as many keyframes as the denser of the two lists."""
+        motion_keyframes = list(motion_keyframes or []) if motion_cloud is not None and len(motion_cloud) else []
+        K = cfg.num_keyframes if cfg.num_keyframes > 0 else max(len(scene_keyframes), len(motion_keyframes))
         tl = Timeline(num_frames, K, cfg.window, num_segments_for(cfg, num_frames))
         if cfg.anchor_layout not in ANCHOR_LAYOUTS:
             raise ValueError(f"anchor_layout must be one of {ANCHOR_LAYOUTS}, got {cfg.anchor_layout!r}")
-        split = cfg.anchor_layout == "split"
-        # more model keyframes than prepared ones: each takes its nearest prepared keyframe's points
-        # (split only: there the copies of static content merge; per-keyframe would multiply it)
-        # (not with motion points: those place moving content at the other keyframes, where a copy
-        # of the nearest keyframe's moving points would be in the wrong place)
-        share = split and tl.num_keyframes > len(scene_keyframes) and not has_motion
-        pick, kf = select_keyframe_points(scene_keyframes, point_keyframes.long(), tl, share)
-        gen = torch.Generator().manual_seed(seed)
-        points = points[pick].float()
-        fallback = points.shape[0] == 0
-        if fallback:  # an empty points.ply: start from the space the cameras see
-            points, kf = _fallback_points(train_cameras or cameras, tl.num_keyframes, split, seed)
-        voxel = anchor_voxel_size(points, kf, cfg.voxel_size, gen)
-        if split and not fallback:  # a coarse cell (2 voxels) so that triangulation noise does not read as motion
-            kf = torch.where(split_static(points, kf, 2 * voxel, cfg.static_fraction), STATIC, kf)
-        if has_motion:  # moving by construction: never static, never part of the split's vote
-            mshare = split and tl.num_keyframes > len(motion_keyframes)
-            mpick, mkf = select_keyframe_points(list(motion_keyframes), motion_point_keyframes.long(), tl, mshare)
-            points = torch.cat([points, motion_points[mpick].float().to(points.device)])
-            kf = torch.cat([kf, mkf.to(kf.device)])
-        if cfg.random_anchors > 0:
-            box = bounds.float() if bounds is not None else torch.stack([points.min(0).values, points.max(0).values])
-            carve_with = (train_cameras or cameras) if cfg.carve_random_anchors and not fallback else []
-            extra = random_anchor_points(cfg.random_anchors, box, points, carve_with, gen).to(points.device)
-            points = torch.cat([points, extra])
-            kf = torch.cat([kf, torch.full((len(extra),), STATIC if split else 0, dtype=torch.int64,
-                                           device=kf.device)])
-        anchors = init_anchors(points, kf, voxel, cfg.max_anchors_per_keyframe, gen, cfg.static_voxel_factor)
+        anchors = anchors_from_clouds(cfg, tl, cloud, scene_keyframes, motion_cloud, motion_keyframes,
+                                      train_cameras or cameras, bounds, seed, spread)
         lo, hi = anchors.mu.min(0).values, anchors.mu.max(0).values
         size = (hi - lo).clamp_min(1e-3)
         pad = cfg.bbox_padding * size
@@ -590,16 +551,3 @@ class ATGSModel:
             model.set_sparse_tensor(name, value.float().contiguous())
         model.decoder.load_state_dict(state["decoder"])
         return model
-
-
-def _fallback_points(cameras: list[Camera], num_keyframes: int, split: bool, seed: int
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points in the space seen by at least two cameras (atgs.seen_space), static with the split
-    layout, else repeated at every keyframe; a warning says so."""
-    # CPU, like the scene's points that from_points receives
-    pts = torch.as_tensor(fallback_points(cameras, seed=seed), dtype=torch.float32, device="cpu")
-    print(f"warning: the scene has no points (points.ply is empty); starting from {len(pts)} points filling "
-          "the space the cameras see", file=sys.stderr)
-    if split:
-        return pts, torch.full((len(pts),), STATIC, dtype=torch.int64, device="cpu")
-    return pts.repeat(num_keyframes, 1), torch.arange(num_keyframes, device="cpu").repeat_interleave(len(pts))

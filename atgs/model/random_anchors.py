@@ -11,30 +11,26 @@ samples no training camera sees: no image would ever train them.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
-import numpy as np
 import torch
 
-from atgs.cameras import Camera
-from atgs.free_space import MARGIN, carve
+from atgs.free_space import FreeSpace
 
 OVERSAMPLE = 8  # candidates drawn per wanted anchor, in rounds, before giving up
 
 
-def random_anchor_points(n: int, box: torch.Tensor, points: torch.Tensor, cameras: Sequence[Camera],
-                         generator: torch.Generator, margin: float = MARGIN) -> torch.Tensor:
-    """Up to ``n`` points uniform in ``box`` (2,3) that ``carve`` keeps (fewer where little space
-    is left after OVERSAMPLE x n candidates; without cameras, plain uniform samples)."""
+def random_anchor_points(n: int, box: torch.Tensor, free: FreeSpace | None, generator: torch.Generator
+                         ) -> torch.Tensor:
+    """Up to ``n`` points uniform in ``box`` (2,3) that ``free`` keeps (:meth:`FreeSpace.kept`:
+    seen by a camera, not in empty space; fewer where little space is left after OVERSAMPLE x n
+    candidates); ``free`` None: plain uniform samples."""
     lo, size = box[0].float(), (box[1] - box[0]).float()
-    if not cameras:
+    if free is None or not free.cameras:
         return lo + torch.rand(n, 3, generator=generator, device=generator.device) * size
-    pts = points.detach().double().cpu().numpy()
     kept: list[torch.Tensor] = []
     total = 0
     for _ in range(OVERSAMPLE):
         cand = lo + torch.rand(n, 3, generator=generator, device=generator.device) * size
-        ok = torch.as_tensor(carve(cand.double().cpu().numpy(), pts, cameras, margin), device=cand.device)
+        ok = torch.as_tensor(free.kept(cand.double().cpu().numpy()), device=cand.device)
         kept.append(cand[ok])
         total += int(ok.sum())
         if total >= n:

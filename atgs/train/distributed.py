@@ -242,6 +242,12 @@ class Workers:
         self._call(dist.gather_object, obj, out, dst=0)
         return out
 
+    def gather_everywhere(self, obj) -> list:
+        """Every worker's ``obj`` (picklable), in rank order, on every worker."""
+        out = [None] * self.world
+        self._call(dist.all_gather_object, out, obj)
+        return out
+
     def rows_to_leader(self, part: dict[str, torch.Tensor]) -> dict[str, Streamed] | None:
         """Every worker's ``part`` (CPU tensors, the same keys and trailing shapes everywhere),
         concatenated along the first dimension in rank order, for rank 0 to write

@@ -125,9 +125,9 @@ def measure_scene_exposure(scene) -> np.ndarray:
     """:func:`measured_exposure` of a scene's training cameras at its first keyframe, from the
     points of that keyframe (all points when it has none); ones where nothing can be measured."""
     cams = list(scene.train_indices)
-    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
-    kf = np.asarray(scene.point_keyframes)
-    first = pts[kf == 0] if (kf == 0).any() else pts
+    cloud = scene.point_cloud
+    first = cloud.read(0) if cloud.num_keyframes and cloud.count(0) else cloud.whole()[0]
+    first = np.asarray(first, np.float64).reshape(-1, 3)
     if len(cams) < 2 or len(first) == 0:
         return np.ones((len(cams), 3))
     g = measured_exposure(scene, cams, int(scene.keyframes[0]), first)

@@ -106,10 +106,13 @@ def _lstsq(A: torch.Tensor, b: torch.Tensor, ridge: float = 0.0) -> torch.Tensor
 def initial_velocities(anchor_mu: torch.Tensor, anchor_keyframe: torch.Tensor, voxel: float,
                        keyframe_frames: Sequence[int], num_frames: int, cameras: Sequence[Camera],
                        grey: Callable[[int, int], torch.Tensor], cfg: SceneFlowConfig = SceneFlowConfig(),
-                       progress: Callable[[int, int], None] | None = None) -> tuple[torch.Tensor, dict]:
+                       progress: Callable[[int, int], None] | None = None,
+                       keyframes: Sequence[int] | None = None) -> tuple[torch.Tensor, dict]:
     """Velocities (A, 3) of the anchors (CPU tensors in and out), world units per keyframe interval (0 where unmeasured and
     for static anchors), and statistics. ``grey(camera_index, frame)`` is the (H, W) grey image
-    (0..1) of ``cameras[camera_index]`` at ``frame``."""
+    (0..1) of ``cameras[camera_index]`` at ``frame``. ``keyframes``: measure only these
+    keyframes' anchors (the others keep 0; each keyframe draws from its own generator, so a
+    keyframe's velocities do not depend on which others are measured)."""
     A = anchor_mu.shape[0]
     vel = torch.zeros(A, 3, device="cpu")
     K = len(keyframe_frames)
@@ -118,7 +121,7 @@ def initial_velocities(anchor_mu: torch.Tensor, anchor_keyframe: torch.Tensor, v
         return vel, stats
     per_interval = (num_frames - 1) / (K - 1)  # frames per keyframe interval
     ridge = (cfg.noise_px / max(cfg.prior_voxels_per_frame * voxel, 1e-9)) ** 2
-    gen = torch.Generator().manual_seed(0)
+    wanted = range(K) if keyframes is None else set(keyframes)
     work = [c.scaled(cfg.long_side / max(c.width, c.height)) if max(c.width, c.height) > cfg.long_side else c
             for c in cameras]
     # cameras of one working size are tracked together (one batch of image pairs)
@@ -145,9 +148,10 @@ def initial_velocities(anchor_mu: torch.Tensor, anchor_keyframe: torch.Tensor, v
         if progress is not None:
             progress(k, K)
         pyramids.clear()
-        if rows.numel() == 0:
+        if rows.numel() == 0 or k not in wanted:
             continue
         stats["keyframes"] += 1
+        gen = torch.Generator().manual_seed(k)
         sub = rows if rows.numel() <= cfg.max_tracked else rows[torch.randperm(rows.numel(), generator=gen, device="cpu")[:cfg.max_tracked]]
         x = anchor_mu.index_select(0, sub).float()
         n = x.shape[0]

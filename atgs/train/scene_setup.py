@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from atgs.device import DeviceError
-from atgs.free_space import FreeSpace
+from atgs.free_space import FreeSpace, depth_grids
 from atgs.model.atgs_model import ATGSModel
 from atgs.progress import progress_bar
 from atgs.train.background import resolve_background
@@ -21,6 +21,7 @@ from atgs.train.scene_flow import grey_of, initial_velocities
 
 if TYPE_CHECKING:
     from atgs.cameras import Camera
+    from atgs.model.anchor_setup import Spread
     from atgs.model.config import ModelConfig
     from atgs.render.environment import EnvironmentMap
     from atgs.train.config import TrainConfig
@@ -63,52 +64,63 @@ def _bounds(scene: "SceneData") -> torch.Tensor | None:
 
 
 def model_from_scene(scene: "SceneData", model_cfg: "ModelConfig", train_idx: list[int], seed: int,
-                     segments: range | None = None) -> ATGSModel:
-    """A new model from the scene's keyframe and motion points, built on the CPU (the same
-    initialisation on every device; the trainer moves it). ``segments``: only these segments'
-    per-segment tables (ATGSModel)."""
-    def cpu(values, dtype) -> torch.Tensor:
-        return torch.as_tensor(np.asarray(values, dtype=dtype), device="cpu")
-
-    return ATGSModel.from_points(
-        model_cfg, cpu(scene.points, np.float32), cpu(scene.point_keyframes, np.int64), list(scene.keyframes),
-        scene.num_frames, scene.fps, list(scene.cameras), [scene.cameras[i] for i in train_idx],
-        seed=seed, bounds=_bounds(scene), motion_points=cpu(scene.motion_points, np.float32),
-        motion_point_keyframes=cpu(scene.motion_point_keyframes, np.int64),
-        motion_keyframes=list(scene.motion_keyframes), segments=segments)
+                     segments: range | None = None, spread: "Spread | None" = None) -> ATGSModel:
+    """A new model from the scene's keyframe and motion points, read a keyframe at a time and
+    built on the CPU (the same initialisation on every device; the trainer moves it).
+    ``segments``: only these segments' per-segment tables (ATGSModel); ``spread``: the workers
+    sharing the anchors' set-up (atgs.model.anchor_setup)."""
+    return ATGSModel.from_clouds(
+        model_cfg, scene.point_cloud, list(scene.keyframes), scene.num_frames, scene.fps, list(scene.cameras),
+        [scene.cameras[i] for i in train_idx], seed=seed, bounds=_bounds(scene), motion_cloud=scene.motion_cloud,
+        motion_keyframes=list(scene.motion_keyframes), segments=segments, spread=spread)
 
 
 def free_space_of(scene: "SceneData", cams: "list[Camera]", device: torch.device) -> FreeSpace:
     """The space ``cams`` prove empty: in front of the scene's measured keyframe points (not its
     fill; all keyframes at once, so anything a moving object occupies at one keyframe stays
-    non-empty) and its motion points."""
-    pts = np.asarray(scene.points, np.float64)
-    pts = pts[np.asarray(scene.measured_points, bool)]
-    motion = np.asarray(scene.motion_points, np.float64).reshape(-1, 3)
-    return FreeSpace.of(cams, np.concatenate([pts, motion]), device=device)
+    non-empty) and its motion points, read a keyframe at a time."""
+    measured = scene.measured_counts
+    parts = [(scene.point_cloud, k, None if measured is None else measured[k])
+             for k in range(scene.point_cloud.num_keyframes)]
+    parts += [(scene.motion_cloud, k, None) for k in range(scene.motion_cloud.num_keyframes)]
+    grids = depth_grids(cams, np.zeros((0, 3)))  # inf: no point yet
+    for cloud, k, n in parts:
+        pts = cloud.read(k)[:n]
+        grids = [np.minimum(a, b) for a, b in zip(grids, depth_grids(cams, pts))]
+    return FreeSpace.of_grids(cams, grids, device=device)
 
 
-def velocities_from_flow(model: ATGSModel, scene: "SceneData", train_idx: list[int], progress: bool = True
-                         ) -> dict | None:
+def velocities_from_flow(model: ATGSModel, scene: "SceneData", train_idx: list[int], progress: bool = True,
+                         spread: "Spread | None" = None) -> dict | None:
     """Start the per-keyframe anchors' velocities from the training images' optical flow
-    (atgs.train.scene_flow); anchors it cannot measure keep 0. Returns its statistics (anchors
-    tracked / measured / given a velocity), None when there is nothing to measure."""
+    (atgs.train.scene_flow); anchors it cannot measure keep 0. ``spread``: workers (each
+    holding the same anchors) that measure every world-th keyframe each and share the results.
+    Returns its statistics (anchors tracked / measured / given a velocity), None when there is
+    nothing to measure."""
     m = model
     if m.num_keyframes < 2 or not bool((m.anchor_keyframe >= 0).any()) or len(train_idx) < 2:
         return None
     cams = [scene.cameras[i] for i in train_idx]
-    bar = progress_bar(m.num_keyframes, "scene flow", unit="keyframe", enabled=progress)
+    several = spread is not None and spread.world > 1
+    mine = range(spread.rank, m.num_keyframes, spread.world) if several else range(m.num_keyframes)
+    bar = progress_bar(len(mine), "scene flow", unit="keyframe", enabled=progress)
 
     def grey(ci: int, f: int) -> torch.Tensor:
         return grey_of(scene.image_uint8(train_idx[ci], f))
 
     def step(k: int, total: int) -> None:
-        bar.update(k - bar.n)
+        bar.update(sum(1 for j in mine if j < k) - bar.n)
 
     with torch.no_grad():
-        vel, stats = initial_velocities(m.anchor_mu.cpu(), m.anchor_keyframe.cpu(), m.voxel_size,
-                                        m.timeline.keyframe_frames(), m.num_frames, cams, grey,
-                                        progress=step)
+        keyframe = m.anchor_keyframe.cpu()
+        vel, stats = initial_velocities(m.anchor_mu.cpu(), keyframe, m.voxel_size, m.timeline.keyframe_frames(),
+                                        m.num_frames, cams, grey, progress=step, keyframes=mine)
+        if several:  # every worker: the rows of its keyframes from all
+            rows = torch.isin(keyframe, torch.tensor(list(mine), dtype=torch.int64, device="cpu")).nonzero().squeeze(1)
+            parts = spread.gather_everywhere((rows, vel[rows], stats))
+            stats = {key: sum(p[2][key] for p in parts) for key in stats}
+            for r, v, _ in parts:
+                vel[r] = v
         m.anchor_velocity.copy_(vel.to(m.anchor_velocity.device))
     bar.update(bar.total - bar.n)
     bar.close()

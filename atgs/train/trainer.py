@@ -30,6 +30,7 @@ import torch
 from atgs.cameras import Camera
 from atgs.checkpoint import CheckpointError, model_from_checkpoint, read_checkpoint, save_checkpoint
 from atgs.config_dict import from_dict, to_dict
+from atgs.point_cloud import PointCloud
 from atgs.data.scene import resize_frame
 from atgs.errors import UserError
 from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded, num_segments_for
@@ -69,16 +70,18 @@ class SceneData(Protocol):
     num_frames: int
     fps: float
     keyframes: list[int]
-    points: np.ndarray
-    point_keyframes: np.ndarray
     test_cameras: list[str]
     bounds: np.ndarray | None  # (2, 3) min and max corner; None: the model takes the points' box
     motion_keyframes: list[int]  # points on moving content at extra keyframes (may be empty)
-    motion_points: np.ndarray
-    motion_point_keyframes: np.ndarray
 
     @property
-    def measured_points(self) -> np.ndarray: ...
+    def point_cloud(self) -> PointCloud: ...  # by keyframe (read one at a time)
+
+    @property
+    def motion_cloud(self) -> PointCloud: ...
+
+    @property
+    def measured_counts(self) -> list[int] | None: ...  # per keyframe, its first points measured
 
     @property
     def train_indices(self) -> list[int]: ...
@@ -193,7 +196,8 @@ class Trainer:
         if fresh:
             segments = (segment_block(num_segments_for(model_cfg, self.scene.num_frames), self.workers.rank,
                                       self.workers.world) if self.timed else None)
-            model = model_from_scene(self.scene, model_cfg, self.train_idx, self.cfg.seed, segments)
+            model = model_from_scene(self.scene, model_cfg, self.train_idx, self.cfg.seed, segments,
+                                     spread=self.workers)
         self.model = model.to(self.device)
         self.model_cfg = self.model.cfg  # a loaded model may have switched features off
         self.model.test_camera_names = list(self.scene.test_cameras)
@@ -208,9 +212,10 @@ class Trainer:
         """Partitioned by time: the anchors' start (rank 0's, velocities included) on every
         worker, then this worker's share of them (and of a given whole model's segments)."""
         m = self.model
-        if fresh and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity and self.leads:
+        if fresh and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity:
             t0 = time.perf_counter()
-            self.scene_flow_stats = velocities_from_flow(m, self.scene, self.train_idx, progress=False)
+            self.scene_flow_stats = velocities_from_flow(m, self.scene, self.train_idx, progress=False,
+                                                         spread=self.workers)
             self._early_seconds += time.perf_counter() - t0
         self.workers.replicate([m.anchor_mu, m.anchor_keyframe, *(getattr(m, n) for n in ANCHOR_TABLES),
                                 m.spatial.table, *m.decoder.parameters()])
@@ -283,10 +288,11 @@ class Trainer:
             self.scene_flow_stats = getattr(self, "scene_flow_stats", None)
             return
         self.scene_flow_stats: dict | None = None
-        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity and self.leads:
-            # (several workers: rank 0 measures them, _replicate hands them to the others)
+        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity:
+            # (several workers: each measures its share of the keyframes, and all gather them)
             t0 = time.perf_counter()
-            self.scene_flow_stats = velocities_from_flow(self.model, self.scene, self.train_idx, progress)
+            self.scene_flow_stats = velocities_from_flow(self.model, self.scene, self.train_idx,
+                                                         progress and self.leads, spread=self.workers)
             if self.budget is not None:  # it counts as time used
                 self.budget.used += time.perf_counter() - t0
 
