@@ -496,10 +496,18 @@ def distributed(r: dict) -> Cells:
     runs = r["runs"]
     x = runs["2x1"]["exchange"]
     what = {"1x2": "1 worker", "2x1": "2 workers by views", "2x1time": "2 workers by time"}
-    cells = "; ".join(f"{what[k]}: {v['steps_per_second']:.2f} steps/s, {v['psnr']:.2f} dB "
-                      f"(load {v['load_before']:.1f})" for k, v in runs.items() if k in what)
-    return Cells(f"built-in scene, preset `cpu`, {r['minutes']:g} min each, {r['views_per_step']} views a step; "
-                 "2 cores: a floor", run_of(r["stamp"]["date"], [v["load_before"] for v in runs.values()]),
+    seeds = r.get("over_seeds")
+    if seeds:  # the mean and range of several seeds' runs
+        cells = "; ".join(f"{what[k]}: {v['steps_per_second_mean']:.2f} steps/s, {v['psnr_mean']:.2f} dB "
+                          f"({v['psnr_min']:.2f}-{v['psnr_max']:.2f})" for k, v in seeds.items() if k in what)
+        loads = [x for v in seeds.values() for x in v["load_before"]]
+        over = f", seeds {' '.join(str(x) for x in next(iter(seeds.values()))['seeds'])}"
+    else:
+        cells = "; ".join(f"{what[k]}: {v['steps_per_second']:.2f} steps/s, {v['psnr']:.2f} dB "
+                          f"(load {v['load_before']:.1f})" for k, v in runs.items() if k in what)
+        loads, over = [v["load_before"] for v in runs.values()], ""
+    return Cells(f"built-in scene, preset `cpu`, {r['minutes']:g} min each{over}, {r['views_per_step']} views a "
+                 "step; 2 cores: a floor", run_of(r["stamp"]["date"], loads),
                  f"{cells}; {(x['dense_bytes_per_step'] + x['sparse_bytes_per_step']) / 1e6:.1f} MB a step "
                  f"exchanged by views, against {r['anatomy']['sparse_table_bytes'] / 1e6:.1f} MB dense", "")
 

@@ -56,7 +56,7 @@ def main() -> None:
         gt = SynthScene(cfg)
         tri = []
         for j, f in enumerate(s.keyframes):
-            pts = s.points[s.point_keyframes == j]  # stereo + SIFT: exact distances of a sample
+            pts = s.point_cloud.read(j)  # stereo + SIFT: exact distances of a sample
             d = distance_to_surfaces(gt, f, pts[np.random.default_rng(j).permutation(len(pts))[:3000]])
             tri.append({"frame": f, "points": int(len(pts)), "median_m": float(np.median(d)),
                         "median_rel": float(np.median(d) / cfg.scene_size), "p90_rel": float(np.percentile(d, 90) / cfg.scene_size)})

@@ -1,8 +1,9 @@
 """Several workers on one machine: steps per second and held-out PSNR at equal wall time, the bytes
 the workers exchange per step, and the parts of a step that a scaling model needs.
 
-    python bench/distributed.py                       # both cases, 3 minutes each, then the anatomy
+    python bench/distributed.py                       # the three cases, 3 minutes each, then the anatomy
     python bench/distributed.py --minutes 1 --cases 2x1
+    python bench/distributed.py --seeds 0 1 2          # every case once per seed (its spread in the JSON)
     python bench/distributed.py --part memory         # peak memory per worker as frames grow (below)
 
 Cases (one after the other: the machine has 2 cores): "1x2" is one worker with two torch threads,
@@ -60,8 +61,11 @@ VIEWS = 2  # views per step of the whole run, every case (the time partition's f
 @dataclass
 class Distributed:
     part: Literal["speed", "memory"] = "speed"
-    cases: tuple[str, ...] = ("1x2", "2x1")
+    cases: tuple[str, ...] = ("1x2", "2x1", "2x1time")
     minutes: float = 3.0
+    seeds: tuple[int, ...] = (0,)
+    """--train.seed of the runs: each case runs once per seed (cases alternate within a seed, so a
+    change of the machine's load reaches every case); "runs" keeps the first seed's."""
     flow: bool = False
     """Velocities from optical flow at the start (a set-up of minutes here, counted in the budget:
     off, so that the budget measures training)."""
@@ -74,12 +78,13 @@ class Distributed:
     out: Path = ROOT / "bench" / "results" / "distributed.json"
 
 
-def run_case(name: str, args: Distributed) -> dict:
+def run_case(name: str, args: Distributed, seed: int = 0) -> dict:
     """atgs-train with a budget of ``args.minutes``: its result.json, wall time and the load."""
     workers, threads, partition = CASES[name]
     views = VIEWS // workers if partition == "time" else VIEWS
     out = args.work_dir / name
     cmd = [sys.executable, "-m", "atgs.cli.train", "--out", str(out), "--overwrite", "--preset", "cpu",
+           "--train.seed", str(seed),
            "--minutes", str(args.minutes), "--train.views-per-step", str(views), "--train.threads", str(threads),
            "--train.partition", partition,
            "--workers", str(workers), "--no-progress", "--cache-dir", str(args.cache),
@@ -92,11 +97,22 @@ def run_case(name: str, args: Distributed) -> dict:
     if proc.returncode != 0:
         raise RuntimeError(f"{name}: atgs-train failed ({proc.returncode}): {proc.stderr.strip()[-400:]}")
     r = json.loads((out / "result.json").read_text())
-    return {"workers": workers, "threads": threads, "partition": partition, "steps": r["steps"],
+    return {"workers": workers, "threads": threads, "partition": partition, "seed": seed, "steps": r["steps"],
             "train_seconds": round(r["seconds"], 1), "steps_per_second": round(r["steps"] / r["seconds"], 3),
             "command_seconds": round(wall, 1),
             "anchors": r["anchors"], "psnr": round(r["eval"]["psnr"], 3), "ssim": round(r["eval"]["ssim"], 4),
             "exchange": r.get("workers"), "load_before": round(load, 2), "load_after": round(os.getloadavg()[0], 2)}
+
+
+def over_seeds(runs: list[dict]) -> dict:
+    """A case's runs of several seeds: each one's PSNR and pace, their mean and range."""
+    psnr = [r["psnr"] for r in runs]
+    pace = [r["steps_per_second"] for r in runs]
+    return {"seeds": [r["seed"] for r in runs], "psnr": psnr, "ssim": [r["ssim"] for r in runs],
+            "steps_per_second": pace, "steps": [r["steps"] for r in runs],
+            "load_before": [r["load_before"] for r in runs],
+            "psnr_mean": round(sum(psnr) / len(psnr), 3), "psnr_min": min(psnr), "psnr_max": max(psnr),
+            "steps_per_second_mean": round(sum(pace) / len(pace), 3)}
 
 
 def anatomy(scene, args: Distributed) -> dict:
@@ -308,9 +324,15 @@ def main(args: Distributed) -> None:
     results["minutes"] = args.minutes
     results["velocity_from_flow"] = args.flow
     runs = results.setdefault("runs", {})
-    for name in args.cases:
-        runs[name] = run_case(name, args)
-        print(name, runs[name], flush=True)
+    by_seed: dict[str, list[dict]] = {name: [] for name in args.cases}
+    for seed in args.seeds:
+        for name in args.cases:
+            by_seed[name].append(run_case(name, args, seed))
+            print(name, seed, by_seed[name][-1], flush=True)
+    for name, done in by_seed.items():
+        runs[name] = done[0]
+    if len(args.seeds) > 1:
+        results["over_seeds"] = {name: over_seeds(done) for name, done in by_seed.items()}
     results["anatomy"] = parts = anatomy(scene, args)
     print("anatomy", parts, flush=True)
     exchange = (runs.get("2x1") or {}).get("exchange")

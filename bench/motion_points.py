@@ -55,7 +55,7 @@ def run_case(tmp: Path, layout: str, preset: str, frames: int, select: str = "ph
     rng = np.random.default_rng(0)
     prec, near, rec, npts = [], [], [], []
     for j, f in enumerate(s.motion_keyframes):
-        pts = s.motion_points[s.motion_point_keyframes == j].astype(np.float64)
+        pts = s.motion_cloud.read(j).astype(np.float64)
         npts.append(len(pts))
         if len(pts) == 0:
             continue

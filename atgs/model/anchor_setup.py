@@ -172,6 +172,62 @@ def anchors_from_clouds(cfg: "ModelConfig", timeline: Timeline, cloud: PointClou
     carve the random anchors, and fill an empty scene); ``bounds``: the scene's box (random
     anchors; None: the points')."""
     split = cfg.anchor_layout == "split"
+    geometry, motion, fallback = _groups(timeline, split, cloud, scene_keyframes, motion_cloud, motion_keyframes,
+                                         cameras, seed)
+    voxel = cfg.voxel_size if cfg.voxel_size > 0 else float(np.median(each(
+        len(geometry), lambda i: auto_voxel_size(geometry[i].read(), generator=generator(seed, geometry[i].keyframe)),
+        spread)))
+    static_cells = _static_vote(geometry, 2 * voxel, cfg.static_fraction, spread) if split and not fallback else None
+    extra = _random_points(cfg, geometry + motion, cameras if cfg.carve_random_anchors and not fallback else [],
+                           bounds, seed, spread) if cfg.random_anchors > 0 else torch.zeros(0, 3, device="cpu")
+
+    static_voxel = voxel * cfg.static_voxel_factor
+    by_keyframe = {g.keyframe: g for g in geometry}
+    motion_of = {g.keyframe: g for g in motion}
+    keyframes = sorted({g.keyframe for g in geometry + motion if g.keyframe != STATIC} |
+                       ({0} if len(extra) and not split else set()))
+
+    def keyframe_part(i: int) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor | None]:
+        """Keyframe ``keyframes[i]``'s anchors (positions, log scales), and its static points'
+        cells (of the static voxel)."""
+        j = keyframes[i]
+        moving, static = [], None
+        if j in by_keyframe:
+            p = by_keyframe[j].read()
+            if static_cells is not None:
+                still = member(cells_of(p.double(), 2 * voxel), static_cells)
+                static, p = occupied(p[still], static_voxel), p[~still]
+            moving.append(p)
+        if j in motion_of:
+            moving.append(motion_of[j].read())
+        if j == 0 and not split:
+            moving.append(extra)
+        cells = occupied(torch.cat(moving), voxel)
+        return group_anchors(cells, voxel, voxel, cfg.max_anchors_per_keyframe, generator(seed, j)), static
+
+    parts = each(len(keyframes), keyframe_part, spread)
+    statics = [s for _, s in parts if s is not None]
+    if STATIC in by_keyframe:  # the empty scene's fill, static in the split layout
+        statics.append(occupied(by_keyframe[STATIC].read(), static_voxel))
+    if split and len(extra):
+        statics.append(occupied(extra, static_voxel))
+    groups = []  # (keyframe, (positions, log scales)): the static anchors first (every worker builds them)
+    if statics:
+        groups.append((STATIC, group_anchors(torch.unique(torch.cat(statics), dim=0), static_voxel, voxel,
+                                             cfg.max_anchors_per_keyframe, generator(seed, STATIC))))
+    groups += [(j, anchors) for j, (anchors, _) in zip(keyframes, parts)]
+    mus = [mu for _, (mu, _) in groups if len(mu)]
+    scales = [s for _, (mu, s) in groups if len(mu)]
+    kfs = [torch.full((len(mu),), j, dtype=torch.int64, device="cpu") for j, (mu, _) in groups if len(mu)]
+    if not mus:
+        raise ValueError("the scene has no points to initialize anchors from (points.ply is empty)")
+    return AnchorInit(torch.cat(mus), torch.cat(scales), torch.cat(kfs), float(voxel))
+
+
+def _groups(timeline: Timeline, split: bool, cloud: PointCloud, scene_keyframes: Sequence[int],
+            motion_cloud: PointCloud | None, motion_keyframes: Sequence[int], cameras: "Sequence[Camera]",
+            seed: int) -> tuple[list[Group], list[Group], bool]:
+    """(the geometry groups, the motion groups, whether the geometry is the empty scene's fill)."""
     K = timeline.num_keyframes
     has_motion = motion_cloud is not None and len(motion_keyframes) > 0
     # more model keyframes than prepared ones: each takes its nearest prepared keyframe's points
@@ -192,58 +248,7 @@ def anchors_from_clouds(cfg: "ModelConfig", timeline: Timeline, cloud: PointClou
         mshare = split and K > len(motion_keyframes)
         motion = [Group(j, motion_cloud, s) for j, s in keyframe_sources(motion_keyframes, timeline, mshare)
                   if motion_cloud.count(s)]
-
-    voxel = cfg.voxel_size if cfg.voxel_size > 0 else float(np.median(each(
-        len(geometry), lambda i: auto_voxel_size(geometry[i].read(), generator=generator(seed, geometry[i].keyframe)),
-        spread)))
-    static_cells = _static_vote(geometry, 2 * voxel, cfg.static_fraction, spread) if split and not fallback else None
-    extra = _random_points(cfg, geometry + motion, cameras if cfg.carve_random_anchors and not fallback else [],
-                           bounds, seed, spread) if cfg.random_anchors > 0 else torch.zeros(0, 3, device="cpu")
-
-    static_voxel = voxel * cfg.static_voxel_factor
-    by_keyframe = {g.keyframe: g for g in geometry}
-    motion_of = {g.keyframe: g for g in motion}
-    keyframes = sorted({g.keyframe for g in geometry + motion if g.keyframe != STATIC} |
-                       ({0} if len(extra) and not split else set()))
-
-    def keyframe_part(i: int) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Keyframe ``keyframes[i]``'s anchor cells, and its static points' cells (static voxel)."""
-        j = keyframes[i]
-        moving, static = [], None
-        if j in by_keyframe:
-            p = by_keyframe[j].read()
-            if static_cells is not None:
-                still = member(cells_of(p.double(), 2 * voxel), static_cells)
-                static, p = occupied(p[still], static_voxel), p[~still]
-            moving.append(p)
-        if j in motion_of:
-            moving.append(motion_of[j].read())
-        if j == 0 and not split:
-            moving.append(extra)
-        return occupied(torch.cat(moving), voxel), static
-
-    parts = each(len(keyframes), keyframe_part, spread)
-    statics = [s for _, s in parts if s is not None]
-    if STATIC in by_keyframe:  # the empty scene's fill, static in the split layout
-        statics.append(occupied(by_keyframe[STATIC].read(), static_voxel))
-    if split and len(extra):
-        statics.append(occupied(extra, static_voxel))
-    mus, scales, kfs = [], [], []
-
-    def add(key: int, cells: torch.Tensor, size: float) -> None:
-        if len(cells):
-            mu, s = group_anchors(cells, size, voxel, cfg.max_anchors_per_keyframe, generator(seed, key))
-            mus.append(mu)
-            scales.append(s)
-            kfs.append(torch.full((len(mu),), key, dtype=torch.int64, device="cpu"))
-
-    if statics:
-        add(STATIC, torch.unique(torch.cat(statics), dim=0), static_voxel)
-    for j, (cells, _) in zip(keyframes, parts):
-        add(j, cells, voxel)
-    if not mus:
-        raise ValueError("the scene has no points to initialize anchors from (points.ply is empty)")
-    return AnchorInit(torch.cat(mus), torch.cat(scales), torch.cat(kfs), float(voxel))
+    return geometry, motion, fallback
 
 
 def _static_vote(geometry: list[Group], cell: float, fraction: float, spread: Spread | None) -> torch.Tensor | None:
