@@ -163,8 +163,10 @@ class Workers:
     of a step. Every method is collective (all workers call it, in the same order) unless it says
     otherwise."""
 
-    def __init__(self, rank: int, world: int, device: torch.device, backend: str) -> None:
+    def __init__(self, rank: int, world: int, device: torch.device, backend: str,
+                 store: dist.Store | None = None) -> None:
         self.rank, self.world, self.device, self.backend = rank, world, device, backend
+        self.store = store  # the rendezvous store (close() meets the others there after the last collective)
         self.comm = device if backend == "nccl" else torch.device("cpu")  # where collectives run
         self.traffic = Traffic()
         self._written: torch.Tensor | None = None  # per slot: latest view that wrote its last position
@@ -183,9 +185,9 @@ class Workers:
             device = torch.device("cuda", local_rank % torch.cuda.device_count())
             torch.cuda.set_device(device)
         backend = _backend(device, local_world)
-        dist.init_process_group(backend, store=_attempt_store(rank, world, timeout_s), rank=rank, world_size=world,
-                                timeout=timedelta(seconds=timeout_s))
-        return cls(rank, world, device, backend)
+        store = _attempt_store(rank, world, timeout_s)
+        dist.init_process_group(backend, store=store, rank=rank, world_size=world, timeout=timedelta(seconds=timeout_s))
+        return cls(rank, world, device, backend, store)
 
     @property
     def leads(self) -> bool:
@@ -194,18 +196,29 @@ class Workers:
 
     def close(self, together: bool = True) -> None:
         """Leave the process group. ``together`` (every worker ending normally): first wait at a
-        barrier, so that no worker tears its connections down while another still uses them (gloo
-        then aborted a process at exit: "terminate called without an active exception"); a failed
-        barrier (a worker gone) is no error here. Without ``together`` (leaving on an error) it is
-        not collective."""
+        barrier, then until every worker is past it (counted in the rendezvous store, outside the
+        process group), so that no worker tears its connections down while another still waits
+        for the barrier's last message (gloo then aborted a process at exit: "terminate called
+        without an active exception"; a gloo barrier alone still did, rarely); a failed barrier
+        (a worker gone) is no error here. Without ``together`` (leaving on an error) it is not
+        collective."""
         if not dist.is_initialized():
             return
         if together:
             try:
                 dist.barrier()
+                self._all_past_the_barrier()
             except Exception:  # noqa: BLE001 - the others are gone or failing: leave anyway
                 pass
         dist.destroy_process_group()
+
+    def _all_past_the_barrier(self, timeout_s: float = 60.0) -> None:
+        if self.store is None:
+            return
+        self.store.add("closing", 1)
+        deadline = time.monotonic() + timeout_s
+        while self.store.add("closing", 0) < self.world and time.monotonic() < deadline:
+            time.sleep(0.005)
 
     def share(self, n: int) -> range:
         """This worker's views of a step's ``n``: a contiguous block, in rank order (not collective)."""
