@@ -56,8 +56,7 @@ class PlyPointCloud(PointCloud):
             f.seek(offset)
             for first in range(0, count, CHUNK_ROWS):
                 k = np.fromfile(f, dtype, min(CHUNK_ROWS, count - first))["keyframe"].astype(np.int64)
-                if len(k) and (k.min() < 0 or k.max() >= num_keyframes):
-                    raise DataError(f"{path}: keyframe index out of range [0, {num_keyframes})")
+                _check_range(path, k, num_keyframes)
                 change = np.flatnonzero(np.diff(k)) + 1
                 if len(k) and k[0] != last:
                     change = np.concatenate([[0], change])
@@ -119,10 +118,14 @@ def _binary_layout(path: Path) -> tuple[np.dtype, int, int] | None:
     return np.dtype(fields), offset, count
 
 
+def _check_range(path: Path, keyframes: np.ndarray, num_keyframes: int) -> None:
+    if len(keyframes) and (keyframes.min() < 0 or keyframes.max() >= num_keyframes):
+        raise DataError(f"{path}: keyframe index out of range [0, {num_keyframes})")
+
+
 def _in_memory(path: Path, num_keyframes: int) -> ArrayPointCloud:
     pts, cols, kfs = read_points_ply(path)
-    if len(kfs) and (kfs.min() < 0 or kfs.max() >= num_keyframes):
-        raise DataError(f"{path}: keyframe index out of range [0, {num_keyframes})")
+    _check_range(path, kfs, num_keyframes)
     return ArrayPointCloud(pts, kfs, num_keyframes, cols)
 
 

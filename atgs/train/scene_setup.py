@@ -79,10 +79,9 @@ def free_space_of(scene: "SceneData", cams: "list[Camera]", device: torch.device
     """The space ``cams`` prove empty: in front of the scene's measured keyframe points (not its
     fill; all keyframes at once, so anything a moving object occupies at one keyframe stays
     non-empty) and its motion points, read a keyframe at a time."""
-    measured = scene.measured_counts
-    parts = [(scene.point_cloud, k, None if measured is None else measured[k])
-             for k in range(scene.point_cloud.num_keyframes)]
-    parts += [(scene.motion_cloud, k, None) for k in range(scene.motion_cloud.num_keyframes)]
+    cloud, motion, measured = scene.point_cloud, scene.motion_cloud, scene.measured_counts  # (each built once)
+    parts = [(cloud, k, None if measured is None else measured[k]) for k in range(cloud.num_keyframes)]
+    parts += [(motion, k, None) for k in range(motion.num_keyframes)]
     grids = depth_grids(cams, np.zeros((0, 3)))  # inf: no point yet
     for cloud, k, n in parts:
         pts = cloud.read(k)[:n]
