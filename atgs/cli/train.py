@@ -190,9 +190,11 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     if args.resume:
         trainer = Trainer.resume(load_scene(args), resumed_checkpoint(args), args.out, iterations=args.iterations,
                                  minutes=args.minutes, device=device, workers=workers,
-                                 partition=args.train.partition if "train.partition" in explicit else None)
+                                 partition=args.train.partition if "train.partition" in explicit else None,
+                                 time_groups=args.train.time_groups if "train.time_groups" in explicit else None)
         trainer.run.stage_config({"device": str(device)})  # config.json keeps the run's preset and data
-        print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} on {_where(device, workers)}")
+        print(f"{PROG}: resuming at step {trainer.step} of {trainer.cfg.iterations} "
+              f"on {_where(device, workers, trainer)}")
         return trainer
     if ckpt.exists() and not args.overwrite:
         raise OutputError(f"{ckpt} already exists; pass --resume to continue it, --overwrite to start over, "
@@ -207,7 +209,7 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     m = trainer.model
     print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
           f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras, "
-          f"on {_where(device, workers)}; "
+          f"on {_where(device, workers, trainer)}; "
           + (f"{args.train.minutes:g} min time budget" if args.train.minutes > 0 else f"{args.train.iterations} steps"))
     sparse = sparse_rig_warning([scene.cameras[i] for i in trainer.train_idx],
                                 ((getattr(scene, "coverage", None) or {}).get("views_per_pixel") or {}).get("mean"))
@@ -221,9 +223,14 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     return trainer
 
 
-def _where(device, workers) -> str:
-    """Where the run trains, for the start-up line."""
-    return device_description(device) + (f" x {workers.world} workers ({workers.backend})" if workers else "")
+def _where(device, workers, trainer) -> str:
+    """Where the run trains and how the workers split it, for the start-up line."""
+    if workers is None:
+        return device_description(device)
+    g = trainer.time_groups
+    split = ("partitioned by views" if g == 1 else "partitioned by time" if g == workers.world
+             else f"partitioned by both: {g} time groups of {workers.world // g}")
+    return device_description(device) + f" x {workers.world} workers ({workers.backend}, {split})"
 
 
 def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
@@ -339,8 +346,10 @@ def launch_workers(argv: list[str], args: TrainArgs) -> int:
         from atgs.config_dict import from_dict
 
         cfg = from_dict(TrainConfig, read_checkpoint(resumed_checkpoint(args))["train_config"])
-    partition = args.train.partition if "partition" in given_flags(argv, "--train.") else cfg.partition
-    check_settings(cfg.views_per_step, n, partition)
+    given = given_flags(argv, "--train.")
+    partition = args.train.partition if "partition" in given else cfg.partition
+    groups = args.train.time_groups if "time-groups" in given else cfg.time_groups
+    check_settings(cfg.views_per_step, n, partition, groups)  # (one machine: one node)
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
     launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}",
                                              f"--max-restarts={args.max_restarts}", "--module", "atgs.cli.train", *argv])
@@ -380,8 +389,9 @@ def main(argv: list[str] | None = None) -> int:
         args = parse(argv)
         if args.workers > 1 and int(os.environ.get("WORLD_SIZE", "1")) <= 1:
             return launch_workers(argv, args)
-        # (--train.partition on a resume: the workers split the run from here on so)
-        partition = {"train.partition"} if "partition" in given_flags(argv, "--train.") else set()
+        # (--train.partition / --train.time-groups on a resume: the workers split the run from here on so)
+        given = given_flags(argv, "--train.")
+        partition = {f"train.{k.replace('-', '_')}" for k in ("partition", "time-groups") if k in given}
         result = run(args, explicit_model_flags(argv) | partition)
         return EXIT_INTERRUPTED if "stopped_early" in result else None  # (a worker other than rank 0)
 

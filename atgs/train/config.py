@@ -21,7 +21,7 @@ PresetName = Literal["cpu-fast", "cpu", "cpu-accurate", "paper", "tiny"]
 PRESET_NAMES: tuple[str, ...] = get_args(PresetName)
 VolumeReduction = Literal["sum", "mean", "mean-voxel"]
 CameraExposure = Literal["auto", "on", "off"]
-Partition = Literal["views", "time"]  # what several workers split (atgs.train.distributed, atgs.train.time_partition)
+Partition = Literal["views", "time", "both"]  # what several workers split (atgs.train.distributed, atgs.train.time_partition)
 LOSS_WEIGHT = at_least(0, "a loss weight", "0 = off")
 
 
@@ -179,9 +179,11 @@ class TrainConfig:
     seed: int = 0
     threads: int = 0  # torch threads while the trainer works (restored after); 0 = torch's default
     # Several workers: "views" shares each step's views (every worker holds the whole model);
-    # "time" gives each a block of time segments with their tables and anchors (docs/training.md,
-    # "Several workers"). One process ignores it.
+    # "time" gives each a block of time segments with their tables and anchors; "both" gives
+    # each of time_groups groups of workers a block, whose views the group's workers share
+    # (docs/training.md, "Several workers"). One process ignores them.
     partition: Partition = "views"
+    time_groups: int = 0  # --train.partition both: blocks of time segments; 0 = one per node (torchrun --nnodes)
     render_backend: str = "auto"  # one of atgs.render.BACKENDS
     fixed_schedule: tuple[ScheduleSetting, ...] = SCHEDULE_SETTINGS
     """Schedule settings kept as given at any step count; the others are sized from the step count
@@ -207,7 +209,8 @@ class TrainConfig:
             "grad_clip": at_least(0, note="0 = off"), "adam_eps": at_least(0), "max_bad_steps": at_least(0),
             "eval_every": at_least(0, note="0 = off"), "eval_max_frames": at_least(1),
             "save_every": at_least(0, note="0 = off"), "image_cache_mb": at_least(0),
-            "threads": at_least(0, note="0 = torch's default"), "partition": one_of(Partition), "render_backend": one_of(BACKENDS),
+            "threads": at_least(0, note="0 = torch's default"), "partition": one_of(Partition),
+            "time_groups": at_least(0, note="0 = one per node"), "render_backend": one_of(BACKENDS),
             "fixed_schedule": each(one_of(SCHEDULE_SETTINGS))})
         self.lr.validate()
         self.densify.validate()

@@ -24,7 +24,9 @@ What a step does on N workers (docs/training.md, "Several workers"):
   growing and pruning then run on every worker from the same statistics and the same generator.
 
 So every worker holds the same model, rank 0 writes the checkpoint, and a checkpoint resumes on any
-number of workers.
+number of workers. Partitioned by time or by both (atgs.train.time_partition), the same exchange
+carries only what every worker holds, and a time group's workers (a :meth:`Workers.crew`, a
+process group of their own) run it among themselves for what their group owns.
 """
 
 from __future__ import annotations
@@ -59,14 +61,37 @@ class WorkerLost(UserError, RuntimeError):
     resumes)."""
 
 
-def check_settings(views_per_step: int, workers: int, partition: str = "views") -> None:
-    """Refuse settings that N workers cannot train as one process would (partitioned by views;
-    partitioned by time, every worker draws its own views: atgs.train.time_partition)."""
-    if workers <= 1 or partition == "time":
+def time_groups_of(partition: str, workers: int, asked: int = 0, nodes: int = 1) -> int:
+    """How many blocks of time segments ``workers`` workers split the model into: none for the
+    views partition (1: everyone holds all), one per worker for the time partition, and for both
+    at once ``asked`` (--train.time-groups; 0: one per node, torchrun's --nnodes), each block's
+    views shared by ``workers / groups`` workers (atgs.train.time_partition)."""
+    if partition == "views" or workers <= 1:
+        return 1
+    if partition == "time":
+        return workers
+    groups = asked or nodes
+    if groups < 2 or workers % groups:
+        what = (f"--train.time-groups {asked}" if asked
+                else f"one time group per node ({nodes} node{'s' * (nodes != 1)})")
+        raise ConfigError(f"--train.partition both splits {workers} workers into time groups of equal size, but "
+                          f"{what} does not; pass --train.time-groups G with G >= 2 dividing {workers}, or "
+                          "--train.partition views / time")
+    return groups
+
+
+def check_settings(views_per_step: int, workers: int, partition: str = "views", time_groups: int = 0,
+                   nodes: int = 1) -> None:
+    """Refuse settings that N workers cannot train as one process would: the workers that share a
+    step's views (all of them partitioned by views, a time group's partitioned by both) need one
+    view each at least; partitioned by time, every worker draws its own (atgs.train.time_partition)."""
+    if workers <= 1:
         return
-    if views_per_step < workers:
-        raise ConfigError(f"{workers} workers share each step's views, but --train.views-per-step is "
-                          f"{views_per_step}; pass --train.views-per-step {workers} (or a multiple of it)")
+    sharing = workers // time_groups_of(partition, workers, time_groups, nodes)
+    if views_per_step < sharing:
+        who = f"{sharing} workers" if sharing == workers else f"the {sharing} workers of each time group"
+        raise ConfigError(f"{who} share each step's views, but --train.views-per-step is "
+                          f"{views_per_step}; pass --train.views-per-step {sharing} (or a multiple of it)")
 
 
 @dataclass
@@ -164,9 +189,12 @@ class Workers:
     otherwise."""
 
     def __init__(self, rank: int, world: int, device: torch.device, backend: str,
-                 store: dist.Store | None = None) -> None:
+                 store: dist.Store | None = None, group: "dist.ProcessGroup | None" = None, nodes: int = 1) -> None:
         self.rank, self.world, self.device, self.backend = rank, world, device, backend
         self.store = store  # the rendezvous store (close() meets the others there after the last collective)
+        # None: the whole run; else a subgroup (:meth:`crew`), whose rank and world these are
+        self.group = group
+        self.nodes = nodes  # machines of the run (torchrun's --nnodes: WORLD_SIZE / LOCAL_WORLD_SIZE)
         self.comm = device if backend == "nccl" else torch.device("cpu")  # where collectives run
         self.traffic = Traffic()
         self._written: torch.Tensor | None = None  # per slot: latest view that wrote its last position
@@ -187,7 +215,22 @@ class Workers:
         backend = _backend(device, local_world)
         store = _attempt_store(rank, world, timeout_s)
         dist.init_process_group(backend, store=store, rank=rank, world_size=world, timeout=timedelta(seconds=timeout_s))
-        return cls(rank, world, device, backend, store)
+        return cls(rank, world, device, backend, store, nodes=max(1, world // max(1, local_world)))
+
+    def crew(self, size: int) -> "Workers":
+        """This worker's crew: the ``size`` consecutive ranks it belongs to (so one node's, as
+        torchrun numbers ranks node by node), as a :class:`Workers` of its own whose collectives
+        (:meth:`reduce_step`, :meth:`stats_reduced`) run among them only. Collective over the
+        whole run: every worker creates every crew's process group, in the same order."""
+        if self.group is not None or self.world % size:
+            raise AssertionError("crews are cut from the whole run, in equal sizes")
+        mine = None
+        for first in range(0, self.world, size):
+            ranks = list(range(first, first + size))
+            group = self._call(dist.new_group, ranks)
+            if self.rank in ranks:
+                mine = group
+        return Workers(self.rank % size, size, self.device, self.backend, group=mine, nodes=self.nodes)
 
     @property
     def leads(self) -> bool:
@@ -341,7 +384,7 @@ class Workers:
                         + [g.to(self.comm, torch.float32) for g in grads])
         if not max(float(counts.max()), float(views.n_gauss)) < _EXACT:
             raise RuntimeError("a step's counts exceed what the workers' exchange carries exactly (2^24)")
-        self._call(dist.all_reduce, buf)
+        self._call(dist.all_reduce, buf, group=self.group)
         self.traffic.dense += buf.numel() * buf.element_size()
         head = buf[:_HEADER].tolist()
         at = _HEADER
@@ -373,7 +416,7 @@ class Workers:
         mine = torch.cat(pieces) if pieces else torch.zeros(0, device=self.comm)
         mine = torch.cat([mine, torch.zeros(longest - mine.numel(), device=self.comm)])
         everyone = [torch.empty(longest, device=self.comm) for _ in range(self.world)]
-        self._call(dist.all_gather, everyone, mine)
+        self._call(dist.all_gather, everyone, mine, group=self.group)
         self.traffic.sparse += longest * 4
         self.traffic.sparse_rows += int(counts[self.rank, :-1].sum())
         parts: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {}
@@ -404,26 +447,28 @@ class Workers:
         self._written.index_fill_(0, slots, stamp)
 
     @contextmanager
-    def stats_reduced(self, stats, shared: Callable[[], int] | None = None) -> Iterator[None]:
+    def stats_reduced(self, stats, anchors: Callable[[], range] | None = None) -> Iterator[None]:
         """While the block runs, ``stats`` (atgs.train.densify.DensifyStats) hold the sums of every
         worker's views and the last positions of the latest views (the same on every worker);
         afterwards rank 0 keeps the sums and the others count their own views from zero.
-        ``shared``: only the first ``shared()`` anchors' statistics (the time partition's shared
-        anchors; the others are each worker's own), read before and after the block."""
+        ``anchors``: only these anchors' statistics (the time partition's shared anchors, or a
+        time group's own ones; the others are left as they are), read before and after the block."""
         total = stats.grad_accum.numel()
-        a = stats.opacity_accum.numel() if shared is None else shared()
-        n = total if shared is None else a * (total // max(1, stats.opacity_accum.numel()))
-        written = (self._written[:n] if self._written is not None and self._written.numel() == total
-                   else torch.full((n,), -1, dtype=torch.int64, device=stats.device))
+        per = total // max(1, stats.opacity_accum.numel())
+        block = range(stats.opacity_accum.numel()) if anchors is None else anchors()
+        a0, a1 = block.start, block.stop
+        n0, n1 = a0 * per, a1 * per
+        written = (self._written[n0:n1] if self._written is not None and self._written.numel() == total
+                   else torch.full((n1 - n0,), -1, dtype=torch.int64, device=stats.device))
         latest = written.to(self.comm, copy=True)
-        self._call(dist.all_reduce, latest, op=dist.ReduceOp.MAX)
+        self._call(dist.all_reduce, latest, op=dist.ReduceOp.MAX, group=self.group)
         latest = latest.to(stats.device)
         mine = (written == latest) & (latest >= 0)
-        sums = (stats.grad_accum[:n], stats.grad_count[:n], stats.opacity_accum[:a], stats.anchor_count[:a])
-        last = stats.last_pos[:n]
+        sums = (stats.grad_accum[n0:n1], stats.grad_count[n0:n1], stats.opacity_accum[a0:a1], stats.anchor_count[a0:a1])
+        last = stats.last_pos[n0:n1]
         ours = torch.where(mine[:, None], last, torch.zeros_like(last))
         buf = torch.cat([s.reshape(-1) for s in sums] + [ours.reshape(-1)]).to(self.comm)
-        self._call(dist.all_reduce, buf)
+        self._call(dist.all_reduce, buf, group=self.group)
         self.traffic.statistics += buf.numel() * buf.element_size() + latest.numel() * latest.element_size()
         buf = buf.to(stats.device)
         at = 0
@@ -432,21 +477,21 @@ class Workers:
                 s.copy_(buf[at:at + s.numel()].view_as(s))
                 at += s.numel()
         last = torch.where((latest >= 0)[:, None], buf[at:].view_as(last), last)
-        stats.last_pos = last if shared is None else torch.cat([last, stats.last_pos[n:]])
+        stats.last_pos = torch.cat([stats.last_pos[:n0], last, stats.last_pos[n1:]])
         try:
             yield
         finally:
             self._written = None
-            self.own_sums(stats, None if shared is None else shared())
+            self.own_sums(stats, None if anchors is None else anchors())
 
-    def own_sums(self, stats, anchors: int | None = None) -> None:
+    def own_sums(self, stats, anchors: range | None = None) -> None:
         """From here on this worker's statistics sums count its own views only (rank 0's also
         what was summed before): after a reduction, and on a resume (not collective).
-        ``anchors``: only the first ones' (the time partition's shared anchors)."""
+        ``anchors``: only these ones' (see :meth:`stats_reduced`)."""
         if self.rank != 0:
-            a = stats.opacity_accum.numel() if anchors is None else anchors
-            n = a * (stats.grad_accum.numel() // max(1, stats.opacity_accum.numel()))
+            block = range(stats.opacity_accum.numel()) if anchors is None else anchors
+            per = stats.grad_accum.numel() // max(1, stats.opacity_accum.numel())
             for name in ("grad_accum", "grad_count"):
-                getattr(stats, name)[:n].zero_()
+                getattr(stats, name)[block.start * per:block.stop * per].zero_()
             for name in ("opacity_accum", "anchor_count"):
-                getattr(stats, name)[:a].zero_()
+                getattr(stats, name)[block.start:block.stop].zero_()

@@ -21,10 +21,21 @@ generator; the shared anchors' statistics are summed over the workers and every 
 them with the same generator (seeded by the step) and prunes them alike, so they stay replicas.
 A new anchor takes its parent's keyframe, so it is shared or own as its parent.
 
+Both at once (``--train.partition both``): the workers form time groups of consecutive ranks
+(``--train.time-groups``, by default one per node), and each group holds one block as one worker
+of the time partition does: its workers (its *crew*, ``Workers.crew``) hold the same share and
+draw the same views from the group's generator, each renders its share of them (as the views
+partition shares a step), and they sum their owned gradients and own anchors' reach and
+statistics among themselves (:func:`reduce_owned`), while the shared ones are reduced among all
+workers and averaged over the groups. So the run equals the time partition with one worker per
+group (tests/test_distributed_both.py), and only the shared rows cross between groups (between
+nodes, with one group per node).
+
 Checkpoints: rank 0 writes every worker's part (:func:`local_part`: its own anchors, segment
 rows, their optimizer state and statistics), received piece by piece as it writes, into one
 ``ckpt.pt`` in the usual format (the anchors shared first, then each worker's own ones in rank
-order; the segments in order); any number of workers, and either partition, resume from it (the trainer slices what it loaded).
+order; the segments in order; a time group's other workers send nothing); any number of workers,
+and any partition, resume from it (the trainer slices what it loaded).
 """
 
 from __future__ import annotations
@@ -39,7 +50,7 @@ from atgs.io.torch_zip import Streamed, read_rows
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ANCHOR_TABLES, SEGMENT_TABLES, ATGSModel, segment_rows
 from atgs.timeline import Timeline
-from atgs.train.distributed import StepViews
+from atgs.train.distributed import StepViews, Workers
 
 # the sparse tables whose gradients the workers reduce: every row, or the shared anchors' rows
 EXCHANGED = {"spatial": "all", **{name: "shared" for name in ANCHOR_TABLES}}
@@ -51,9 +62,9 @@ _OPT_STORES = ("exp_avg", "exp_avg_sq", "steps")
 def segment_block(num_segments: int, rank: int, world: int) -> range:
     """Worker ``rank``'s contiguous block of ``num_segments`` segments."""
     if num_segments < world:
-        raise ConfigError(f"--train.partition time gives each of {world} workers whole time segments, but the "
-                          f"model has {num_segments}; pass --model.num-segments {world} (or more) or "
-                          "--train.partition views")
+        raise ConfigError(f"--train.partition time / both gives each of {world} workers (or time groups) whole "
+                          f"time segments, but the model has {num_segments}; pass --model.num-segments {world} "
+                          "(or more) or --train.partition views")
     return range(num_segments * rank // world, num_segments * (rank + 1) // world)
 
 
@@ -152,9 +163,11 @@ def read_segment_rows(path, data: dict, segments: range) -> None:
 
 
 # --- the step's exchange -------------------------------------------------------------------------------
-def keep_owned(views: StepViews, num_shared: int) -> dict[str, list[tuple[torch.Tensor, torch.Tensor]]]:
-    """Take the owned gradients (segment tables, own anchors' rows) out of ``views`` before the
-    exchange, which then carries only the shared ones; returns the owned ones."""
+def keep_owned(views: StepViews, num_shared: int) -> StepViews:
+    """Take the owned gradients (segment tables, own anchors' rows) and the reach of the own
+    anchors out of ``views`` before the exchange, which then carries only the shared ones;
+    returns the owned ones (what a time group's workers exchange among themselves, partitioned
+    by both: :func:`reduce_owned`)."""
     exchanged, owned = {}, {}
     for name, parts in views.grads.items():
         kind = EXCHANGED.get(name)
@@ -168,28 +181,40 @@ def keep_owned(views: StepViews, num_shared: int) -> dict[str, list[tuple[torch.
         else:
             owned[name] = parts
     views.grads = exchanged
+    own_decoded = [ids[ids >= num_shared] for ids in views.decoded]
     views.decoded = [ids[ids < num_shared] for ids in views.decoded]  # the reach of the shared anchors
+    return StepViews(grads=owned, decoded=own_decoded, bad=views.bad)
+
+
+def reduce_owned(crew: Workers, owned: StepViews, tables: dict[str, torch.Tensor], reach) -> StepViews:
+    """Partitioned by both: the owned gradients and reach of a time group's workers, who render
+    shares of the same views, summed among them (the crew's sparse exchange; the shared ones
+    travel among all workers). ``tables``: the model's sparse tables by name."""
+    crew.reduce_step(owned, [], {n: t for n, t in tables.items() if EXCHANGED.get(n) != "all"}, reach, False)
     return owned
 
 
-def with_owned(views: StepViews, owned: dict, world: int, dense: Sequence[torch.Tensor]) -> None:
-    """After the exchange: the shared gradients (summed over the workers) become their mean, and
-    the owned ones join them."""
-    if views.bad:
+def with_owned(views: StepViews, owned: StepViews, groups: int, dense: Sequence[torch.Tensor]) -> None:
+    """After the exchange: the shared gradients (summed over the workers: over the ``groups``
+    time groups' views) become their mean over the groups, and the owned ones join them."""
+    if views.bad or owned.bad:
+        views.bad = True
         return
     for p in dense:
         if p.grad is not None:
-            p.grad.div_(world)
-    views.grads = {name: [(rows, g / world) for rows, g in parts] for name, parts in views.grads.items()}
-    for name, parts in owned.items():
+            p.grad.div_(groups)
+    views.grads = {name: [(rows, g / groups) for rows, g in parts] for name, parts in views.grads.items()}
+    for name, parts in owned.grads.items():
         views.grads.setdefault(name, []).extend(parts)
 
 
 # --- checkpoints -------------------------------------------------------------------------------------------
-def local_part(model: ATGSModel, opt, stats, grid_visits: torch.Tensor, part: TimeSlice) -> dict[str, torch.Tensor]:
+def local_part(model: ATGSModel, opt, stats, grid_visits: torch.Tensor, part: TimeSlice,
+               replica: bool = False) -> dict[str, torch.Tensor]:
     """What this worker adds to the gathered checkpoint, each tensor to be concatenated in rank
     order: its anchors (rank 0: the shared ones too), its segments' rows, their optimizer state,
-    statistics and visit counts."""
+    statistics and visit counts. ``replica``: a time group's worker other than its first
+    (partitioned by both), which holds the same as that one: nothing (rows of none)."""
     a = 0 if part.rank == 0 else part.num_shared(model)
     q = model.cfg.gaussians_per_anchor
     tables = model.sparse_tensors()
@@ -207,7 +232,7 @@ def local_part(model: ATGSModel, opt, stats, grid_visits: torch.Tensor, part: Ti
     for name in _STAT_ANCHORS:
         out[f"densify/{name}"] = getattr(stats, name)[a:]
     out["grid_visits"] = grid_visits[part.segments.start:part.segments.stop]
-    return {k: v.detach().cpu() for k, v in out.items()}
+    return {k: (v[:0] if replica else v).detach().cpu() for k, v in out.items()}
 
 
 def fill_payload(payload: dict, gathered: dict[str, Streamed]) -> dict:

@@ -16,7 +16,7 @@ run's (``--train.threads``) while the trainer works and is restored when it retu
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager, ExitStack, nullcontext
 from dataclasses import dataclass, replace
 import functools
 import math
@@ -45,7 +45,7 @@ from atgs.timeline import evenly_spaced
 from atgs.train.budget import TimeBudget
 from atgs.train.config import TrainConfig
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
-from atgs.train.distributed import StepViews, Workers, check_settings
+from atgs.train.distributed import StepViews, Workers, check_settings, time_groups_of
 from atgs.train import time_partition
 from atgs.train.time_partition import TimeSlice, segment_block
 from atgs.train.dropout import drop_gaussians, drop_rate, render_generator
@@ -140,6 +140,7 @@ class Trainer:
         self.workers = workers
         self.train_idx, self.test_idx = list(scene.train_indices), list(scene.test_indices)
         self._check(cfg, model_cfg)
+        self._set_up_workers(cfg)
         # (with torch's own thread count, as these always ran: their sums are part of the run)
         self._resolve_scene_settings(cfg, None if model is None else model.environment)
         # several workers partitioned by time: this one's share (atgs.train.time_partition), set
@@ -166,7 +167,22 @@ class Trainer:
         cfg.validate()
         model_cfg.validate()
         check_backend(self.device, cfg.render_backend)
-        check_settings(cfg.views_per_step, 1 if self.workers is None else self.workers.world, cfg.partition)
+        if self.workers is not None:
+            check_settings(cfg.views_per_step, self.workers.world, cfg.partition, cfg.time_groups, self.workers.nodes)
+
+    def _set_up_workers(self, cfg: TrainConfig) -> None:
+        """Several workers: how they split the model into blocks of time segments (time groups:
+        1 partitioned by views, one per worker by time, --train.time-groups by both) and which of
+        them share each step's views (the crew: all of them by views, a time group's by both,
+        none by time; atgs.train.distributed.Workers.crew)."""
+        self.time_groups, self.time_rank, self.crew = 1, 0, None
+        if self.workers is None:
+            return
+        w = self.workers
+        self.time_groups = time_groups_of(cfg.partition, w.world, cfg.time_groups, w.nodes)
+        size = w.world // self.time_groups
+        self.time_rank = w.rank // size
+        self.crew = w if self.time_groups == 1 else (w.crew(size) if size > 1 else None)
 
     def _resolve_scene_settings(self, cfg: TrainConfig, environment: EnvironmentMap | None) -> None:
         """Background and camera exposure from the scene, once for the run (scene_setup)."""
@@ -178,8 +194,9 @@ class Trainer:
 
     @property
     def timed(self) -> bool:
-        """Several workers partitioned by time (each draws its own views from its segments)."""
-        return self.workers is not None and self.cfg.partition == "time"
+        """Several workers partitioned by time, or by both (each time group draws its own views
+        from its segments)."""
+        return self.time_groups > 1
 
     def _set_up_views(self) -> None:
         """Training cameras at the training resolution, and the generator every draw comes from
@@ -187,15 +204,15 @@ class Trainer:
         s = self.cfg.resolution_scale
         self.cams = [c.scaled(s) if s != 1.0 else c for c in self.scene.cameras]
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
-        self.draw_seed = self.cfg.seed + (7919 * self.workers.rank if self.timed else 0)
+        self.draw_seed = self.cfg.seed + 7919 * self.time_rank
         self.gen = torch.Generator(device="cpu").manual_seed(self.draw_seed)
 
     def _set_up_model(self, model_cfg: ModelConfig, model: ATGSModel | None) -> None:
         """A new model from the scene (on the CPU, then moved) or the given one, on the device."""
         fresh = model is None
         if fresh:
-            segments = (segment_block(num_segments_for(model_cfg, self.scene.num_frames), self.workers.rank,
-                                      self.workers.world) if self.timed else None)
+            segments = (segment_block(num_segments_for(model_cfg, self.scene.num_frames), self.time_rank,
+                                      self.time_groups) if self.timed else None)
             model = model_from_scene(self.scene, model_cfg, self.train_idx, self.cfg.seed, segments,
                                      spread=self.workers)
         self.model = model.to(self.device)
@@ -219,7 +236,7 @@ class Trainer:
             self._early_seconds += time.perf_counter() - t0
         self.workers.replicate([m.anchor_mu, m.anchor_keyframe, *(getattr(m, n) for n in ANCHOR_TABLES),
                                 m.spatial.table, *m.decoder.parameters()])
-        self.part = TimeSlice.plan(m.timeline, m, self.workers.rank, self.workers.world)
+        self.part = TimeSlice.plan(m.timeline, m, self.time_rank, self.time_groups)
         self._taken = self.part.take_model(m)
 
     def _set_up_optimizers(self, sparse_state: dict | None) -> None:
@@ -368,13 +385,15 @@ class Trainer:
             dense = [p for g in self.dense_opt.param_groups for p in g["params"]]
             dense += [self.exposure.table] if self.exposure is not None else []
             tables = model.sparse_tensors()
-            if self.part is not None:  # only the shared parameters' gradients travel
+            if self.part is not None:  # only the shared parameters' gradients travel among all
                 owned = time_partition.keep_owned(views, self.part.num_shared(model))
                 tables = {n: t for n, t in tables.items() if n in time_partition.EXCHANGED}
             stop = self.workers.reduce_step(views, dense, tables, model.reach,
                                             self._should_stop is not None and self._should_stop())
             if self.part is not None:
-                time_partition.with_owned(views, owned, self.workers.world, dense)
+                if self.crew is not None:  # (partitioned by both: the owned ones within the time group)
+                    owned = time_partition.reduce_owned(self.crew, owned, model.sparse_tensors(), model.reach)
+                time_partition.with_owned(views, owned, self.time_groups, dense)
             self._agreed_stop = self._agreed_stop or stop
         if views.bad:
             return self._skip_step()
@@ -396,11 +415,12 @@ class Trainer:
 
     def _views_of_step(self, views: StepViews) -> Iterator[View]:
         """The step's views as one process draws them (the sampler, then each camera's random
-        background as it renders). Several workers draw all of them, backgrounds included, in
-        that order (every worker keeps the same generator), and each yields its share."""
+        background as it renders). Workers that share the step's views (the crew) draw all of
+        them, backgrounds included, in that order (each keeps the same generator), and each
+        yields its share."""
         cfg = self.cfg
         timeline = self.model.timeline
-        if self.workers is None or self.timed:
+        if self.crew is None:
             for v in range(cfg.views_per_step):
                 cis, f = self.sampler.next_views(cfg.cameras_per_frame)
                 views.segments.append(timeline.segment_of_frame(f))
@@ -411,7 +431,7 @@ class Trainer:
             cis, f = self.sampler.next_views(cfg.cameras_per_frame)
             views.segments.append(timeline.segment_of_frame(f))
             drawn.append(View(v, cis, f, [self._background() for _ in cis] if cfg.random_background else None))
-        for v in self.workers.share(cfg.views_per_step):
+        for v in self.crew.share(cfg.views_per_step):
             yield drawn[v]
 
     def _learn_view(self, view: View, rate: float, views: StepViews) -> bool:
@@ -454,9 +474,11 @@ class Trainer:
             slots = self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
             if self.workers is not None and slots is not None:
                 stamp = self.step * cfg.views_per_step + view.index
-                if self.timed:  # (every worker renders views of that index)
-                    stamp = stamp * self.workers.world + self.workers.rank
+                if self.timed:  # (every time group renders views of that index)
+                    stamp = stamp * self.time_groups + self.time_rank
                 self.workers.note_positions(self.stats, slots, stamp)
+                if self.crew is not None and self.crew is not self.workers:
+                    self.crew.note_positions(self.stats, slots, stamp)
         for s in dec.sparse:
             if s.leaf.grad is not None:
                 views.grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
@@ -537,7 +559,17 @@ class Trainer:
             return nullcontext()
         if self.part is None:
             return self.workers.stats_reduced(self.stats)
-        return self.workers.stats_reduced(self.stats, lambda: self.part.num_shared(self.model))
+        both = ExitStack()  # (time partition: the shared anchors' among all; by both also the own ones' in the crew)
+        both.enter_context(self.workers.stats_reduced(self.stats, self._shared_anchors))
+        if self.crew is not None:
+            both.enter_context(self.crew.stats_reduced(self.stats, self._own_anchors))
+        return both
+
+    def _shared_anchors(self) -> range:
+        return range(self.part.num_shared(self.model))
+
+    def _own_anchors(self) -> range:
+        return range(self.part.num_shared(self.model), self.model.num_anchors)
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
@@ -554,8 +586,8 @@ class Trainer:
         if self.workers is None:
             return frames
         if self.part is not None:
-            own = self.model.decodable_frames
-            return [f for f in frames if f in own]
+            own = [f for f in frames if f in self.model.decodable_frames]
+            return own if self.crew is None else own[self.crew.rank::self.crew.world]  # (by both: the crew splits them)
         return frames[self.workers.rank::self.workers.world]
 
     @_in_run_threads
@@ -641,7 +673,8 @@ class Trainer:
             parts = None
             if self.part is not None:  # partitioned by time: rank 0 writes every worker's part
                 parts = self.workers.rows_to_leader(time_partition.local_part(
-                    self.model, self.sparse_opt, self.stats, self.grid_visits, self.part))
+                    self.model, self.sparse_opt, self.stats, self.grid_visits, self.part,
+                    replica=self.crew is not None and self.crew.rank > 0))
             if not self.leads:
                 return self.run.ckpt_path if path is None else Path(path)
             payload = self.checkpoint_payload()
@@ -656,13 +689,13 @@ class Trainer:
     def resume(cls, scene: SceneData, path: str | Path, out_dir: str | Path,
                iterations: int | None = None, minutes: float | None = None,
                device: torch.device | str = "cpu", workers: Workers | None = None,
-               partition: str | None = None) -> "Trainer":
+               partition: str | None = None, time_groups: int | None = None) -> "Trainer":
         """Continue the run of checkpoint ``path`` on ``device`` (any: checkpoints hold CPU tensors
         and the optimizer and densification state move with the model) and on any number of
         ``workers``. ``iterations``: a new total step count (and no time budget; the schedule
         sized to it as ``--iterations`` sizes it); ``minutes``: a new total time budget (the
-        time already used counts); ``partition``: how several workers split the run from here
-        (default: as it was saved; a checkpoint of either resumes with either)."""
+        time already used counts); ``partition`` and ``time_groups``: how several workers split
+        the run from here (default: as it was saved; a checkpoint of any partition resumes with any)."""
         # several workers: memory-mapped, so that a worker reads only the rows it keeps
         data = read_checkpoint(path, mmap=workers is not None)
         if data.get("trainer") is None:
@@ -678,12 +711,16 @@ class Trainer:
             cfg = replace(cfg, minutes=minutes)
         if partition is not None:
             cfg = replace(cfg, partition=partition)
+        if time_groups is not None:
+            cfg = replace(cfg, time_groups=time_groups)
         if int(data["num_frames"]) != scene.num_frames:
             raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
         segments = None
-        if workers is not None and cfg.partition == "time":  # this worker's segments' rows, no others
-            segments = segment_block(int(data["model"]["num_segments"]), workers.rank, workers.world)
+        groups = 1 if workers is None else time_groups_of(cfg.partition, workers.world, cfg.time_groups, workers.nodes)
+        if groups > 1:  # this worker's segments' rows, no others
+            segments = segment_block(int(data["model"]["num_segments"]), workers.rank // (workers.world // groups),
+                                     groups)
             time_partition.read_segment_rows(path, data, segments)
         model = model_from_checkpoint(data, path, device, segments)
         st = data["trainer"]
@@ -696,13 +733,15 @@ class Trainer:
         if tr.part is not None:  # partitioned by time: this worker's share of the whole state
             tr.stats.keep(tr._taken, tr.model_cfg.gaussians_per_anchor)
         if tr.workers is not None:  # the saved sums are all views': rank 0 carries them on
-            tr.workers.own_sums(tr.stats, None if tr.part is None else tr.part.num_shared(tr.model))
+            tr.workers.own_sums(tr.stats, None if tr.part is None else tr._shared_anchors())
+            if tr.part is not None and tr.crew is not None:  # (and a time group's first its own anchors')
+                tr.crew.own_sums(tr.stats, tr._own_anchors())
         tr.sampler.load_state_dict(st["sampler"])
         tr.grid_visits = st["grid_visits"].to(tr.device, copy=True)
-        if tr.part is None or tr.workers.leads:  # (the other workers of the time partition: their own)
+        if tr.part is None or tr.time_rank == 0:  # (the other time groups: their own)
             tr.gen.set_state(st["generator"])
         else:
-            tr.gen.manual_seed(cfg.seed + 7919 * tr.workers.rank + int(data["step"]))
+            tr.gen.manual_seed(cfg.seed + 7919 * tr.time_rank + int(data["step"]))
         tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
         tr.step = int(data["step"])
         tr.run = RunDir(tr.out, resume_step=tr.step)
@@ -873,6 +912,8 @@ class Trainer:
             result["warnings"] = list(self.warnings)
         if self.workers is not None:  # what the workers exchanged (atgs.train.distributed.Traffic)
             result["workers"] = self.workers.traffic.summary(self.workers.world)
+            if self.crew is not None and self.crew is not self.workers:  # (by both: within the time group)
+                result["workers"]["time_group"] = self.crew.traffic.summary(self.crew.world)
         return result
 
 
