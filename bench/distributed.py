@@ -5,6 +5,7 @@ the workers exchange per step, and the parts of a step that a scaling model need
     python bench/distributed.py --minutes 1 --cases 2x1
     python bench/distributed.py --seeds 0 1 2          # every case once per seed (its spread in the JSON)
     python bench/distributed.py --part memory         # peak memory per worker as frames grow (below)
+    python bench/distributed.py --part exchange       # bytes per step of each partition on 4 workers
 
 Cases (one after the other: the machine has 2 cores): "1x2" is one worker with two torch threads,
 "2x1" two workers (``atgs-train --workers 2``) with one thread each. Both train preset ``cpu`` on
@@ -26,7 +27,14 @@ after its set-up, after the steps, and after the checkpoint (rank 0 writes the w
 worker's part received as it writes), and after the final evaluation (every frame, each worker
 its own); then the checkpoint resumed by as many fresh workers, each reporting its peak after
 ``Trainer.resume`` and one step.
-Cases "FRAMESxWORKERS[views|time]", e.g. 500x2time.
+Cases "FRAMESxWORKERS[views|time|both]", e.g. 500x2time (both: 2 time groups).
+
+The exchange part (``--part exchange``, its own entry): the built-in scene on 4 workers of one
+thread for ``--exchange-steps`` steps (4 processes on 2 cores: their times say nothing, their bytes
+do) at one global batch of 4 views, partitioned by views, by time and by both (2 time groups of 2):
+the bytes each worker puts into the collectives among all workers and, by both, among its time
+group's. From them, :func:`two_node_model` compares the partitions on 2 nodes of 4 GPUs, where
+what crosses between the nodes is the cost.
 """
 
 from __future__ import annotations
@@ -53,14 +61,16 @@ from atgs.io.cache import cache_dir
 from atgs.train.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parent.parent
-# name: (workers, torch threads each, partition); "2x1time" is run by name (--cases 2x1time)
-CASES = {"1x2": (1, 2, "views"), "2x1": (2, 1, "views"), "2x1time": (2, 1, "time")}
-VIEWS = 2  # views per step of the whole run, every case (the time partition's flag is per worker)
+# name: (workers, torch threads each, partition, views per step of the whole run)
+CASES = {"1x2": (1, 2, "views", 2), "2x1": (2, 1, "views", 2), "2x1time": (2, 1, "time", 2),
+         "4x1views": (4, 1, "views", 4), "4x1time": (4, 1, "time", 4), "4x1both": (4, 1, "both", 4)}
+VIEWS = 2  # views per step of the whole run, the speed cases (the time partition's flag is per worker)
+TIME_GROUPS = 2  # of the "both" cases
 
 
 @dataclass
 class Distributed:
-    part: Literal["speed", "memory"] = "speed"
+    part: Literal["speed", "memory", "exchange"] = "speed"
     cases: tuple[str, ...] = ("1x2", "2x1", "2x1time")
     minutes: float = 3.0
     seeds: tuple[int, ...] = (0,)
@@ -73,20 +83,31 @@ class Distributed:
     memory_cases: tuple[str, ...] = ("250x1time", "500x1time", "500x2time", "500x2views", "1000x2time",
                                      "1000x4time")
     memory_steps: int = 10
+    exchange_cases: tuple[str, ...] = ("4x1views", "4x1time", "4x1both")
+    exchange_steps: int = 40
     cache: Path = field(default_factory=cache_dir)
     work_dir: Path = Path("/tmp/atgs-bench-distributed")
     out: Path = ROOT / "bench" / "results" / "distributed.json"
 
 
-def run_case(name: str, args: Distributed, seed: int = 0) -> dict:
-    """atgs-train with a budget of ``args.minutes``: its result.json, wall time and the load."""
-    workers, threads, partition = CASES[name]
-    views = VIEWS // workers if partition == "time" else VIEWS
+def views_flag(workers: int, partition: str, batch: int) -> int:
+    """--train.views-per-step for a global batch of ``batch`` views: the time partition's flag is
+    per worker, the both partition's per time group."""
+    return {"views": batch, "time": batch // workers, "both": batch // TIME_GROUPS}[partition]
+
+
+def run_case(name: str, args: Distributed, seed: int = 0, steps: int | None = None,
+             extra: tuple[str, ...] = ()) -> dict:
+    """atgs-train with a budget of ``args.minutes`` (or ``steps`` steps; ``extra`` flags): its
+    result.json, wall time and the load."""
+    workers, threads, partition, batch = CASES[name]
+    views = views_flag(workers, partition, batch)
     out = args.work_dir / name
+    length = ["--iterations", str(steps)] if steps else ["--minutes", str(args.minutes)]
     cmd = [sys.executable, "-m", "atgs.cli.train", "--out", str(out), "--overwrite", "--preset", "cpu",
-           "--train.seed", str(seed),
-           "--minutes", str(args.minutes), "--train.views-per-step", str(views), "--train.threads", str(threads),
-           "--train.partition", partition,
+           "--train.seed", str(seed), *length, *extra,
+           "--train.views-per-step", str(views), "--train.threads", str(threads),
+           "--train.partition", partition, "--train.time-groups", str(TIME_GROUPS if partition == "both" else 0),
            "--workers", str(workers), "--no-progress", "--cache-dir", str(args.cache),
            "--train.velocity-from-flow" if args.flow else "--train.no-velocity-from-flow"]
     load = os.getloadavg()[0]
@@ -175,10 +196,11 @@ def memory_overrides(partition: str, world: int, frames: int) -> tuple[dict, dic
     """(model, train) overrides of the tiny preset: per-segment tables that dominate the model
     (about 2 MB of table and 6 MB with its optimizer state per segment), a keyframe every 10
     frames (the synthetic capture's moving points would make one of most frames) of at most 300
-    anchors; a view per worker and step."""
+    anchors; a view per worker and step (by both: a time group's views shared by its workers)."""
     model = {"num_keyframes": frames // FRAMES_PER_KEYFRAME, "max_anchors_per_keyframe": 300,
              "frames_per_segment": FRAMES_PER_SEGMENT, "hash": {"levels": 8, "log2_table_size": 15}}
-    train = {"views_per_step": world if partition == "views" else 1, "partition": partition,
+    train = {"views_per_step": views_flag(world, partition, world), "partition": partition,
+             "time_groups": TIME_GROUPS if partition == "both" else 0,
              "velocity_from_flow": False, "camera_exposure": "off"}
     return model, train
 
@@ -273,7 +295,7 @@ def _spawn_workers(fn, world: int, args: tuple) -> None:
 def memory_case(name: str, args: Distributed) -> dict:
     from atgs.data.synth.scene import SynthConfig
 
-    frames, world, partition = re.fullmatch(r"(\d+)x(\d+)(views|time)", name).groups()
+    frames, world, partition = re.fullmatch(r"(\d+)x(\d+)(views|time|both)", name).groups()
     frames, world = int(frames), int(world)
     t0 = time.perf_counter()
     scene_dir = ensure_default_scene(args.cache, SynthConfig(frames=frames, **MEMORY_SYNTH),
@@ -308,14 +330,78 @@ def memory(args: Distributed) -> None:
                      "max_anchors_per_keyframe": 300}
     cases = part.setdefault("cases", {})
     for name in args.memory_cases:
-        cases[name] = memory_case(name, args)
+        cases[name] = {**memory_case(name, args), "stamp": run_stamp()}
         print(name, json.dumps(cases[name]), flush=True)
         args.out.write_text(json.dumps(results, indent=1) + "\n")
+
+
+# --- exchange: what each partition sends, and between which workers -------------------------------------
+EXCHANGE_MODEL = ("--model.num-segments", "4")  # every case's model: a segment per worker of the time partition
+INTER_NODE = 50e9  # bytes/s per GPU between nodes: a 400 Gb/s InfiniBand NIC per GPU (assumed)
+INTRA_NODE = 100e9  # bytes/s per GPU within a node: NVLink, as NCCL's rings reach it (assumed)
+
+
+def two_node_model(cases: dict, gpus_per_node: int = 4, latency: float = 20e-6) -> dict:
+    """Seconds of a step's exchange on 2 nodes of ``gpus_per_node`` GPUs, one view per GPU, from the
+    measured payloads per worker and view (4 workers, one view each). Hierarchical collectives:
+    what a node's workers put in crosses to the other node once (``gpus_per_node`` payloads over
+    the node's ``gpus_per_node`` NICs), then spreads within the node over NVLink. views: every
+    worker's touched rows reach every worker (across and within); time: only the shared rows do,
+    across and within; both (a time group per node): the shared rows across and within, the owned
+    rows within the node only (the crew's all-gather). The dense all-reduce is the same for all
+    (and small). Not modelled: a step's compute (the same per view in all three), the batch each
+    partition trains with (time: views spread over time within each worker's frames only)."""
+    n = gpus_per_node
+    w = 2 * n
+
+    def gather(payload: float, crossing: bool, within: int) -> float:
+        across = payload * n / (n * INTER_NODE) if crossing else 0.0  # each node's n payloads, n NICs
+        spread = (within - 1) * payload / INTRA_NODE  # the all-gather's payloads within the node
+        return across + spread + 3 * latency
+
+    views = cases["4x1views"]["exchange"]
+    time_ = cases["4x1time"]["exchange"]
+    both = cases["4x1both"]["exchange"]
+    dense = views["dense_bytes_per_step"]
+    allreduce = 2 * (w - 1) / w * dense / INTER_NODE
+    out = {
+        "views": gather(views["sparse_bytes_per_step"], True, w) + allreduce,
+        "time": gather(time_["sparse_bytes_per_step"], True, w) + allreduce,
+        "both": (gather(both["sparse_bytes_per_step"], True, w)
+                 + gather(both["time_group"]["sparse_bytes_per_step"], False, n) + allreduce),
+    }
+    crossing = {"views": views["sparse_bytes_per_step"] * n, "time": time_["sparse_bytes_per_step"] * n,
+                "both": both["sparse_bytes_per_step"] * n}
+    return {"gpus": w, "nodes": 2, "exchange_seconds": out, "bytes_crossing_per_node_per_step": crossing,
+            "assumptions": {"inter_node_bytes_per_second_per_gpu": INTER_NODE,
+                            "intra_node_bytes_per_second_per_gpu": INTRA_NODE, "latency_seconds_per_hop": latency,
+                            "payloads": "measured on 4 CPU workers of one view each (per worker), "
+                                        "taken as the 8 GPUs' (the model's size and the views' reach are the same)"}}
+
+
+def exchange_part(args: Distributed) -> None:
+    results = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    part = results.setdefault("exchange", {})
+    part["stamp"] = run_stamp()
+    part["steps"], part["views_per_step"], part["time_groups"] = args.exchange_steps, 4, TIME_GROUPS
+    part["model_flags"] = list(EXCHANGE_MODEL)
+    cases = part.setdefault("cases", {})
+    for name in args.exchange_cases:
+        cases[name] = run_case(name, args, steps=args.exchange_steps, extra=EXCHANGE_MODEL)
+        print(name, json.dumps(cases[name]), flush=True)
+        args.out.write_text(json.dumps(results, indent=1) + "\n")
+    if all(name in cases for name in ("4x1views", "4x1time", "4x1both")):
+        part["two_nodes"] = two_node_model(cases)
+        print("two nodes", json.dumps(part["two_nodes"]), flush=True)
+    args.out.write_text(json.dumps(results, indent=1) + "\n")
 
 
 def main(args: Distributed) -> None:
     if args.part == "memory":
         memory(args)
+        return
+    if args.part == "exchange":
+        exchange_part(args)
         return
     scene = PreparedScene.load(ensure_default_scene(args.cache, progress=False))
     results = json.loads(args.out.read_text()) if args.out.is_file() else {}

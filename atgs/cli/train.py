@@ -313,8 +313,11 @@ def join_workers(args: TrainArgs):
     workers = Workers.from_env(resolve_device(args.device, need_gsplat=True), args.worker_timeout)
 
     def stopped(signum: int, frame: object) -> None:
+        ckpt = args.out / "ckpt.pt"
+        kept = (f"{ckpt} holds the last checkpoint, --resume continues it" if ckpt.is_file()
+                else "no checkpoint was written yet")
         raise WorkerLost(f"worker {workers.rank}: stopped by the launcher (another worker failed or the run was "
-                         f"cancelled); {args.out / 'ckpt.pt'} holds the last checkpoint, --resume continues it")
+                         f"cancelled); {kept}")
 
     signal.signal(signal.SIGTERM, stopped)
     if not workers.leads:

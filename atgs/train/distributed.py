@@ -194,6 +194,7 @@ class Workers:
         self.store = store  # the rendezvous store (close() meets the others there after the last collective)
         # None: the whole run; else a subgroup (:meth:`crew`), whose rank and world these are
         self.group = group
+        self.run_rank = rank if group is None else dist.get_rank()  # (in messages: the rank torchrun gave)
         self.nodes = nodes  # machines of the run (torchrun's --nnodes: WORLD_SIZE / LOCAL_WORLD_SIZE)
         self.comm = device if backend == "nccl" else torch.device("cpu")  # where collectives run
         self.traffic = Traffic()
@@ -273,7 +274,7 @@ class Workers:
         try:
             return collective(*args, **kwargs)
         except RuntimeError as e:  # DistBackendError, gloo's closed connections and timeouts
-            raise WorkerLost(f"worker {self.rank}: lost the other workers ({_reason(e)}); the last checkpoint "
+            raise WorkerLost(f"worker {self.run_rank}: lost the other workers ({_reason(e)}); the last checkpoint "
                              "resumes with --resume") from None
 
     def replicate(self, tensors: Sequence[torch.Tensor]) -> None:
@@ -284,7 +285,7 @@ class Workers:
         self._call(dist.all_reduce, sizes, op=dist.ReduceOp.MAX)
         n = len(tensors)
         if bool((sizes[:n] != -sizes[n:]).any()):
-            raise WorkerLost(f"worker {self.rank}: the workers built models of different sizes from the scene; "
+            raise WorkerLost(f"worker {self.run_rank}: the workers built models of different sizes from the scene; "
                              "they must see the same --data and flags")
         with torch.no_grad():
             for t in tensors:
