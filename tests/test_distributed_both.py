@@ -26,27 +26,34 @@ def _trainer(out: Path, workers, partition: str):
     return Trainer(_scene(), m, t, out, progress=False, workers=workers)
 
 
+def _in_halves(tr, d: Path, name: str) -> None:
+    """Run ``tr`` to its end, saving ``name``_half.pt at HALF and ``name``.pt at the end."""
+    tr.run_steps(progress=False, stop_at=HALF)
+    tr.save(d / f"{name}_half.pt")
+    tr.run_steps(progress=False)
+    tr.save(d / f"{name}.pt")
+
+
+def _resumed(d: Path, ckpt: str, name: str, workers, partition: str | None = None) -> None:
+    """``ckpt`` resumed on ``workers`` (by ``partition``) to the end, saved as ``name``.pt."""
+    from atgs.train.trainer import Trainer
+
+    tr = Trainer.resume(_scene(), d / ckpt, d / name, workers=workers, partition=partition)
+    tr.run_steps(progress=False)
+    tr.save(d / f"{name}.pt")
+
+
 def _time_worker(rank: int, world: int, port: int, d: Path) -> None:
     """The reference: partitioned by time on two workers, in two halves, and resumed at its half
     (a resume re-seeds the generators of time groups other than the first, so the resumed run is
     the reference of resumes); then the run partitioned by both, resumed at its half here (both
     -> time)."""
-    from atgs.train.trainer import Trainer
-
     workers = _join(rank, world, port)
     try:
-        tr = _trainer(d / "time", workers, "time")
-        tr.run_steps(progress=False, stop_at=HALF)
-        tr.save(d / "time_half.pt")
-        tr.run_steps(progress=False)
-        tr.save(d / "time.pt")
-        tr = Trainer.resume(_scene(), d / "time_half.pt", d / "time_resumed", workers=workers)
-        tr.run_steps(progress=False)
-        tr.save(d / "time_resumed.pt")
+        _in_halves(_trainer(d / "time", workers, "time"), d, "time")
+        _resumed(d, "time_half.pt", "time_resumed", workers)
         if (d / "both_half.pt").exists():
-            tr = Trainer.resume(_scene(), d / "both_half.pt", d / "both_then_time", workers=workers, partition="time")
-            tr.run_steps(progress=False)
-            tr.save(d / "both_then_time.pt")
+            _resumed(d, "both_half.pt", "both_then_time", workers, partition="time")
     finally:
         workers.close()
 
@@ -54,23 +61,16 @@ def _time_worker(rank: int, world: int, port: int, d: Path) -> None:
 def _both_worker(rank: int, world: int, port: int, d: Path) -> None:
     """Partitioned by both on four workers, in two halves, with its spread evaluations; then the
     time partition's half resumed by both (time -> both)."""
-    from atgs.train.trainer import Trainer
-
     workers = _join(rank, world, port)
     try:
         tr = _trainer(d / "both", workers, "both")
-        tr.run_steps(progress=False, stop_at=HALF)
-        tr.save(d / "both_half.pt")
-        tr.run_steps(progress=False)
-        tr.save(d / "both.pt")
+        _in_halves(tr, d, "both")
         seen = {"time_rank": tr.time_rank, "crew": [tr.crew.rank, tr.crew.world], "grids": tr.model.hash.num_grids,
                 "segments": [tr.part.segments.start, tr.part.segments.stop], "own": tr.own_eval_frames(),
                 "all": tr.eval_frames(), "periodic": tr._evaluate_on_every_worker(),
                 "final": tr.final_evaluation(None)}
         (d / f"both{rank}.json").write_text(json.dumps(seen))
-        tr = Trainer.resume(_scene(), d / "time_half.pt", d / "time_then_both", workers=workers, partition="both")
-        tr.run_steps(progress=False)
-        tr.save(d / "time_then_both.pt")
+        _resumed(d, "time_half.pt", "time_then_both", workers, partition="both")
     finally:
         workers.close()
 
