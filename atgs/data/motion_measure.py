@@ -279,11 +279,12 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
 
     b = np.asarray(scene.bounds, dtype=np.float64)
     bsize = b[1] - b[0]
-    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
+    pts, _, point_kfs = scene.point_cloud.whole()  # (one read of the file: the points and their keyframes)
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
     pext = float((pts.max(0) - pts.min(0)).max()) if len(pts) else 0.0
     centers = np.array([c.center for c in scene.cameras])
     spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 0.0
-    spacing = point_spacing(pts, np.asarray(scene.point_keyframes), cfg.max_spacing_points) if len(pts) else 0.0
+    spacing = point_spacing(pts, point_kfs, cfg.max_spacing_points) if len(pts) else 0.0
     # keyframes with points: the geometry keyframes, or the denser motion keyframes where the moving content has points
     nkf = max(len(scene.keyframes), len(scene.motion_keyframes))
     return MotionStats(
@@ -296,7 +297,7 @@ def measure_motion(scene: PreparedScene, cfg: MotionConfig = MotionConfig()) -> 
         time_scale=time_scale, static=bool(static), active_time_fraction=active_time,
         bounds_size=[float(x) for x in bsize], extent=float(bsize.max()), points_extent=pext,
         camera_spread=spread, point_spacing=spacing, num_points=int(len(pts)),
-        points_per_keyframe=float(len(pts)) / max(1, len(np.unique(scene.point_keyframes))),
+        points_per_keyframe=float(len(pts)) / max(1, len(np.unique(point_kfs))),
         seconds=time.perf_counter() - t0, notes=notes,
     )
 
