@@ -80,6 +80,11 @@ def time_groups_of(partition: str, workers: int, asked: int = 0, nodes: int = 1)
     return groups
 
 
+def time_group_of(rank: int, workers: int, groups: int) -> int:
+    """The time group of worker ``rank``: groups are runs of consecutive ranks (:meth:`Workers.crew`)."""
+    return rank // (workers // groups)
+
+
 def check_settings(views_per_step: int, workers: int, partition: str = "views", time_groups: int = 0,
                    nodes: int = 1) -> None:
     """Refuse settings that N workers cannot train as one process would: the workers that share a

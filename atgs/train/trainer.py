@@ -45,7 +45,7 @@ from atgs.timeline import evenly_spaced
 from atgs.train.budget import TimeBudget
 from atgs.train.config import TrainConfig
 from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
-from atgs.train.distributed import StepViews, Workers, check_settings, time_groups_of
+from atgs.train.distributed import StepViews, Workers, check_settings, time_group_of, time_groups_of
 from atgs.train import time_partition
 from atgs.train.time_partition import TimeSlice, segment_block
 from atgs.train.dropout import drop_gaussians, drop_rate, render_generator
@@ -181,7 +181,7 @@ class Trainer:
         w = self.workers
         self.time_groups = time_groups_of(cfg.partition, w.world, cfg.time_groups, w.nodes)
         size = w.world // self.time_groups
-        self.time_rank = w.rank // size
+        self.time_rank = time_group_of(w.rank, w.world, self.time_groups)
         self.crew = w if self.time_groups == 1 else (w.crew(size) if size > 1 else None)
 
     def _resolve_scene_settings(self, cfg: TrainConfig, environment: EnvironmentMap | None) -> None:
@@ -719,8 +719,8 @@ class Trainer:
         segments = None
         groups = 1 if workers is None else time_groups_of(cfg.partition, workers.world, cfg.time_groups, workers.nodes)
         if groups > 1:  # this worker's segments' rows, no others
-            segments = segment_block(int(data["model"]["num_segments"]), workers.rank // (workers.world // groups),
-                                     groups)
+            segments = segment_block(int(data["model"]["num_segments"]),
+                                     time_group_of(workers.rank, workers.world, groups), groups)
             time_partition.read_segment_rows(path, data, segments)
         model = model_from_checkpoint(data, path, device, segments)
         st = data["trainer"]
