@@ -2,9 +2,10 @@
 
 Each exported frame is decoded (``model.gaussians_at_frame``), optionally thinned by opacity,
 and written by :mod:`atgs.io.gaussian_ply` with its colours as degree-0 spherical harmonics;
-``manifest.json`` (:mod:`atgs.io.ply_sequence`) records the frame rate, the frame indices and
-the cameras. The folder is built aside and renamed into place (:func:`atgs.io.atomic.atomic_dir`),
-so a failed or interrupted export leaves no partial output and never touches an existing one.
+``manifest.json`` (:mod:`atgs.io.ply_sequence`) records the frame rate, the frame indices,
+the cameras and the model's near plane (a PLY file has no place for it; ATGS's players read it).
+The folder is built aside and renamed into place (:func:`atgs.io.atomic.atomic_dir`), so a
+failed or interrupted export leaves no partial output and never touches an existing one.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from atgs.errors import OutputError, UserError
 from atgs.io.atomic import atomic_dir, check_output_dir, write_json_atomic
 from atgs.io.gaussian_ply import write_gaussian_ply
 from atgs.io.ply_sequence import MANIFEST_NAME, frame_file_name, sequence_manifest
+from atgs.model.near_plane import near_of
 from atgs.progress import progress_bar
 from atgs.threads import torch_threads
 
@@ -93,5 +95,5 @@ def _write_sequence(model, out: Path, frames: list[int], min_opacity: float, ove
         names = [frame_file_name(f) for f in frames]
         write_json_atomic(tmp / MANIFEST_NAME, sequence_manifest(
             model.fps, model.num_frames, frames, names, counts, list(model.cameras),
-            list(getattr(model, "test_camera_names", [])), min_opacity, source or {}))
+            list(getattr(model, "test_camera_names", [])), min_opacity, source or {}, near=near_of(model)))
     return counts

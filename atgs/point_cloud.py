@@ -24,6 +24,10 @@ class PointCloud:
         """(n, 3) float32: keyframe ``k``'s points."""
         return _xyz(self.rows(k))
 
+    def colors(self, k: int) -> np.ndarray:
+        """(n, 3) float32 in [0, 1]: keyframe ``k``'s points' colours."""
+        return _rgb(self.rows(k))
+
     def __len__(self) -> int:
         return sum(self.count(k) for k in range(self.num_keyframes))
 

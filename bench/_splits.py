@@ -93,7 +93,7 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
                 gt = scene.image_uint8(ci, f)
                 with torch.no_grad():
                     img = rasterize_gaussians(model.gaussians_at_frame(f), scene.cameras[ci],
-                                              background=bg_t).image.clamp(0, 1).numpy()
+                                              background=bg_t, near=model.near).image.clamp(0, 1).numpy()
                 err = ((img - gt.astype(np.float32) / 255.0) ** 2).mean(-1)
                 mask = motion_mask(box_downsample(gt, side), bg, cfg)
                 add("all", err, np.ones_like(mask))
@@ -111,7 +111,7 @@ def held_out_splits(ckpt: Path, scene_dir: Path, every: int = 8) -> dict:
                 gt = scene.image_uint8(ci, f).astype(np.float32) / 255.0
                 with torch.no_grad():
                     img = rasterize_gaussians(model.gaussians_at_frame(f), scene.cameras[ci],
-                                              background=bg_t).image.clamp(0, 1).numpy()
+                                              background=bg_t, near=model.near).image.clamp(0, 1).numpy()
                 window = model.timeline.window_of_frame(f)
                 if prev is not None:
                     d = ((img - prev[0]) - (gt - prev[1])) ** 2

@@ -198,7 +198,7 @@ def motion_variant(scene_dir: Path, per_interval: int, work_dir: Path) -> Path:
     train = list(scene.train_indices)
     kfs = motion_keyframes(scene.num_frames, len(scene.keyframes), per_interval)
     mp = motion_points(lambda ci, f: scene.image_uint8(train[ci], f), [scene.cameras[i] for i in train],
-                       scene.num_frames, kfs, compute_bounds(np.asarray(scene.points), scene.cameras),
+                       scene.num_frames, kfs, compute_bounds(np.asarray(scene.points), [scene.cameras[i] for i in train]),
                        MotionPointsConfig(per_interval=per_interval), progress=False)
     with atomic_dir(out, True) as tmp:
         shutil.copytree(scene_dir / "images", tmp / "images", copy_function=link_or_copy)

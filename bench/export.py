@@ -83,7 +83,7 @@ def run(cfg: BenchConfig) -> dict:
             read_ms = _median_ms(lambda f: read_gaussian_ply(plys.frame_file(f)), sample)
             decode_ms = _median_ms(model.gaussians_at_frame, sample)
         ctx = create_headless_context("auto")
-        renderer = SplatRenderer(ctx)
+        renderer = SplatRenderer(ctx, near=model.near)  # both drawn as the players draw the model
         settings = RenderSettings(exact_sort=True)
         psnrs = []
         for f in evenly_spaced(F, cfg.views):

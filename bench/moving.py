@@ -103,7 +103,8 @@ def run_case(args: MovingBench, name: str, base: Path) -> dict:
     for ci in tr.test_idx:
         for f in frames:
             with torch.no_grad():
-                img = rasterize_gaussians(tr.model.gaussians_at_frame(f), tr.cams[ci]).image.clamp(0, 1).numpy()
+                img = rasterize_gaussians(tr.model.gaussians_at_frame(f), tr.cams[ci],
+                                          near=tr.model.near).image.clamp(0, 1).numpy()
             err = ((img - scene.image(ci, f)) ** 2).mean(-1)
             mk = masks[(ci, f)]
             se["all"] += float(err.sum())

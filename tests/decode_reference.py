@@ -18,7 +18,7 @@ STATIC = -1  # an anchor of every keyframe
 PRIMES = (1, 2654435761, 805459861, 3674653429)  # Instant-NGP's spatial hash
 FADE_LEVEL = 1.0 / 255.0  # no anchor decoded below this fade weight
 MIN_FADE_WIDTH = 1e-3  # narrowest fade width, keyframe intervals
-VIEW_MARGIN, NEAR = 0.15, 0.01  # a camera sees an anchor inside its image grown by this, beyond NEAR
+VIEW_MARGIN = 0.15  # a camera sees an anchor inside its image grown by this, beyond the model's near plane
 
 
 @dataclass
@@ -107,7 +107,7 @@ def mlp(x: torch.Tensor, state: dict, name: str) -> torch.Tensor:
 
 def smoothing_variance(model, mu: torch.Tensor) -> torch.Tensor:
     """Mip-Splatting's 3D filter: size / nu^2, nu the highest focal / depth of a training camera
-    seeing the anchor (0: none sees it)."""
+    seeing the anchor beyond the model's near plane (0: none sees it)."""
     held_out = set(model.test_camera_names)
     cams = [c for c in model.cameras if c.name not in held_out] or model.cameras
     best = torch.zeros(mu.shape[0], dtype=torch.float64)
@@ -117,7 +117,7 @@ def smoothing_variance(model, mu: torch.Tensor) -> torch.Tensor:
         u = cam.fx * p[:, 0] / z + cam.cx
         v = cam.fy * p[:, 1] / z + cam.cy
         mw, mh = VIEW_MARGIN * cam.width, VIEW_MARGIN * cam.height
-        seen = (z > NEAR) & (u > -mw) & (u < cam.width + mw) & (v > -mh) & (v < cam.height + mh)
+        seen = (z > model.near) & (u > -mw) & (u < cam.width + mw) & (v > -mh) & (v < cam.height + mh)
         best = torch.where(seen, torch.maximum(best, max(cam.fx, cam.fy) / z), best)
     return torch.where(best > 0, model.cfg.smoothing_3d / best.clamp_min(1e-300) ** 2, torch.zeros_like(best))
 
@@ -190,7 +190,9 @@ def reference_frame(model, f: int | None = None, t: float | None = None) -> Refe
     if cfg.opacity_threshold > 0:
         keep &= opac > cfg.opacity_threshold
     radius = model.clearance.radius
-    for cam in model.cameras if radius > 0 else []:  # no Gaussian inside a rig camera's housing
+    held_out = set(model.test_camera_names)
+    train = [c for c in model.cameras if c.name not in held_out]
+    for cam in train if radius > 0 else []:  # no Gaussian inside a training camera's housing
         keep &= (means - torch.as_tensor(cam.center, dtype=torch.float64)).norm(dim=-1) >= radius
     anchor_ids = ids[:, None].expand(n, q)
     slot_ids = torch.arange(q).expand(n, q)

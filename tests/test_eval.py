@@ -170,6 +170,18 @@ def test_library_call_without_output_dir(setup) -> None:
     assert np.allclose(res.renders[("cam01", 2)], scene.image(1, 2))
 
 
+def test_renders_with_the_models_near_plane(setup) -> None:
+    """A model's near plane culls the Gaussians nearer the (held-out) camera, as training did."""
+    cams, truth, scene = setup
+    model = FakeModel(truth, cams)
+    model.near = 2.9  # the cameras stand ~3.1 from the scene's centre: some Gaussians are nearer
+    res = evaluate(model, scene, fast_cfg(frames=(2,)), keep_renders=True)
+    g, cam = moving(truth, 2), cams[1]
+    want = rasterize_gaussians(g, cam, backend="torch", near=2.9).image.clamp(0, 1).numpy()
+    assert np.allclose(res.renders[("cam01", 2)], want)
+    assert not np.allclose(want, scene.image(1, 2), atol=1e-3)  # (the default near plane draws more)
+
+
 @pytest.mark.parametrize("change,match", [
     ("pose", "differs between the checkpoint and the scene"),
     ("name", "not one of the checkpoint's cameras"),

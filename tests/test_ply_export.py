@@ -62,6 +62,8 @@ def test_export_writes_frames_and_manifest(ckpt: Path, exported: Path) -> None:
     assert man["frames"] == [0, 2, 4] and man["files"] == ["frame_000000.ply", "frame_000002.ply", "frame_000004.ply"]
     assert man["cameras"] == [c.to_dict() for c in model.cameras] and man["test_cameras"] == model.test_camera_names
     assert man["source"] == {"checkpoint": str(ckpt.resolve()), "step": 30}
+    assert man["near"] == model.near > 0.01  # the model's near plane: what ATGS's players cull with
+    assert load_source(exported).near == model.near
     for f, name, count in zip(man["frames"], man["files"], man["gaussians"]):
         g = model.gaussians_at_frame(f)
         back = read_gaussian_ply(exported / name)

@@ -134,3 +134,19 @@ def test_cuda_training_steps_do_not_accumulate_memory() -> None:
         if i in (5, 20):
             allocated.append(torch.cuda.memory_allocated())
     assert allocated[1] <= allocated[0] + 1_000_000, allocated
+
+
+@needs_gsplat
+def test_gsplat_culls_at_the_near_plane_given() -> None:
+    """gsplat's near_plane is the ``near`` of rasterize: a Gaussian at z = 0.1 is drawn with the
+    default 0.01 and culled with 0.2, as on the CPU backends (tests/test_render_edge_cases.py)."""
+    means = torch.tensor([[0.001, 0.002, 0.1], [0.01, -0.02, 1.0]], device="cuda")
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2, device="cuda")
+    scales = torch.tensor([[0.0005] * 3, [0.005] * 3], device="cuda")
+    opac, colors = torch.full((2,), 0.8, device="cuda"), torch.ones(2, 3, device="cuda")
+    K = torch.tensor([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]], device="cuda")
+    viewmat = torch.eye(4, device="cuda")
+    drawn = rasterize(means, quats, scales, opac, colors, viewmat, K, 16, 12, backend="cuda").radii.tolist()
+    culled = rasterize(means, quats, scales, opac, colors, viewmat, K, 16, 12, backend="cuda", near=0.2).radii.tolist()
+    assert drawn[0] > 0 and culled[0] == 0
+    assert drawn[1] == culled[1] > 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from atgs.render import rasterize
+from atgs.render import RasterInputError, rasterize
 
 BACKENDS = ["torch", "cpu"]
 
@@ -74,6 +74,35 @@ def test_near_plane(backend: str, z: float) -> None:
         assert not out.radii.any() and not out.alpha.any()
     else:
         assert out.radii.all()
+
+
+def test_a_larger_near_plane_culls_what_the_default_draws() -> None:
+    """A Gaussian at z = 0.1: drawn with the default near plane (0.01), culled with near = 0.2,
+    the same way on both backends; one farther away is drawn by both near planes alike."""
+    means, q, s, o, c = gaussians(2, z=0.1, scale=0.005)
+    means[:, :2] *= 0.1  # inside the view frustum
+    means[1] *= 10.0  # the second one at z = 1
+    viewmat, K = camera(16, 12)
+    outs = {}
+    for backend in BACKENDS:
+        for near in (0.01, 0.2):
+            outs[backend, near] = rasterize(means, q, s, o, c, viewmat, K, 16, 12, backend=backend, near=near)
+    for backend in BACKENDS:
+        assert outs[backend, 0.01].radii.tolist()[0] > 0 and outs[backend, 0.2].radii.tolist()[0] == 0
+        assert outs[backend, 0.2].radii[1] == outs[backend, 0.01].radii[1] > 0
+    for near in (0.01, 0.2):
+        cpu, ref = outs["cpu", near], outs["torch", near]
+        assert torch.equal(cpu.radii, ref.radii)
+        torch.testing.assert_close(cpu.image, ref.image, rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(cpu.alpha, ref.alpha, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("near", [0.0, -0.1, float("nan"), float("inf"), True, "0.2"])
+def test_a_bad_near_plane_is_refused(near: object) -> None:
+    means, q, s, o, c = gaussians(1)
+    viewmat, K = camera(16, 12)
+    with pytest.raises(RasterInputError, match="argument 'near'"):
+        rasterize(means, q, s, o, c, viewmat, K, 16, 12, backend="torch", near=near)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

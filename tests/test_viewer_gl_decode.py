@@ -163,7 +163,7 @@ def test_the_gl_route_holds_the_training_rasterizer_to_45_db() -> None:
     model = decode_case_model("everything")
     cam = resized(side_camera(), (128, 96))
     f = 9
-    ref = rasterize_gaussians(model.gaussians_at_frame(f), cam, torch.zeros(3), backend="torch").image
+    ref = rasterize_gaussians(model.gaussians_at_frame(f), cam, torch.zeros(3), backend="torch", near=model.near).image
     hr = HeadlessRenderer(model, "auto", "cpu", "gl")
     try:
         hr.show_frame(f)

@@ -57,13 +57,13 @@ def _buffers(ctx, means: np.ndarray, scales: np.ndarray, opacity16: np.ndarray) 
     return [ctx.buffer(a.tobytes()) if a.size else ctx.buffer(reserve=16) for a in (means, scales, opacity_rgb)]
 
 
-def _torch(means, scales, opacity16, w2c, cull, min_alpha):
+def _torch(means, scales, opacity16, w2c, cull, min_alpha, near=NEAR):
     """torch's order on the same (quantized) inputs, and its keys and unfloored key levels
     recomputed in numpy the way sorting._back_to_front computes them (checked against its order)."""
     n = len(means)
     opacity = opacity16.astype(np.float32) / np.float32(65535)
     extent = row_norms(torch.from_numpy(scales)).view(-1)
-    order = back_to_front(torch.from_numpy(means), w2c, NEAR, extent=extent, cull=cull,
+    order = back_to_front(torch.from_numpy(means), w2c, near, extent=extent, cull=cull,
                           opacity=torch.from_numpy(opacity), min_alpha=min_alpha).numpy()
     w = np.asarray(w2c, dtype=np.float64)
     A, b = w[2:3, :3], w[2, 3:]
@@ -81,10 +81,10 @@ def _torch(means, scales, opacity16, w2c, cull, min_alpha):
     return order, keys, level, z
 
 
-def _check_equal_to_torch(sorter, ctx, means, scales, opacity16, w2c=W2C, cull=CULL, min_alpha=1 / 255):
+def _check_equal_to_torch(sorter, ctx, means, scales, opacity16, w2c=W2C, cull=CULL, min_alpha=1 / 255, near=NEAR):
     bufs = _buffers(ctx, means, scales, opacity16)
-    got = sorter.sort(*bufs, len(means), w2c, NEAR, cull, min_alpha)
-    order, keys, level, z = _torch(means, scales, opacity16, w2c, cull, min_alpha)
+    got = sorter.sort(*bufs, len(means), w2c, near, cull, min_alpha)
+    order, keys, level, z = _torch(means, scales, opacity16, w2c, cull, min_alpha, near)
     drawn = got.drawn()
     assert drawn == len(order)
     gl_keys = got.keys().astype(np.int64)
@@ -114,6 +114,15 @@ def test_equals_the_torch_sort(sorter, ctx, n, cull, min_alpha) -> None:
     means, scales, opacity16 = _scene(n, seed=n)
     _, order, _ = _check_equal_to_torch(sorter, ctx, means, scales, opacity16, cull=cull, min_alpha=min_alpha)
     assert 0.05 * n < len(order) < (0.98 if cull is None else 0.6) * n  # culled and visible ones both occur
+
+
+@pytest.mark.parametrize("cull", [None, CULL], ids=["no-cull", "cull"])
+def test_a_model_near_plane_culls_as_the_torch_sort(sorter, ctx, cull) -> None:
+    """A model's near plane (2.0 scene units here) culls the same Gaussians on the GL as in torch."""
+    means, scales, opacity16 = _scene(4000, seed=11)
+    _, order, _ = _check_equal_to_torch(sorter, ctx, means, scales, opacity16, cull=cull, near=2.0)
+    _, order_default, _ = _check_equal_to_torch(sorter, ctx, means, scales, opacity16, cull=cull)
+    assert 0 < len(order) < len(order_default)  # some Gaussians lie between 0.01 and 2.0
 
 
 def test_keys_differ_only_rarely(sorter, ctx) -> None:

@@ -16,7 +16,7 @@ from PIL import Image
 
 from atgs.cameras import Camera, look_at
 from atgs.gaussians import Gaussians
-from atgs.io.gaussian_ply import write_gaussian_ply
+from atgs.io.gaussian_ply import GaussianPlyError, write_gaussian_ply
 from atgs.render import rasterize
 from atgs.sh import sh_colors
 from atgs.viewer.cli import main, render_main
@@ -182,6 +182,28 @@ def test_render_a_folder_with_its_manifest(tmp_path: Path) -> None:
     assert len(imgs) == 3 and imgs[0].shape == (30, 40, 3)
     xs = [np.nonzero(img[..., 0].max(0) > 50)[0].mean() for img in imgs]  # the blob moves right: x = 0, 3, 6
     assert xs[0] < xs[1] < xs[2]
+
+
+def test_the_near_plane_of_a_folder_is_its_manifests(tmp_path: Path) -> None:
+    """An export's manifest carries the model's near plane; older manifests and folders without one
+    play with the default 0.01; a bad one is a one-line error."""
+    import json
+
+    from atgs.io.ply_sequence import sequence_manifest
+    from atgs.viewer.ply_source import PlySource
+
+    folder = tmp_path / "seq"
+    _numbered_folder(folder, ["frame_000000.ply", "frame_000001.ply"])
+    assert PlySource.open(folder).near == 0.01  # no manifest
+    man = sequence_manifest(24.0, 2, [0, 1], [], [], [], [], 0.0, {}, near=0.25)
+    (folder / "manifest.json").write_text(json.dumps(man))
+    assert PlySource.open(folder).near == 0.25
+    del man["near"]  # written before the near plane was
+    (folder / "manifest.json").write_text(json.dumps(man))
+    assert PlySource.open(folder).near == 0.01
+    (folder / "manifest.json").write_text(json.dumps({**man, "near": -1}))
+    with pytest.raises(GaussianPlyError, match="'near' must be a number > 0"):
+        PlySource.open(folder)
 
 
 # --- bad input --------------------------------------------------------------------------------------

@@ -227,6 +227,41 @@ def test_matches_rasterizer_through_egl(renderer: SplatRenderer) -> None:
         renderer.ctx.__enter__()
 
 
+def _scene_with_close_gaussians() -> tuple[Gaussians, Camera]:
+    """40 small Gaussians at view z 0.1-0.25 in front of 200 at z 1.5-2.5 (identity camera)."""
+    gen = torch.Generator().manual_seed(7)
+    z = torch.cat([0.1 + 0.15 * torch.rand(40, generator=gen), 1.5 + torch.rand(200, generator=gen)])
+    xy = (torch.rand(240, 2, generator=gen) - 0.5) * torch.tensor([0.9, 0.7]) * z[:, None]
+    n = len(z)
+    g = Gaussians(means=torch.cat([xy, z[:, None]], 1), quats=torch.randn(n, 4, generator=gen),
+                  scales=0.06 * z[:, None] * (0.5 + torch.rand(n, 3, generator=gen)),
+                  opacities=0.3 + 0.6 * torch.rand(n, generator=gen), colors=torch.rand(n, 3, generator=gen))
+    K = np.array([[80.0, 0, 48.0], [0, 80.0, 36.0], [0, 0, 1]])
+    return g, Camera("c", 96, 72, K, np.eye(4))
+
+
+def test_the_near_plane_is_the_rasterizers(renderer: SplatRenderer) -> None:
+    """A model's near plane (0.3 here) culls the Gaussians between it and 0.01 in the player as
+    in the rasterizer; the default near plane draws them (they change the image)."""
+    from atgs.render import rasterize_gaussians
+
+    g, cam = _scene_with_close_gaussians()
+    r = SplatRenderer(renderer.ctx, near=0.3)
+    try:
+        r.set_gaussians(pack_gaussians(g))
+        for exact in (True, False):
+            img = r.render_image(cam, RenderSettings(exact_sort=exact))
+            ref = rasterize_gaussians(g, cam, backend="torch", near=0.3).image.detach().numpy()
+            assert psnr(img, ref) >= 35.0
+            assert r.drawn_count() <= 200
+        drawn_all = rasterize_gaussians(g, cam, backend="torch").image.detach().numpy()
+        assert psnr(drawn_all, ref) < 25.0  # the close ones matter: the two near planes differ
+        renderer.set_gaussians(pack_gaussians(g))
+        assert psnr(renderer.render_image(cam, RenderSettings(exact_sort=True)), drawn_all) >= 35.0
+    finally:
+        r.release()
+
+
 def test_constants_agree_with_rasterizer() -> None:
     import atgs.render.constants as rc
     import atgs.viewer.splat_renderer as vs

@@ -218,7 +218,8 @@ def test_the_export_is_a_complete_folder_that_decodes_to_the_model(ckpt: Path, m
     cam = man["cameras"][0]
     assert cam["w2c"] == model.cameras[0].w2c.reshape(-1).tolist() and cam["fx"] == model.cameras[0].fx
     assert man["background"] == list(model.background) and man["environment"] is None
-    assert man["render"] == {"near": 0.01, "dilation": 0.3, "alpha_min": 1 / 255, "alpha_max": 0.99, "extent": 3.0,
+    assert model.near > 0.01  # the model's own near plane (atgs.model.near_plane), not the default
+    assert man["render"] == {"near": model.near, "dilation": 0.3, "alpha_min": 1 / 255, "alpha_max": 0.99, "extent": 3.0,
                           "clamp_margin": 0.3}
     assert len(man["scene"]["center"]) == 3 and man["scene"]["radius"] > 0
     assert man["source"] == {"checkpoint": str(ckpt.resolve()), "step": 30}

@@ -4,7 +4,9 @@ Dense stereo (``patch_match_stereo``) needs CUDA, so keyframe points come from s
 SIFT matching + triangulation with the camera poses held fixed.
 
 Pitfall handled here: the reconstruction handed to ``triangulate_points`` must use the image
-and camera ids of the database, so the database is filled first and its ids are read back.
+and camera ids of the database, so the database is filled first and its ids are read back by
+image name (:func:`database_ids`): COLMAP numbers the images in its own order (the names sorted
+as strings, so ``10/000000.png`` comes before ``2/000000.png``), never in the caller's.
 """
 
 from __future__ import annotations
@@ -63,8 +65,9 @@ def _extract_and_match(db: Path, image_root: Path, names: Sequence[str], opts: C
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
-    # Import sequentially first so that ids are deterministic: image i, camera i, rig i and
-    # frame i all equal position + 1 in ``names`` (parallel extraction would shuffle them).
+    # Import sequentially first so that ids are deterministic (parallel extraction would shuffle
+    # them): each image gets its own camera, rig and frame, all of one id; COLMAP, not ``names``,
+    # orders the ids (database_ids reads them back by name).
     pycolmap.Database.open(db).close()  # creates the empty database
     mode = pycolmap.CameraMode.SINGLE if shared_intrinsics else pycolmap.CameraMode.PER_IMAGE
     pycolmap.import_images(db, image_root, camera_mode=mode, image_names=list(names), options=reader)
@@ -102,20 +105,11 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
         db_path.unlink()
     with _quiet_glog(image_root):
         _extract_and_match(db_path, image_root, image_names, opts)
-        db = pycolmap.Database.open(db_path)
-        try:
-            by_name = {img.name: img for img in db.read_all_images()}
-        finally:
-            db.close()
+        ids = database_ids(db_path, image_names, image_root)
         rec = pycolmap.Reconstruction()
-        for i, (name, cam) in enumerate(zip(image_names, cameras)):
-            if name not in by_name:
-                raise DataError(f"{image_root / name}: COLMAP could not read this image")
-            dbimg = by_name[name]
-            if dbimg.image_id != i + 1 or dbimg.camera_id != i + 1:
-                raise RuntimeError(f"COLMAP database ids out of order for {name}")
-            rec.add_camera_with_trivial_rig(colmap_camera_of(cam, dbimg.camera_id))
-            img = pycolmap.Image(name=name, camera_id=dbimg.camera_id, image_id=dbimg.image_id)
+        for name, cam, (image_id, camera_id) in zip(image_names, cameras, ids):
+            rec.add_camera_with_trivial_rig(colmap_camera_of(cam, camera_id))
+            img = pycolmap.Image(name=name, camera_id=camera_id, image_id=image_id)
             rec.add_image_with_trivial_frame(img, rigid3d_of(cam))
         popts = pycolmap.IncrementalPipelineOptions()
         popts.triangulation.min_angle = opts.min_tri_angle
@@ -134,6 +128,30 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
     if not xyz:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     return np.array(xyz, np.float64), np.array(rgb, np.uint8)
+
+
+def database_ids(db_path: Path, names: Sequence[str], image_root: Path) -> list[tuple[int, int]]:
+    """(image id, camera id) in the COLMAP database of each of ``names``, looked up by name: the
+    database numbers images in COLMAP's order (names sorted as strings), not in ``names``' order.
+    Each image must be the only image of its frame, on its camera's own rig (what importing one
+    camera per image makes), because the reconstruction's trivial frames and rigs take those ids."""
+    import pycolmap
+
+    db = pycolmap.Database.open(db_path)
+    try:
+        by_name = {img.name: img for img in db.read_all_images()}
+        rig_of = {f.frame_id: f.rig_id for f in db.read_all_frames()}
+    finally:
+        db.close()
+    out = []
+    for name in names:
+        img = by_name.get(name)
+        if img is None:
+            raise DataError(f"{image_root / name}: COLMAP could not read this image")
+        if img.frame_id != img.image_id or rig_of.get(img.frame_id) != img.camera_id:
+            raise RuntimeError(f"COLMAP database frame of {name} is not a trivial frame of its own camera")
+        out.append((img.image_id, img.camera_id))
+    return out
 
 
 def sfm_static_cameras(image_root: Path, image_names: Sequence[str], camera_names: Sequence[str],

@@ -8,7 +8,8 @@ motion keyframe:
 
 1. a motion mask per training camera: channel-mean |frame - background| (3x3 box-blurred) above
    a threshold set from the noise floor (a low percentile of that difference over the pixels),
-   opened with a 3x3 window so that isolated noisy pixels do not count;
+   opened with a 3x3 window so that isolated noisy pixels do not count; a camera with the
+   capture's foreground masks uses those instead (the others keep the difference);
 2. the visual hull of the masks: voxels of the scene box inside the images of at least
    ``min_view_fraction`` of the cameras, in the masks of at least ``min_views`` of them and of
    all but ``slack`` of the cameras whose image holds them (a static occluder hides a moving
@@ -303,7 +304,8 @@ def motion_points(frame_of: Callable[[int, int], np.ndarray], cams: Sequence[Cam
     """Hull points of the moving content at ``keyframes``; ``frame_of(cam_index, frame)`` reads an
     (H,W,3) uint8 frame of ``cams[cam_index]`` (the training cameras). ``mask_of(cam_index,
     frame)``, when the capture has foreground masks (H,W bool), gives the masks instead of the
-    frames' difference from their background (:func:`foreground_mask`)."""
+    frames' difference from their background (:func:`foreground_mask`); it returns None for a
+    camera without masks, whose motion masks then are that difference."""
     from tqdm import tqdm
 
     cfg.validate()
@@ -311,17 +313,23 @@ def motion_points(frame_of: Callable[[int, int], np.ndarray], cams: Sequence[Cam
                          {"keyframes": 0, "points": [], "moving_fraction": 0.0})
     if num_frames < 2 or len(cams) < cfg.min_views or not len(keyframes):
         return empty
-    sample = evenly_spaced(num_frames, cfg.background_frames) if mask_of is None else []
-    with tqdm(total=len(cams) * (len(sample) + len(keyframes)), desc="motion points", unit="img",
-              disable=not progress) as bar:
+    sample = evenly_spaced(num_frames, cfg.background_frames)
+    with tqdm(total=len(cams) * ((len(sample) if mask_of is None else 0) + len(keyframes)), desc="motion points",
+              unit="img", disable=not progress) as bar:
         small = lambda ci, f: box_downsample(frame_of(ci, f), cfg.long_side)  # noqa: E731
-        bgs = []
-        for ci in range(len(cams) if mask_of is None else 0):
-            frames = []
-            for f in sample:
-                frames.append(small(ci, f))
-                bar.update(1)
-            bgs.append(background(frames))
+        bgs: dict[int, np.ndarray] = {}
+
+        def motion_mask_of(ci: int, f: int, img: np.ndarray) -> np.ndarray:
+            m = None if mask_of is None else mask_of(ci, f)
+            if m is not None:
+                return foreground_mask(m, cfg.long_side)
+            if ci not in bgs:  # read a camera's background frames once, when it first needs them
+                if mask_of is not None:
+                    bar.total += len(sample)
+                bgs[ci] = background([small(ci, s) for s in sample])
+                bar.update(len(sample))
+            return motion_mask(img, bgs[ci], cfg)
+
         P, C, K, counts, fractions = [], [], [], [], []
         rng = np.random.default_rng(0)
         for j, f in enumerate(keyframes):
@@ -329,8 +337,7 @@ def motion_points(frame_of: Callable[[int, int], np.ndarray], cams: Sequence[Cam
             for ci in range(len(cams)):
                 img = small(ci, f)
                 imgs.append(img)
-                masks.append(motion_mask(img, bgs[ci], cfg) if mask_of is None
-                             else foreground_mask(mask_of(ci, f), cfg.long_side))
+                masks.append(motion_mask_of(ci, f, img))
                 bar.update(1)
             fractions.append(float(np.mean([m.mean() for m in masks])))
             hull, on_surface, _ = visual_hull(cams, masks, box, cfg)

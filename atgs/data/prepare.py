@@ -4,7 +4,8 @@ Steps (each long one shows a progress bar):
 1. detect/open the source and check that every camera has the same number of frames;
 2. cameras: from the dataset's poses, or pycolmap SfM on the first selected frame (static rig);
 3. frames: decode lazily, undistort when the model has distortion, downscale, write PNG/JPG;
-   foreground masks (sources that have them) the same way, kept where half an output pixel is foreground;
+   foreground masks (of the training cameras that have them) the same way, kept where half an
+   output pixel is foreground; held-out cameras' masks are never read;
 4. keyframe points at each of K keyframes (atgs.data.keyframe_points): pycolmap SIFT +
    triangulation with fixed poses, CPU PatchMatch stereo fused across views, and a fill of the
    space seen by two cameras where both leave pixels uncovered; coverage per camera;
@@ -189,6 +190,8 @@ def prepare(cfg: PrepareConfig) -> Path:
     sel = parse_frame_range(cfg.frames, cfg.start, cfg.end, n_src)
     num_frames = len(sel)
     test = resolve_test_cams(cfg.test_cams, src.camera_names, src.default_test, where=str(cfg.src))
+    masked = _mask_cameras(src, test, sel)
+    _note_init_points(src)
     colmap_opts = ColmapOptions(max_image_size=cfg.sift_max_image_size)
     timings: dict[str, float] = {}
     with atomic_dir(out, cfg.overwrite) as tmp:
@@ -202,17 +205,17 @@ def prepare(cfg: PrepareConfig) -> Path:
         out_cams = [_output_camera(c, cfg.downscale) for c in cams]
         t = time.perf_counter()
         ext = "." + cfg.image_format
-        _extract_frames(tmp, src, cams, out_cams, sel, ext, cfg.progress)
+        _extract_frames(tmp, src, cams, out_cams, sel, ext, masked, cfg.progress)
         timings["frames"] = time.perf_counter() - t
         t = time.perf_counter()
         kfs = evenly_spaced(num_frames, cfg.keyframes)  # the model's keyframe rule
         hints = src.extra.get("near_far")
         kp = keyframe_points(tmp, out_cams, test, kfs, ext, work, colmap_opts, cfg.stereo, cfg.fill,
-                             depth_hints=[tuple(x) for x in hints] if hints else None, progress=cfg.progress,
-                             where=str(cfg.src))
+                             depth_hints=[tuple(x) if x else None for x in hints] if hints else None,
+                             progress=cfg.progress, where=str(cfg.src))
         timings["points"] = time.perf_counter() - t
         t = time.perf_counter()
-        motion = _motion_points(tmp, out_cams, test, num_frames, ext, kp, cfg)
+        motion = _motion_points(tmp, out_cams, test, num_frames, ext, kp, cfg, masked)
         timings["motion_points"] = time.perf_counter() - t
         shutil.rmtree(work, ignore_errors=True)
         fps = (cfg.fps or src.fps) / sel.step
@@ -225,24 +228,53 @@ def prepare(cfg: PrepareConfig) -> Path:
             source["synth"] = "synth.json"
         timings["total"] = time.perf_counter() - t0
         source["timings_s"] = {k: round(v, 2) for k, v in timings.items()}
+        # a scene with few points takes its bounds from the cameras: the training cameras only
+        # (float32 points, as write_scene_metadata would take them)
+        bounds = compute_bounds(np.asarray(kp.points, np.float32), [c for c in out_cams if c.name not in test])
         content = MemoryScene(out_cams, num_frames, fps, kfs, kp.points, kp.keyframes, test, point_colors=kp.colors,
+                              bounds=bounds,
                               **(motion.scene_fields() if motion is not None else {}))
         write_scene_metadata(tmp, content, name=cfg.name or out.name, source=source,
                              extra={"coverage": kp.coverage, "keyframe_points": kp.counts,
                                     "motion_points": motion.stats if motion is not None else {"enabled": False}},
-                             masks=src.masks is not None)
+                             masks=masked)
     return out
 
 
+def _mask_cameras(src: Source, test: list[str], sel: range) -> list[str]:
+    """The training cameras whose masks the scene keeps (held-out cameras' are never read), after
+    checking that each has a mask of every selected frame; one line names the training cameras
+    that have none when others do: their motion masks come from their frames instead."""
+    if src.masks is None:
+        return []
+    train = [i for i, n in enumerate(src.camera_names) if n not in test]
+    masked = [src.camera_names[i] for i in train if src.camera_has_masks(i, sel)]
+    without = [src.camera_names[i] for i in train if src.camera_names[i] not in masked]
+    if masked and without:
+        print(f"note: {src.root}: training camera(s) {', '.join(without)} have no masks; they prepare and train "
+              "without (their motion masks come from the frames' difference from their background)", file=sys.stderr)
+    return masked
+
+
+def _note_init_points(src: Source) -> None:
+    """One line on what a capture's initial point cloud is used for (only hints; sources.init_point_hints)."""
+    n = src.extra.get("init_points")
+    if n is not None:
+        hinted = sum(h is not None for h in src.extra["near_far"])
+        print(f"note: {src.root / 'init_pt_cld.npz'}: {n} points, used only as depth-range hints for the stereo of "
+              f"{hinted} of {len(src.camera_names)} cameras (never as scene points)", file=sys.stderr)
+
+
 def _extract_frames(root: Path, src: Source, cams: list[Camera], out_cams: list[Camera], sel: range, ext: str,
-                    progress: bool) -> None:
-    """Every selected frame onto its output camera, and its mask when the source has masks."""
+                    masked: list[str], progress: bool) -> None:
+    """Every selected frame onto its output camera, and its mask for the ``masked`` cameras."""
     from tqdm import tqdm
 
     with tqdm(total=len(cams) * len(sel), desc="extract frames", unit="img", disable=not progress) as bar:
         for ci, (cam, ocam) in enumerate(zip(cams, out_cams)):
             (root / "images" / ocam.name).mkdir(parents=True)
-            if src.masks is not None:
+            has_mask = src.camera_names[ci] in masked
+            if has_mask:
                 (root / "masks" / ocam.name).mkdir(parents=True)
             umap = build_undistort_map(cam) if cam.dist is not None else None
             for j, (_, img) in enumerate(src.frames(ci, sel)):
@@ -250,7 +282,7 @@ def _extract_frames(root: Path, src: Source, cams: list[Camera], out_cams: list[
                     raise DataError(f"{src.file_of(ci)}: frame {sel[j]} is {img.shape[1]}x{img.shape[0]}, "
                                     f"expected {cam.width}x{cam.height}")
                 save_frame(root, ocam, j, _resample(img, ocam, umap), ext)
-                if src.masks is not None:
+                if has_mask:
                     save_mask(root, ocam, j, _output_mask(src, ci, sel[j], cam, ocam, umap))
                 bar.update(1)
 
@@ -275,19 +307,23 @@ def _output_mask(src: Source, ci: int, frame: int, cam: Camera, ocam: Camera, um
 
 
 def _motion_points(root: Path, cams: list[Camera], test: list[str], num_frames: int, ext: str,
-                   kp, cfg: PrepareConfig) -> MotionPoints | None:
+                   kp, cfg: PrepareConfig, masked: list[str]) -> MotionPoints | None:
     """Moving-content points at the motion keyframes, from the training cameras' frames."""
     if not cfg.motion.enabled:
         return None
     cfg.motion.validate()
     train = [c for c in cams if c.name not in test]  # two or more: keyframe_points checked
     kfs = motion_keyframes(num_frames, cfg.keyframes, cfg.motion.per_interval)
-    box = compute_bounds(kp.points, cams)
+    box = compute_bounds(kp.points, train)  # (without points: the box the training cameras see)
     # a capture's foreground masks, where it has them, are the moving content (stage captures:
-    # the performers); else the frames' difference from their background
-    masks = (lambda ci, f: read_mask(mask_path(root, train[ci].name, f))) if (root / "masks").is_dir() else None
+    # the performers); else, camera by camera, the frames' difference from their background
+    has = set(masked)
+
+    def masks(ci: int, f: int) -> np.ndarray | None:
+        return read_mask(mask_path(root, train[ci].name, f)) if train[ci].name in has else None
+
     mp = motion_points(lambda ci, f: read_rgb(frame_path(root, train[ci].name, f, ext)), train, num_frames, kfs, box,
-                       cfg.motion, progress=cfg.progress, mask_of=masks)
+                       cfg.motion, progress=cfg.progress, mask_of=masks if has else None)
     if cfg.progress:
         n = mp.stats["points"]
         print(f"motion points: {sum(n)} at {mp.stats['keyframes']} keyframes (mean {np.mean(n) if n else 0:.0f}); "

@@ -8,8 +8,9 @@ Layout (contract, see docs/ARCHITECTURE.md and docs/data.md)::
                     "test_cameras": [names], "keyframes": [frame indices, ascending],
                     "bounds": {"min": [x,y,z], "max": [x,y,z]}, "source": {...}}
       images/<camera name>/<frame:06d>.png  (or .jpg)   frame 0 .. num_frames-1
-      masks/<camera name>/<frame:06d>.png   optional (scene.json "masks": true): foreground
-                   masks, uint8 greyscale, 255 = foreground, the size of the frames
+      masks/<camera name>/<frame:06d>.png   optional, for the cameras scene.json "masks" lists
+                   (a list of camera names; ``true`` in older scenes: every camera): foreground
+                   masks of every frame, uint8 greyscale, 255 = foreground, the size of the frames
       points.ply   x y z red green blue keyframe   (keyframe = index into "keyframes")
       motion_points.ply   optional, same columns: points on moving content only, keyframe =
                    index into scene.json's "motion_keyframes" (atgs.data.moving_points)
@@ -68,7 +69,8 @@ class PreparedScene:
     # points on moving content at more keyframes than ``keyframes`` (empty: none, or a static scene)
     motion_keyframes: list[int] = field(default_factory=list)
     motion_cloud: PointCloud = field(default_factory=lambda: ArrayPointCloud(np.zeros((0, 3)), np.zeros(0), 0))
-    has_masks: bool = False  # masks/<camera>/<frame>.png: foreground masks from the source
+    # cameras with masks/<camera>/<frame>.png (foreground masks from the source), in camera order
+    mask_cameras: list[str] = field(default_factory=list)
     # per keyframe, how many of its points came from each step of atgs-prepare (scene.json)
     point_counts: dict = field(default_factory=dict)
     coverage: dict = field(default_factory=dict)  # atgs-prepare's coverage report (scene.json)
@@ -114,15 +116,16 @@ class PreparedScene:
             raise DataError(f"{frame_path(root, names[0], 0)}: first frame of camera {names[0]} not found in {cam_dir}")
         cloud = PlyPointCloud.open(root / "points.ply", len(keyframes))
         mkfs, motion = _read_motion_points(root, meta, meta_path, num_frames)
-        has_masks = meta.get("masks") is True
-        if has_masks and not mask_path(root, names[0], 0).is_file():
-            raise DataError(f"{mask_path(root, names[0], 0)}: not found but scene.json says the scene has masks; "
+        mask_cams = _read_mask_cameras(meta.get("masks"), names, meta_path)
+        lost = next((n for n in mask_cams if not mask_path(root, n, 0).is_file()), None)
+        if lost is not None:
+            raise DataError(f"{mask_path(root, lost, 0)}: not found but scene.json says camera {lost} has masks; "
                             "re-run atgs-prepare")
         return cls(
             root=root, name=str(meta.get("name", root.name)), fps=fps, num_frames=num_frames,
             cameras=cameras, test_cameras=test_cameras, keyframes=keyframes, bounds=bounds,
             point_cloud=cloud, source=dict(meta.get("source", {})),
-            image_ext=ext, motion_keyframes=mkfs, motion_cloud=motion, has_masks=has_masks,
+            image_ext=ext, motion_keyframes=mkfs, motion_cloud=motion, mask_cameras=mask_cams,
             point_counts=dict(meta.get("keyframe_points") or {}), coverage=dict(meta.get("coverage") or {}),
         )
 
@@ -179,6 +182,15 @@ class PreparedScene:
         test = set(self.test_cameras)
         return [i for i, c in enumerate(self.cameras) if c.name not in test]
 
+    # --- foreground masks ------------------------------------------------------------------
+    @property
+    def has_masks(self) -> bool:
+        """Some camera has masks (``mask_cameras``)."""
+        return bool(self.mask_cameras)
+
+    def has_mask(self, cam_index: int) -> bool:
+        return self.cameras[cam_index].name in self.mask_cameras
+
     # --- frames -------------------------------------------------------------------------
     def _check_index(self, cam_index: int, frame: int) -> str:
         """The camera's name, after checking both indices."""
@@ -207,9 +219,13 @@ class PreparedScene:
 
     def mask(self, cam_index: int, frame: int) -> np.ndarray:
         """Foreground mask of frame ``frame`` of camera ``cam_index``, (H,W) bool, read from disk now."""
+        name = self._check_index(cam_index, frame)
         if not self.has_masks:
             raise DataError(f"{self.root / 'scene.json'}: the scene has no masks (its source had none)")
-        path = mask_path(self.root, self._check_index(cam_index, frame), frame)
+        if name not in self.mask_cameras:
+            raise DataError(f"{self.root / 'scene.json'}: camera {name} has no masks (its source had none for it; "
+                            f"cameras with masks: {', '.join(self.mask_cameras)})")
+        path = mask_path(self.root, name, frame)
         return self._check_size(path, read_mask(path), cam_index)
 
     def _check_size(self, path: Path, arr: np.ndarray, cam_index: int) -> np.ndarray:
@@ -326,6 +342,22 @@ def _read_motion_points(root: Path, meta: dict, meta_path: Path, num_frames: int
     return mkfs, PlyPointCloud.open(path, len(mkfs))
 
 
+def _read_mask_cameras(value, names: list[str], meta_path: Path) -> list[str]:
+    """scene.json "masks": the cameras with masks, in camera order. ``true`` (older scenes) is
+    every camera; absent or ``false``, none."""
+    if value is None or value is False:
+        return []
+    if value is True:
+        return list(names)
+    if not isinstance(value, list) or not all(isinstance(n, str) for n in value):
+        raise DataError(f"{meta_path}: 'masks' must be a list of camera names (or true); re-run atgs-prepare")
+    unknown = [n for n in value if n not in names]
+    if unknown:
+        raise DataError(f"{meta_path}: 'masks' names camera {unknown[0]}, which is not in 'cameras'; "
+                        "re-run atgs-prepare")
+    return [n for n in names if n in value]
+
+
 def _measured_counts(counts: dict, cloud: PointCloud) -> list[int] | None:
     """PreparedScene.measured_counts of ``counts`` (scene.json's "keyframe_points")."""
     try:
@@ -436,16 +468,20 @@ def save_frame(root: Path, cam: Camera, frame: int, img: np.ndarray, image_ext: 
 
 
 def write_scene_metadata(root: Path, scene: MemoryScene, *, name: str, source: dict | None = None,
-                         extra: dict | None = None, masks: bool = False) -> None:
+                         extra: dict | None = None, masks: bool | Sequence[str] = False) -> None:
     """Write scene.json and points.ply of ``scene`` (its frames are not read) into ``root``
     (whose images/ already exist), then validate. Motion keyframes add motion_points.ply and
     "motion_keyframes"; ``extra`` adds informational keys (e.g. "coverage") that readers may
-    ignore; ``masks`` records that masks/ holds a mask of every frame (the key is absent
-    otherwise). Missing colours are stored grey."""
+    ignore; ``masks`` names the cameras whose every frame has a mask in masks/ (``True``: all of
+    them), stored as "masks", the list of their names (the key is absent when none has masks).
+    Missing colours are stored grey."""
     root = Path(root)
     cameras = list(scene.cameras)
+    mask_cams = _mask_camera_list(masks, [c.name for c in cameras])
     pts = np.asarray(scene.points, np.float32).reshape(-1, 3)
-    bounds = compute_bounds(pts, cameras) if scene.bounds is None else scene.bounds
+    # (from the training cameras: nothing about a held-out camera shapes what training starts from)
+    train = [c for c in cameras if c.name not in set(scene.test_cameras)] or cameras
+    bounds = compute_bounds(pts, train) if scene.bounds is None else scene.bounds
     meta = {
         "format": SCENE_FORMAT,
         "version": SCENE_VERSION,
@@ -458,7 +494,7 @@ def write_scene_metadata(root: Path, scene: MemoryScene, *, name: str, source: d
         "bounds": {"min": np.asarray(bounds)[0].tolist(), "max": np.asarray(bounds)[1].tolist()},
         "source": dict(source or {}),
         **(extra or {}),
-        **({"masks": True} if masks else {}),
+        **({"masks": mask_cams} if mask_cams else {}),
     }
     if len(scene.motion_keyframes):
         meta["motion_keyframes"] = [int(k) for k in scene.motion_keyframes]
@@ -469,6 +505,16 @@ def write_scene_metadata(root: Path, scene: MemoryScene, *, name: str, source: d
                      np.asarray(scene.point_keyframes, np.int64))
     (root / "scene.json").write_text(json.dumps(meta, indent=1))
     PreparedScene.load(root)  # validate what we wrote before it becomes visible
+
+
+def _mask_camera_list(masks: bool | Sequence[str], names: list[str]) -> list[str]:
+    """write_scene_metadata's ``masks`` as camera names in camera order."""
+    if isinstance(masks, bool):
+        return list(names) if masks else []
+    unknown = [n for n in masks if n not in names]
+    if unknown:
+        raise ValueError(f"masks names camera {unknown[0]!r}, which the scene does not have")
+    return [n for n in names if n in set(masks)]
 
 
 def _grey_if_none(colors: np.ndarray | None, n: int) -> np.ndarray:

@@ -6,8 +6,10 @@ Supported (``--format``):
   top level or inside the first frame folder), the 3DGStream / VRU / MeetRoom style;
 - ``easyvolcap``: ``intri.yml`` + ``extri.yml`` + ``images/<cam>/<frame>.jpg``;
 - ``d3dgs``: Dynamic 3D Gaussians (CMU Panoptic): ``train_meta.json`` + ``test_meta.json`` +
-  ``ims/<cam>/<frame>.jpg``, optional foreground masks ``seg/<cam>/<frame>.png``; the cameras of
-  ``test_meta.json`` are held out by default;
+  ``ims/<cam>/<frame>.jpg``, optional foreground masks ``seg/<cam>/<frame>.png`` for any of the
+  cameras (the published captures have them for the training cameras only); the cameras of
+  ``test_meta.json`` are held out by default; ``init_pt_cld.npz``, when present, only hints the
+  cameras' depth ranges (:func:`init_point_hints`);
 - ``videos``: plain ``*.mp4`` (one per static camera) with no poses -> SfM on the first frame;
 - ``images``: ``<cam>/<frame>.png`` folders with no poses -> SfM on the first frame.
 """
@@ -15,6 +17,7 @@ Supported (``--format``):
 from __future__ import annotations
 
 import re
+import zipfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,7 +54,9 @@ class Source:
     videos: list[Path] | None = None  # one video per camera, or
     images: list[list[Path]] | None = None  # per camera, the frame files in order
     extra: dict = field(default_factory=dict)
-    masks: list[list[Path]] | None = None  # per camera, a foreground mask file per frame (d3dgs seg/)
+    # per camera, a foreground mask file per frame, or None for a camera without masks (d3dgs
+    # seg/); None: no camera has masks
+    masks: list[list[Path] | None] | None = None
 
     def file_of(self, ci: int) -> Path:
         return self.videos[ci] if self.videos is not None else self.root / self.camera_names[ci]
@@ -76,8 +81,22 @@ class Source:
                 yield i, load_image(self.images[ci][i])
 
     def mask(self, ci: int, i: int) -> np.ndarray:
-        """Foreground mask (H,W) bool of frame ``i`` of camera ``ci``; sources with ``masks`` only."""
+        """Foreground mask (H,W) bool of frame ``i`` of camera ``ci``; cameras with masks only."""
+        if self.masks is None or self.masks[ci] is None:
+            raise DataError(f"{self.root}: camera {self.camera_names[ci]} has no masks")
         return read_mask(self.masks[ci][i])
+
+    def camera_has_masks(self, ci: int, frames: Sequence[int]) -> bool:
+        """Whether camera ``ci`` has a mask of each of ``frames``. Masks of only some of them is an
+        error: the camera's motion masks would switch source from frame to frame."""
+        paths = None if self.masks is None else self.masks[ci]
+        if paths is None:
+            return False
+        missing = next((paths[i] for i in frames if not paths[i].is_file()), None)
+        if missing is not None:
+            raise DataError(f"{missing}: not found, but camera {self.camera_names[ci]} has masks of other frames; "
+                            f"add the missing masks, or remove {missing.parent} to prepare the camera without masks")
+        return True
 
 
 def load_image(path: Path) -> np.ndarray:
@@ -281,10 +300,69 @@ def _open_d3dgs(root: Path) -> Source:
     _require_files(images, ", but the metas list it (restore it, or drop its timestep from the metas)")
     src = _image_source("d3dgs", root, names, images, [cams[n] for n in names],
                         [str(i) for i in metas[1].cam_ids] if len(metas) > 1 else [names[0]])
-    if (root / "seg").is_dir():  # masks are all or nothing: a scene with masks has one per frame
-        src.masks = [[(root / "seg" / f).with_suffix(".png") for f in files[n]] for n in names]
-        _require_files(src.masks, "; seg/ needs a mask for every image (or remove seg/ to prepare without masks)")
+    if (root / "seg").is_dir():  # masks per camera: captures publish them for the training cameras only
+        masks = [_d3dgs_masks(root, files[n]) for n in names]
+        src.masks = masks if any(m is not None for m in masks) else None
+    hints = init_point_hints(root / "init_pt_cld.npz", src.cameras)
+    if hints is not None:
+        src.extra["near_far"], src.extra["init_points"] = hints
     return src
+
+
+def _d3dgs_masks(root: Path, fns: list[str]) -> list[Path] | None:
+    """A camera's mask files (seg/ mirrors ims/, as .png), or None when it has none of them;
+    whether it has all it needs is checked for the frames used (Source.camera_has_masks)."""
+    paths = [(root / "seg" / f).with_suffix(".png") for f in fns]
+    return paths if any(p.is_file() for p in paths) else None
+
+
+MIN_HINT_POINTS = 20  # a camera that sees fewer of the initial points gets no depth hint
+
+
+def init_point_hints(path: Path, cams: Sequence[Camera]) -> tuple[list[list[float] | None], int] | None:
+    """Per-camera (near, far) depth hints from a Dynamic 3D Gaussians ``init_pt_cld.npz`` (key
+    ``data``: (N, 7) rows of x y z, r g b in 0..1, segmentation), with its point count; None when
+    the file is absent. Only a hint: the stereo takes a camera's depth range from the measured
+    points and trusts these to within a factor 10 (atgs.data.mvs.views.depth_ranges); the points
+    never enter the scene (their positions were reconstructed elsewhere, and may be loose)."""
+    if not path.is_file():
+        return None
+    xyz = _read_init_points(path)
+    hints = []
+    for cam in cams:
+        z = _visible_depths(cam, xyz)
+        ok = len(z) >= MIN_HINT_POINTS
+        hints.append([float(np.percentile(z, 1)), float(np.percentile(z, 99))] if ok else None)
+    return hints, len(xyz)
+
+
+def _read_init_points(path: Path) -> np.ndarray:
+    """The finite xyz rows of ``init_pt_cld.npz``."""
+    fix = "fix it or remove it (it only hints the depth ranges)"
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if isinstance(loaded, np.ndarray):  # a bare .npy under the .npz name: the array itself
+            data = loaded
+        else:
+            with loaded as f:
+                if "data" not in f.files:
+                    raise DataError(f"{path}: no array 'data' (expected an (N, 7) array: xyz, rgb, seg); {fix}")
+                data = np.asarray(f["data"])
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        why = str(e).splitlines()[0][:120] if str(e).strip() else type(e).__name__
+        raise DataError(f"{path}: unreadable ({why}); {fix}") from None
+    if data.ndim != 2 or data.shape[1] < 3 or data.dtype.kind not in "fiu":
+        raise DataError(f"{path}: 'data' is a {data.dtype} array of shape {data.shape}, expected (N, 7) numbers; {fix}")
+    xyz = data[:, :3].astype(np.float64)
+    return xyz[np.all(np.isfinite(xyz), axis=1)]
+
+
+def _visible_depths(cam: Camera, xyz: np.ndarray) -> np.ndarray:
+    """Depths of the points in front of ``cam`` that fall inside its image."""
+    uv, z = cam.project(xyz)
+    with np.errstate(invalid="ignore"):
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    return z[inside]
 
 
 def _require_files(per_camera: list[list[Path]], fix: str) -> None:

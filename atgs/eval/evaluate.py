@@ -3,8 +3,9 @@
 :func:`evaluate` is a library function (``Trainer.evaluate`` calls it with a frame subset for
 periodic and final evaluation; ``atgs-eval`` wraps it): for every selected camera and frame it
 renders ``model.gaussians_at_frame(frame)`` with :func:`atgs.render.rasterize_gaussians` from
-that camera, compares with the ground-truth image and returns per-view rows and a summary. With
-an output directory it also writes::
+that camera (culled at the model's near plane, as training rendered), compares with the
+ground-truth image and returns per-view rows and a summary. With an output directory it also
+writes::
 
     OUT/
       per_view.csv           camera, frame, psnr, ssim, dssim1, dssim2, ms_ssim, dssim_ms, lpips
@@ -39,8 +40,10 @@ from atgs.eval.lpips import LPIPS, load_lpips
 from atgs.eval.metrics import all_metrics, ms_ssim_levels
 from atgs.gaussians import Gaussians
 from atgs.progress import progress_bar
+from atgs.model.near_plane import near_of
 from atgs.render.environment import EnvironmentMap
 from atgs.render import rasterize_gaussians
+from atgs.render.constants import NEAR
 from atgs.timeline import evenly_spaced
 
 METRICS = ("psnr", "ssim", "dssim1", "dssim2", "ms_ssim", "dssim_ms", "lpips")
@@ -179,9 +182,10 @@ def image_frames(frames: Sequence[int], count: int) -> set[int]:
 
 # --- rendering and images --------------------------------------------------------------------------
 
-def render_view(g: Gaussians, cam: Camera, background: "torch.Tensor | EnvironmentMap | None", backend: str) -> torch.Tensor:
-    """(H,W,3) render of ``g`` from ``cam``, clamped to [0,1]."""
-    return rasterize_gaussians(g, cam, background=background, backend=backend).image.detach().clamp(0.0, 1.0)
+def render_view(g: Gaussians, cam: Camera, background: "torch.Tensor | EnvironmentMap | None", backend: str,
+                near: float = NEAR) -> torch.Tensor:
+    """(H,W,3) render of ``g`` from ``cam`` culled at the model's ``near``, clamped to [0,1]."""
+    return rasterize_gaussians(g, cam, background=background, backend=backend, near=near).image.detach().clamp(0.0, 1.0)
 
 
 def comparison_image(render: np.ndarray, gt: np.ndarray, gain: float) -> np.ndarray:
@@ -339,6 +343,7 @@ def _score(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: lis
     """Render and score ``frames`` x cameras; the comparison image of each view at a ``pictured``
     frame goes to ``picture``."""
     scored = _Scored()
+    near = near_of(model)  # the plane training rendered with, for every camera held out or not
     was_training = getattr(model, "training", None)
     if was_training and hasattr(model, "train"):
         model.train(False)
@@ -353,7 +358,7 @@ def _score(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: lis
                     bg = background
                     if isinstance(bg, torch.Tensor):
                         bg = bg.to(g.means.device, g.means.dtype)
-                    render = render_view(g, cam, bg, cfg.backend)  # on the model's device
+                    render = render_view(g, cam, bg, cfg.backend, near)  # on the model's device
                     if camera_transform is not None:
                         render = camera_transform(ci, render).clamp(0, 1)
                     gt = torch.from_numpy(gt_np).to(render.device, render.dtype)

@@ -8,7 +8,11 @@ Layout (the files are :mod:`atgs.io.gaussian_ply`'s format)::
       manifest.json   {"format": "atgs-ply-sequence", "version": 1, "fps", "num_frames",
                        "frames": [indices], "files": [names], "gaussians": [counts],
                        "sh_degree", "cameras": [Camera.to_dict(), ...], "test_cameras": [names],
-                       "min_opacity", "source": {"checkpoint", "step"}}
+                       "min_opacity", "near", "source": {"checkpoint", "step"}}
+
+``near`` is the model's near plane (atgs.model.near_plane): ATGS's players do not draw a Gaussian
+at view z <= near, as training did not; a PLY file has no place for it (exports from before it
+have none: 0.01).
 
 Folders written by other tools open too: every ``*.ply`` in the folder is a frame, ordered by
 the last number in its name (``0001.ply``, ``frame_12.ply``, ``time_00005.ply``); without a
@@ -28,6 +32,7 @@ from typing import Any
 
 from atgs.cameras import Camera
 from atgs.io.gaussian_ply import GaussianPlyError, GaussianPlyLayout, read_gaussian_ply_layout
+from atgs.render.constants import NEAR
 
 MANIFEST_NAME = "manifest.json"
 FORMAT = "atgs-ply-sequence"
@@ -41,12 +46,13 @@ def frame_file_name(frame: int) -> str:
 
 def sequence_manifest(fps: float, num_frames: int, frames: list[int], files: list[str], counts: list[int],
              cameras: list[Camera], test_cameras: list[str], min_opacity: float, source: dict[str, Any],
-             sh_degree: int = 0) -> dict[str, Any]:
+             sh_degree: int = 0, near: float = NEAR) -> dict[str, Any]:
     """The manifest.json of an exported sequence (see the module docstring)."""
     return {"format": FORMAT, "version": VERSION, "fps": float(fps), "num_frames": int(num_frames),
             "frames": [int(f) for f in frames], "files": list(files), "gaussians": [int(c) for c in counts],
             "sh_degree": int(sh_degree), "cameras": [c.to_dict() for c in cameras],
-            "test_cameras": list(test_cameras), "min_opacity": float(min_opacity), "source": source}
+            "test_cameras": list(test_cameras), "min_opacity": float(min_opacity), "near": float(near),
+            "source": source}
 
 
 @dataclass
@@ -83,6 +89,9 @@ def _read_manifest(path: Path) -> dict[str, Any]:
     fps = data.get("fps")
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not fps > 0:
         raise GaussianPlyError(f"{path}: 'fps' must be a number > 0, got {fps!r}")
+    near = data.setdefault("near", NEAR)  # (exports from before the scaled near plane: 0.01)
+    if isinstance(near, bool) or not isinstance(near, (int, float)) or not 0 < near < float("inf"):
+        raise GaussianPlyError(f"{path}: 'near' must be a number > 0, got {near!r}")
     try:
         data["cameras"] = [Camera.from_dict(c) for c in data.get("cameras") or []]
     except (KeyError, TypeError, ValueError) as e:

@@ -38,7 +38,9 @@ from atgs.model.culling import AnchorReach, gaussian_reach, visible_anchors
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import DecodeTables, InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
+from atgs.model.near_plane import near_plane
 from atgs.model.smoothing import filter_variance, sampling_rates, smooth
+from atgs.render.constants import NEAR
 from atgs.render.environment import EnvironmentMap
 from atgs.timeline import Timeline
 
@@ -108,6 +110,9 @@ class ATGSModel:
         self.cameras, self.fps, self.extent = list(cameras), float(fps), float(extent)
         self.voxel_size = anchors.voxel_size
         self.test_camera_names: list[str] = []
+        # every render of the model culls Gaussians at view z <= near (atgs.model.near_plane);
+        # from_clouds sets the scene's, from_state the saved one
+        self.near: float = NEAR
         # the RGB training rendered over (its train_config.background): viewers and evaluation use it
         self.background: tuple[float, float, float] = (0.0, 0.0, 0.0)
         # or, when training rendered over a background by direction, that map (it wins over the RGB)
@@ -124,8 +129,10 @@ class ATGSModel:
         self.anchor_fade = torch.full((self.num_anchors, 1), self.initial_fade(), device=self.anchor_mu.device)
         # how far each anchor's Gaussians reach (atgs.model.culling): measured by the decodes
         self.reach = AnchorReach(self.num_anchors, self.anchor_mu.device)
-        # no Gaussian inside any rig camera's own housing (atgs.model.clearance)
-        self.clearance = CameraClearance.of_cameras(self.cameras, clearance, self.anchor_mu.device)
+        # no Gaussian inside a training camera's own housing (atgs.model.clearance): the balls
+        # are placed when read (:attr:`clearance`), once the held-out cameras are known
+        self._clearance = CameraClearance.of_cameras([], clearance, self.anchor_mu.device)
+        self._clearance_left_out: tuple[str, ...] | None = None  # the held-out names its balls leave out
         self.spatial = SpatialGrid(cfg.spatial_resolution if cfg.use_spatial_grid else 2, d)
         h = cfg.hash
         M = timeline.num_segments
@@ -196,9 +203,15 @@ class ATGSModel:
         pad = cfg.bbox_padding * size
         centers = np.stack([c.center for c in (train_cameras or cameras)])
         radius = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 1.0
-        clear = clearance_radius(cameras, anchors.mu.median(0).values.cpu().numpy(), cfg.camera_clearance)
-        return cls(cfg, tl, cameras, fps, anchors, lo - pad, hi + pad, 1.1 * max(radius, 1e-3), seed, clear,
-                   segments)
+        # the clearance of the training cameras only: a held-out pose changes nothing trained
+        train = list(train_cameras or cameras)
+        clear = clearance_radius(train, anchors.mu.median(0).values.cpu().numpy(), cfg.camera_clearance)
+        model = cls(cfg, tl, cameras, fps, anchors, lo - pad, hi + pad, 1.1 * max(radius, 1e-3), seed, clear,
+                    segments)
+        model.test_camera_names = [c.name for c in cameras if c.name not in {t.name for t in train}]
+        # from the training cameras only: no held-out camera's position changes what is drawn
+        model.near = near_plane(train, anchors.mu.median(0).values.cpu().numpy(), cfg.near_fraction)
+        return model
 
     # --- public API (docs/ARCHITECTURE.md) ----------------------------------------------------
     @property
@@ -243,9 +256,21 @@ class ATGSModel:
             self.set_sparse_tensor(name, table.to(device))
         self.decoder.to(device)
         self.reach.to(device)
-        self.clearance = self.clearance.to(device)
+        self._clearance = self._clearance.to(device)
         self.inference_cache.clear()
         return self
+
+    @property
+    def clearance(self) -> CameraClearance:
+        """The balls no Gaussian may sit in: around the training cameras (the model's cameras
+        less ``test_camera_names``; a held-out camera's pose never changes what is drawn), of the
+        radius the model was built with; rebuilt when the held-out cameras change."""
+        names = tuple(self.test_camera_names)
+        if self._clearance_left_out != names:
+            train = [c for c in self.cameras if c.name not in set(names)]
+            self._clearance = CameraClearance.of_cameras(train, self._clearance.radius, self.device)
+            self._clearance_left_out = names
+        return self._clearance
 
     def initial_fade(self) -> float:
         return initial_fade(self.cfg.fade_width, self.timeline)
@@ -288,12 +313,13 @@ class ATGSModel:
             return None
         mu, names = self.anchor_mu, tuple(self.test_camera_names)
         if self._smoothing is not None:
-            (ref, version, held_out), var = self._smoothing
-            if ref is mu and version == mu._version and held_out == names:
+            (ref, version, held_out, near), var = self._smoothing
+            if ref is mu and version == mu._version and held_out == names and near == self.near:
                 return var
         train = [c for c in self.cameras if c.name not in names] or self.cameras
-        var = filter_variance(sampling_rates(mu, train), float(self.cfg.smoothing_3d))
-        self._smoothing = ((mu, mu._version, names), var)
+        # (a camera sees an anchor beyond the near plane it renders with)
+        var = filter_variance(sampling_rates(mu, train, self.near), float(self.cfg.smoothing_3d))
+        self._smoothing = ((mu, mu._version, names, self.near), var)
         return var
 
     def window_at(self, t: float) -> tuple[int, int]:
@@ -343,7 +369,7 @@ class ATGSModel:
             d = keyframe_distance(self.timeline, f, self.anchor_keyframe.index_select(0, ids))
             centres = centres + self.anchor_velocity.index_select(0, ids) * d[:, None]
         out = torch.zeros(self.num_anchors, dtype=torch.bool, device=self.device)
-        out[ids] = visible_anchors(centres, self.reach.bound(ids), list(cams), margin)
+        out[ids] = visible_anchors(centres, self.reach.bound(ids), list(cams), margin, self.near)
         return out
 
     def refresh_reach(self) -> int:
@@ -471,7 +497,7 @@ class ATGSModel:
 
     def kept_gaussians(self, means: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor | None:
         """Indices of the decoded Gaussians that are drawn (None: all of them): above the opacity
-        threshold and outside the rig cameras' clearance (both decodes cut with it, in :meth:`_drawn`)."""
+        threshold and outside the training cameras' clearance (both decodes cut with it, in :meth:`_drawn`)."""
         mask = None
         if self.cfg.opacity_threshold > 0:
             mask = opacities > self.cfg.opacity_threshold
@@ -524,6 +550,7 @@ class ATGSModel:
             **self.sparse_tensors(),
             "bbox_min": self.bbox_min, "bbox_max": self.bbox_max,
             "extent": self.extent, "voxel_size": self.voxel_size, "camera_clearance": self.clearance.radius,
+            "near": self.near,
             "num_keyframes": self.timeline.num_keyframes, "num_segments": self.timeline.num_segments,
             "decoder": {k: v.detach().clone() for k, v in self.decoder.state_dict().items()},
         }
@@ -550,4 +577,6 @@ class ATGSModel:
                 raise ValueError(f"tensor {name!r} has shape {tuple(value.shape)}, config expects {tuple(ref.shape)}")
             model.set_sparse_tensor(name, value.float().contiguous())
         model.decoder.load_state_dict(state["decoder"])
+        # checkpoints from before the scaled near plane render as they were trained: at 0.01
+        model.near = float(state.get("near", NEAR))
         return model

@@ -1,18 +1,20 @@
-"""The space a capture rig's own cameras take up: no Gaussian may sit there.
+"""The space the training cameras' own housings take up: no Gaussian may sit there.
 
 On a ring or a dome every camera sees the others, so training fits Gaussians to the other
-cameras' bodies. A camera's body sits around its own lens, where that camera never sees it:
-no training view ever checks what such Gaussians look like from there. A held-out camera has
-never been shown anything, so two Gaussians of its own housing at 0.1 units in front of its
-lens cover its whole image (a 10-camera ring: 20.95 dB held out, 28.26 dB without them;
-docs/model.md, "Camera clearance"). The same space in front of a training camera is where
-floaters that explain only that camera's image would grow.
+cameras' bodies. A camera's body sits around its own lens, where that camera never sees it, and
+the space just in front of a training camera is where floaters that explain only that camera's
+image would grow.
 
-The clearance is a ball around every camera of the rig (training and held-out: the dataset
-knows where each camera is) whose radius is a small fraction of the distance from the cameras
-to the scene: a camera's housing, not scene content. Both decodes (training and the cached
-inference decode of the player, evaluation and export) drop the Gaussians inside, so what
-training optimises is what every view shows.
+The clearance is a ball around every *training* camera whose radius is a small fraction of the
+distance from the training cameras to the scene: a camera's housing, not scene content. Both
+decodes (training and the cached inference decode of the player, evaluation and export) drop the
+Gaussians inside, so what training optimises is what every view shows.
+
+A held-out camera gets no ball, and its position sets no radius: nothing about a held-out camera
+enters training (issue 49). Its housing, which the training cameras see, stays in front of its
+lens, and its held-out score pays for that. (Until issue 49 the balls were around every camera,
+held-out ones included: the 20.95 -> 28.26 dB once quoted here for a 10-camera ring came from
+the held-out camera's own ball, that is from its pose; docs/model.md, "Camera clearance".)
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ DEFAULT_FRACTION = 0.02
 
 
 def clearance_radius(cameras: Sequence[Camera], scene_centre: np.ndarray, fraction: float) -> float:
-    """``fraction`` of the median distance from the cameras' centres to ``scene_centre`` (0 for
-    no cameras or a fraction of 0)."""
+    """``fraction`` of the median distance from the cameras' centres (the training cameras') to
+    ``scene_centre`` (0 for no cameras or a fraction of 0)."""
     if fraction <= 0 or not cameras:
         return 0.0
     centres = np.stack([c.center for c in cameras])
@@ -40,7 +42,7 @@ def clearance_radius(cameras: Sequence[Camera], scene_centre: np.ndarray, fracti
 
 @dataclass
 class CameraClearance:
-    """Balls of ``radius`` around ``centres`` (C, 3); radius 0 keeps everything."""
+    """Balls of ``radius`` around ``centres`` (C, 3: the training cameras'); radius 0 keeps everything."""
 
     centres: torch.Tensor
     radius: float

@@ -76,8 +76,13 @@ class ModelConfig:
     opacity_threshold: float = 0.0  # Gaussians below are dropped (Scaffold-GS); code used 0
     frustum_cull: bool = True  # decode only anchors that project near the image
     camera_clearance: float = 0.02
-    """No Gaussian within this fraction of the median camera-to-scene distance of any rig camera
-    (its own housing, which it never sees; atgs.model.clearance). 0: off."""
+    """No Gaussian within this fraction of the median training-camera-to-scene distance of any
+    training camera (its own housing, which it never sees; atgs.model.clearance). Held-out cameras
+    get none: nothing about them enters training. 0: off."""
+    near_fraction: float = 0.05
+    """Near plane of every render of the model (training, evaluation, players): this fraction of the
+    median distance from the training cameras to the scene centre (atgs.model.near_plane; 0.2 m for
+    cameras 4 m away, as the reference 3DGS rasterizer). 0: the fixed 0.01 scene units of before."""
     # Anchor motion (atgs.model.anchor_motion) and the 3D smoothing filter (atgs.model.smoothing):
     # not in the paper; docs/model.md. Checkpoints from before the motion tables load with motion off.
     temporal_fade: bool = False
@@ -103,5 +108,6 @@ class ModelConfig:
             "hidden_offset": at_least(1), "voxel_size": at_least(0, note="0 = automatic"),
             "max_anchors_per_keyframe": at_least(0, note="0 = no cap"), "random_anchors": at_least(0),
             "opacity_threshold": between(0, 1, high_open=True), "camera_clearance": at_least(0, note="0 = off"),
+            "near_fraction": between(0, 1, note="0 = the fixed 0.01", high_open=True),
             "fade_width": above(0), "smoothing_3d": at_least(0, note="0 = off")})
         self.hash.validate()

@@ -36,13 +36,15 @@ def gaussian_reach(means: torch.Tensor, scales: torch.Tensor, centre: torch.Tens
     return d.amax(dim=1)
 
 
-def spheres_in_frustum(centres: torch.Tensor, radii: torch.Tensor, cam: Camera, margin: float) -> torch.Tensor:
+def spheres_in_frustum(centres: torch.Tensor, radii: torch.Tensor, cam: Camera, margin: float,
+                       near: float = NEAR) -> torch.Tensor:
     """(A,) True where a sphere may reach ``cam``'s image grown by ``margin`` of its size on each
-    side: in front of the near plane and inside all four side planes, each by its radius (a
-    conservative test: spheres near a corner may pass). With radius 0 it is the centre's test."""
+    side: in front of the near plane (the model's, that its renders cull with) and inside all four
+    side planes, each by its radius (a conservative test: spheres near a corner may pass). With
+    radius 0 it is the centre's test."""
     p = to_camera_frame(cam, centres)
     x, y, z = p.unbind(1)
-    ok = z + radii > NEAR
+    ok = z + radii > near
     mw, mh = margin * cam.width, margin * cam.height
     # side planes x/z = a through the camera centre, as signed distances
     for coord, lo, hi, f, c in ((x, -mw, cam.width + mw, cam.fx, cam.cx), (y, -mh, cam.height + mh, cam.fy, cam.cy)):
@@ -91,9 +93,9 @@ class AnchorReach:
 
 
 def visible_anchors(centres: torch.Tensor, radii: torch.Tensor, cams: Sequence[Camera],
-                    margin: float) -> torch.Tensor:
-    """(A,) True where an anchor's sphere may reach any of ``cams``."""
-    seen = spheres_in_frustum(centres, radii, cams[0], margin)
+                    margin: float, near: float = NEAR) -> torch.Tensor:
+    """(A,) True where an anchor's sphere may reach any of ``cams`` beyond ``near``."""
+    seen = spheres_in_frustum(centres, radii, cams[0], margin, near)
     for c in cams[1:]:
-        seen |= spheres_in_frustum(centres, radii, c, margin)
+        seen |= spheres_in_frustum(centres, radii, c, margin, near)
     return seen

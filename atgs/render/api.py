@@ -9,11 +9,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from atgs.render.constants import NEAR
 from atgs.render.environment import EnvironmentMap
 from atgs.render.projection import project
 from atgs.render.reference import rasterize_reference
 from atgs.render.types import RasterOutput
-from atgs.render.validate import RasterInputError, as_tensor, check_inputs
+from atgs.render.validate import RasterInputError, as_tensor, check_inputs, check_near
 
 if TYPE_CHECKING:
     from atgs.cameras import Camera
@@ -34,6 +35,7 @@ def rasterize(
     height: int,
     background: torch.Tensor | np.ndarray | None = None,
     backend: str = "auto",
+    near: float = NEAR,
 ) -> RasterOutput:
     """Render N 3D Gaussians into a ``height x width`` image.
 
@@ -44,6 +46,8 @@ def rasterize(
     backend: "cpu" (compiled C++/OpenMP, float32), "torch" (slow dense reference, any float
     dtype), "cuda" (gsplat; tested on a GPU only), "auto" (cuda if the tensors are on a GPU and
     gsplat imports, else cpu if the extension builds, else torch with a warning).
+    near: Gaussians whose view-space z is at or below it are culled, on every backend (a
+    model's renders pass its own, ``ATGSModel.near``; the default is gsplat's 0.01).
     Gradients flow to means, quats, scales, opacities, colors (and background); the "torch"
     backend also differentiates viewmat and K.
     """
@@ -51,13 +55,14 @@ def rasterize(
         raise RasterInputError(f"rasterize(): argument 'backend' is {backend!r}; choose one of {BACKENDS}")
     if not isinstance(means, torch.Tensor):
         raise RasterInputError(f"rasterize(): argument 'means' has type {type(means).__name__}; pass a torch.Tensor")
+    near = check_near(near)
     viewmat = as_tensor(viewmat, "viewmat", means)
     K = as_tensor(K, "K", means)
     if background is None:
         background = torch.zeros(3, dtype=means.dtype, device=means.device)
     background = as_tensor(background, "background", means)
     if background.dim() == 3:  # per pixel: render over black, then add T * background
-        out = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, None, backend)
+        out = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, None, backend, near)
         if tuple(background.shape) != tuple(out.image.shape):
             raise RasterInputError(f"rasterize(): argument 'background' has shape {tuple(background.shape)}; "
                                    f"expected (3,) or {tuple(out.image.shape)} (height, width, 3)")
@@ -69,14 +74,14 @@ def rasterize(
     width, height = check_inputs(tensors, width, height)
     chosen = _choose_backend(backend, means)
     if chosen == "torch":
-        return _rasterize_torch(**tensors, width=width, height=height)
+        return _rasterize_torch(**tensors, width=width, height=height, near=near)
     if chosen == "cpu":
         from atgs.render.cpu import rasterize_cpu
 
-        return rasterize_cpu(**tensors, width=width, height=height)
+        return rasterize_cpu(**tensors, width=width, height=height, near=near)
     from atgs.render.cuda import rasterize_cuda
 
-    return rasterize_cuda(**tensors, width=width, height=height)
+    return rasterize_cuda(**tensors, width=width, height=height, near=near)
 
 
 def rasterize_gaussians(
@@ -84,16 +89,18 @@ def rasterize_gaussians(
     camera: "Camera",
     background: "torch.Tensor | np.ndarray | EnvironmentMap | None" = None,
     backend: str = "auto",
+    near: float = NEAR,
 ) -> RasterOutput:
     """Convenience wrapper: render an :class:`atgs.gaussians.Gaussians` through an
     :class:`atgs.cameras.Camera` (pinhole part only; prepared scenes are undistorted).
     ``background`` may also be an :class:`~atgs.render.environment.EnvironmentMap`: each pixel
-    then shows the map's colour in its direction."""
+    then shows the map's colour in its direction. ``near``: as in :func:`rasterize` (a model's
+    Gaussians: the model's ``near``)."""
     if isinstance(background, EnvironmentMap):
         background = background.image(camera, gaussians.means.device, gaussians.means.dtype)
     return rasterize(
         *gaussians.as_tuple(), camera.w2c, camera.K, camera.width, camera.height,
-        background=background, backend=backend,
+        background=background, backend=backend, near=near,
     )  # fmt: skip
 
 
@@ -151,8 +158,9 @@ def _rasterize_torch(
     background: torch.Tensor,
     width: int,
     height: int,
+    near: float = NEAR,
 ) -> RasterOutput:
-    proj = project(means, quats, scales, viewmat, K, width, height)
+    proj = project(means, quats, scales, viewmat, K, width, height, near)
     image, alpha, depth, depth_sq = rasterize_reference(
         proj.means2d, proj.conics, opacities, colors, proj.depths, proj.radii, width, height, background
     )

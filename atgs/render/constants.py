@@ -4,7 +4,8 @@ Backends must agree bit-for-bit on *which* Gaussian touches which pixel, so ever
 lives here and the C++ kernel receives them as arguments instead of hard-coding its own.
 """
 
-NEAR: float = 0.01  # view-space z at or below which a Gaussian is culled (gsplat's near plane)
+NEAR: float = 0.01  # default view-space z at or below which a Gaussian is culled (gsplat's near plane);
+# a model renders with its own, scaled to its scene (ATGSModel.near, atgs.model.near_plane)
 DILATION: float = 0.3  # px^2 added to the 2D covariance (EWA low-pass filter)
 CLAMP_MARGIN: float = 0.3  # Jacobian clamp: x/z limited to (W - cx)/fx + 0.3 * tan(fov_x / 2)
 RADIUS_SIGMAS: float = 3.0  # radii (and the contribution cut-off) at 3 standard deviations

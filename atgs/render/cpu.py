@@ -14,32 +14,36 @@ from atgs.render.types import RasterOutput
 __all__ = ["cpu_backend_error", "pair_counts", "project_cpu", "rasterize_cpu", "rasterize_2d_cpu"]
 
 TILE = 16
-PROJECT_CONSTS = [NEAR, DILATION, CLAMP_MARGIN, RADIUS_SIGMAS, QUAT_EPS, float(MAX_RADIUS)]
+
+
+def project_consts(near: float = NEAR) -> list[float]:
+    """The projection kernel's constants: the near plane, then atgs.render.constants'."""
+    return [float(near), DILATION, CLAMP_MARGIN, RADIUS_SIGMAS, QUAT_EPS, float(MAX_RADIUS)]
 
 
 class _Project(torch.autograd.Function):
     """(means, quats, scales) -> (means2d, conics, depths, radii); camera is constant."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, viewmat, K, width, height):  # type: ignore[override]
+    def forward(ctx, means, quats, scales, viewmat, K, width, height, near):  # type: ignore[override]
         threads = torch.get_num_threads()
         means2d, conics, depths, radii = load_extension().project_forward(
-            means, quats, scales, viewmat, K, width, height, threads, PROJECT_CONSTS
+            means, quats, scales, viewmat, K, width, height, threads, project_consts(near)
         )
         ctx.save_for_backward(means, quats, scales, viewmat, K)
-        ctx.size = (width, height, threads)
+        ctx.size = (width, height, threads, near)
         ctx.mark_non_differentiable(radii)
         return means2d, conics, depths, radii
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):  # type: ignore[override]
         means, quats, scales, viewmat, K = ctx.saved_tensors
-        width, height, threads = ctx.size
+        width, height, threads, near = ctx.size
         g_means, g_quats, g_scales = load_extension().project_backward(
-            means, quats, scales, viewmat, K, width, height, threads, PROJECT_CONSTS,
+            means, quats, scales, viewmat, K, width, height, threads, project_consts(near),
             v_means2d.contiguous(), v_conics.contiguous(), v_depths.contiguous(),
         )  # fmt: skip
-        return g_means, g_quats, g_scales, None, None, None, None
+        return g_means, g_quats, g_scales, None, None, None, None, None
 
 
 def project_cpu(
@@ -50,11 +54,12 @@ def project_cpu(
     K: torch.Tensor,
     width: int,
     height: int,
+    near: float = NEAR,
 ) -> Projected:
     """C++ twin of :func:`atgs.render.projection.project` (float32, no camera gradients)."""
     m2, con, dep, rad = _Project.apply(
         means.float().contiguous(), quats.float().contiguous(), scales.float().contiguous(),
-        viewmat.detach().float().contiguous(), K.detach().float().contiguous(), width, height,
+        viewmat.detach().float().contiguous(), K.detach().float().contiguous(), width, height, float(near),
     )  # fmt: skip
     return Projected(means2d=m2, conics=con, depths=dep, radii=rad)
 
@@ -116,6 +121,7 @@ def rasterize_cpu(
     background: torch.Tensor,
     width: int,
     height: int,
+    near: float = NEAR,
 ) -> RasterOutput:
     """Float32 rendering on the CPU; float64 inputs are cast (their gradients come back float64)."""
     if viewmat.requires_grad or K.requires_grad:
@@ -125,7 +131,7 @@ def rasterize_cpu(
         )
     f32 = [t.float() for t in (means, quats, scales, opacities, colors, viewmat, K, background)]
     means, quats, scales, opacities, colors, viewmat, K, background = f32
-    proj = project_cpu(means, quats, scales, viewmat, K, width, height)
+    proj = project_cpu(means, quats, scales, viewmat, K, width, height, near)
     image, alpha, depth, depth_sq = rasterize_2d_cpu(
         proj.means2d, proj.conics, opacities, colors, proj.depths, background, proj.radii, width, height
     )

@@ -70,6 +70,7 @@ def rasterize_cuda(
     background: torch.Tensor,
     width: int,
     height: int,
+    near: float = NEAR,
 ) -> RasterOutput:
     """gsplat rendering with our output contract (tests/test_render_cuda.py, on a GPU)."""
     if not gsplat_available():
@@ -87,7 +88,7 @@ def rasterize_cuda(
     render, alpha, meta = rasterization(
         means.float(), quats.float(), scales.float(), opacities.float(), feats,
         viewmat.float()[None], K.float()[None], width, height,
-        near_plane=NEAR, backgrounds=bg[None], packed=False, absgrad=False,
+        near_plane=float(near), backgrounds=bg[None], packed=False, absgrad=False,
     )  # fmt: skip
     base = meta["means2d"]  # (1, N, 2), an autograd node inside gsplat
     radii = meta["radii"].reshape(n, -1)

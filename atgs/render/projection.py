@@ -2,8 +2,9 @@
 
 This is the projection used by the ``"torch"`` reference backend; autograd differentiates it.
 Conventions (SPEC section 2): OpenCV camera (x right, y down, z forward), pixel centers at
-+0.5, ``Sigma2d = J W Sigma W^T J^T + 0.3 I`` with gsplat's Jacobian clamp, near plane 0.01,
-radius = ceil(3 sqrt(lambda_max)) with ``lambda_max = mid + sqrt(max(0.1, mid^2 - det))``.
++0.5, ``Sigma2d = J W Sigma W^T J^T + 0.3 I`` with gsplat's Jacobian clamp, a near plane
+(``near``, 0.01 by default), radius = ceil(3 sqrt(lambda_max)) with
+``lambda_max = mid + sqrt(max(0.1, mid^2 - det))``.
 """
 
 from __future__ import annotations
@@ -60,12 +61,14 @@ def project(
     K: torch.Tensor,
     width: int,
     height: int,
+    near: float = NEAR,
 ) -> Projected:
-    """Project N Gaussians; differentiable w.r.t. every tensor input (including the camera)."""
+    """Project N Gaussians; differentiable w.r.t. every tensor input (including the camera).
+    Those at view-space z <= ``near`` are culled."""
     Rv, tv = viewmat[:3, :3], viewmat[:3, 3]
     p = means @ Rv.T + tv
     x, y, z = p.unbind(-1)
-    in_front = z > NEAR
+    in_front = z > near
     zs = torch.where(in_front, z, torch.ones_like(z))  # safe divisor for culled Gaussians
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 

@@ -24,6 +24,13 @@ def as_tensor(value: object, name: str, like: torch.Tensor) -> torch.Tensor:
     raise AssertionError  # unreachable
 
 
+def check_near(near: object) -> float:
+    """The near plane as a float: finite and > 0 (a Gaussian at z <= near is culled)."""
+    if isinstance(near, bool) or not isinstance(near, (int, float, np.floating, np.integer)) or not 0 < near < np.inf:
+        _fail("near", f"is {near!r}", "pass a finite number > 0 (view-space z, in scene units)")
+    return float(near)
+
+
 def check_inputs(
     tensors: dict[str, torch.Tensor], width: object, height: object
 ) -> tuple[int, int]:

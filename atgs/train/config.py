@@ -137,6 +137,12 @@ class TrainConfig:
     # the space between the cameras and the surfaces. 0 = off. Measured in docs/training.md
     # ("Free space").
     lambda_free_space: float = 0.0
+    # Not in the paper: the opacity each training ray accumulates in front of the depth its
+    # camera measured there (atgs.train.losses.ray_free_space_loss, atgs.ray_free_space): semi-
+    # transparent fog in space the training cameras see through, which a uniform wall behind it
+    # hides from their images, goes. On wherever the scene has measured keyframe points; 0 = off.
+    # Measured in docs/training.md ("Free space").
+    lambda_ray_free_space: float = 0.1
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Background colour the Gaussians are composited over (RGB in [0, 1]), unless
     --train.background-from-images replaces it."""
@@ -203,7 +209,7 @@ class TrainConfig:
             "lambda_ssim": between(0, 1, "the weight of SSIM against L1"), "lambda_volume": LOSS_WEIGHT,
             "volume_reduction": one_of(VolumeReduction), "lambda_offset": LOSS_WEIGHT, "offset_free": at_least(0),
             "lambda_distortion": LOSS_WEIGHT, "lambda_depth_smooth": LOSS_WEIGHT, "depth_smooth_edge": at_least(0),
-            "lambda_free_space": LOSS_WEIGHT, "background": each(between(0, 1)),
+            "lambda_free_space": LOSS_WEIGHT, "lambda_ray_free_space": LOSS_WEIGHT, "background": each(between(0, 1)),
             "camera_exposure": one_of(CameraExposure), "exposure_threshold": at_least(0),
             "drop_gaussians": between(0, 1, "a fraction of the Gaussians", high_open=True),
             "grad_clip": at_least(0, note="0 = off"), "adam_eps": at_least(0), "max_bad_steps": at_least(0),

@@ -6,20 +6,37 @@ of the others, in the order of :data:`LOSS_TERMS`. The functions themselves are 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import functools
 import operator
 from typing import TYPE_CHECKING
 
 import torch
 
-from atgs.train.losses import depth_distortion, depth_smoothness, free_space_loss, image_loss, offset_loss, volume_loss
+from atgs.model.anchors import STATIC
+from atgs.train.losses import (depth_distortion, depth_smoothness, free_space_loss, image_loss, offset_loss,
+                               ray_free_space_loss, volume_loss)
 
 if TYPE_CHECKING:
+    from atgs.cameras import Camera
     from atgs.free_space import FreeSpace
+    from atgs.gaussians import Gaussians
+    from atgs.ray_free_space import MeasuredDepths
     from atgs.model.atgs_model import ATGSModel, Decoded
     from atgs.render.types import RasterOutput
     from atgs.train.config import TrainConfig
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """Which view a render is: a training camera (its slot among the training cameras, at the
+    training resolution), the frame, and the Gaussians it drew (after dropout)."""
+
+    camera: "Camera"
+    slot: int
+    frame: int
+    shown: "Gaussians"
+    render: dict = field(default_factory=dict)  # further keywords of atgs.render.rasterize (the near plane)
 
 
 @dataclass(frozen=True)
@@ -32,6 +49,8 @@ class LossInputs:
     model: "ATGSModel"
     cfg: "TrainConfig"
     free_space: "FreeSpace | None"  # None unless --train.lambda-free-space > 0
+    view: "RenderedView | None" = None
+    measured: "MeasuredDepths | None" = None  # None unless --train.lambda-ray-free-space > 0 and points exist
 
 
 @dataclass(frozen=True)
@@ -55,7 +74,18 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("free_space", lambda cfg: cfg.lambda_free_space,
              lambda i: None if i.free_space is None
              else free_space_loss(i.dec.gaussians.opacities, i.dec.gaussians.means, i.free_space)),
+    # the opacity each training ray accumulates in front of its measured depth (on by default)
+    LossTerm("ray_free_space", lambda cfg: cfg.lambda_ray_free_space, lambda i: _ray_free_space(i)),
 )
+
+
+def _ray_free_space(i: LossInputs) -> "torch.Tensor | None":
+    if i.measured is None or i.view is None:
+        return None
+    v = i.view
+    moving = i.model.anchor_keyframe.index_select(0, i.dec.anchor_ids) != STATIC
+    return ray_free_space_loss(v.shown, moving, i.measured, v.slot, v.frame, v.camera, i.cfg.render_backend,
+                               **v.render)
 
 
 def weighted_terms(inputs: LossInputs) -> dict[str, torch.Tensor]:

@@ -17,7 +17,10 @@ from atgs.eval.metrics import ssim
 from atgs.train.config import VolumeReduction
 
 if TYPE_CHECKING:
+    from atgs.cameras import Camera
     from atgs.free_space import FreeSpace
+    from atgs.gaussians import Gaussians
+    from atgs.ray_free_space import MeasuredDepths
 
 VOLUME_REDUCTIONS = get_args(VolumeReduction)
 
@@ -111,6 +114,40 @@ def free_space_loss(opacities: torch.Tensor, means: torch.Tensor, free: "FreeSpa
         return opacities.sum()
     empty, _ = free.test(means.detach())
     return (opacities * empty.to(opacities.dtype)).mean()
+
+
+def ray_free_space_loss(gaussians: "Gaussians", moving: torch.Tensor, measured: "MeasuredDepths", slot: int,
+                        frame: int, camera: "Camera", backend: str = "auto", **render) -> torch.Tensor | None:
+    """The opacity that training camera ``slot``'s rays accumulate in front of their measured
+    depth (atgs.ray_free_space), per pixel of its image at ``frame``, averaged over the image.
+
+    The Gaussians standing in front of the measured depth of the ray through their centre
+    (``moving``: (N,) bool, those of per-keyframe anchors, judged only at measured frames) are
+    rendered alone; a pixel counts where the depth they accumulate lies in front of that pixel's
+    measured depth, so a Gaussian straddling a depth edge is charged only on the rays it
+    occludes. Gradients reach the opacities, scales, rotations and means of those Gaussians.
+    None when no Gaussian stands in front of a measured depth. ``render``: further keywords of
+    :func:`atgs.render.rasterize` (the near plane)."""
+    from atgs.cameras import to_camera_frame
+    from atgs.render import rasterize
+
+    means = gaussians.means.detach()
+    limit = measured.limits(slot, frame, means, moving)
+    z = to_camera_frame(camera, means)[:, 2]
+    front = torch.isfinite(limit) & (z < measured.margin * limit)
+    idx = front.nonzero().squeeze(1)
+    if idx.numel() == 0:
+        return None
+    g = gaussians.map(lambda x: x.index_select(0, idx))
+    out = rasterize(g.means, g.quats, g.scales, g.opacities, torch.zeros_like(g.colors), camera.w2c, camera.K,
+                    camera.width, camera.height, backend=backend, **render)
+    alpha = out.alpha
+    depth_px = measured.pixel_depths(slot, frame).to(alpha.dtype)
+    with torch.no_grad():  # in front of the pixel's measured depth (unmeasured pixels: never)
+        covered = alpha > 0
+        mean_depth = out.depth / alpha.clamp_min(1e-12)
+        charged = covered & torch.isfinite(depth_px) & (mean_depth < measured.margin * depth_px)
+    return (alpha * charged.to(alpha.dtype)).sum() / alpha.numel()
 
 
 def image_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float) -> torch.Tensor:

@@ -20,7 +20,10 @@ from atgs.train.exposure import measure_scene_exposure
 from atgs.train.scene_flow import grey_of, initial_velocities
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from atgs.cameras import Camera
+    from atgs.ray_free_space import MeasuredDepths
     from atgs.model.anchor_setup import Spread
     from atgs.model.config import ModelConfig
     from atgs.render.environment import EnvironmentMap
@@ -87,6 +90,30 @@ def free_space_of(scene: "SceneData", cams: "list[Camera]", device: torch.device
         pts = cloud.read(k)[:n]
         grids = [np.minimum(a, b) for a, b in zip(grids, depth_grids(cams, pts))]
     return FreeSpace.of_grids(cams, grids, device=device)
+
+
+def measured_depths_of(scene: "SceneData", cams: "list[Camera]", image_of: "Callable[[int, int], np.ndarray]",
+                       device: torch.device) -> "MeasuredDepths | None":
+    """Each training camera's measured depth per image cell (atgs.ray_free_space), from the
+    scene's measured keyframe points (not its fill) and its motion points, each at the frame it
+    was measured at, a keyframe at a time. ``cams``: the training cameras at the training
+    resolution; ``image_of(slot, frame)`` reads ``cams[slot]``'s (H, W, 3) uint8 image. None
+    when the scene has no measured point."""
+    from atgs.ray_free_space import MeasuredDepths
+
+    cloud, motion, measured = scene.point_cloud, scene.motion_cloud, scene.measured_counts
+    sources = [(cloud, k, scene.keyframes[k], None if measured is None else measured[k])
+               for k in range(cloud.num_keyframes)]
+    sources += [(motion, k, scene.motion_keyframes[k], None) for k in range(motion.num_keyframes)]
+
+    def parts():
+        for pc, k, frame, n in sources:
+            pts = pc.read(k)[:n]
+            if len(pts):
+                yield int(frame), pts, pc.colors(k)[:n]
+
+    depths = MeasuredDepths.measure(cams, list(parts()), image_of, device)
+    return depths if depths.any_measured else None
 
 
 def velocities_from_flow(model: ATGSModel, scene: "SceneData", train_idx: list[int], progress: bool = True,

@@ -51,13 +51,13 @@ from atgs.train.time_partition import TimeSlice, segment_block
 from atgs.train.dropout import drop_gaussians, drop_rate, render_generator
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.generalisation import evaluation_gap_warning
-from atgs.train.loss_terms import LossInputs, total_loss, weighted_terms
+from atgs.train.loss_terms import LossInputs, RenderedView, total_loss, weighted_terms
 from atgs.train.losses import psnr
 from atgs.train.optim import SparseAdam, merge_rows
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
-from atgs.train.scene_setup import (check_backend, free_space_of, model_from_scene, settings_from_scene,
-                                    velocities_from_flow)
+from atgs.train.scene_setup import (check_backend, free_space_of, measured_depths_of, model_from_scene,
+                                    settings_from_scene, velocities_from_flow)
 from atgs.train.schedule import dense_lrs, sparse_lr
 from atgs.train.step_schedule import schedule_for
 
@@ -277,6 +277,12 @@ class Trainer:
         (only for --train.lambda-free-space) and the background colour."""
         self.free_space = (free_space_of(self.scene, [self.cams[i] for i in self.train_idx], self.device)
                            if self.cfg.lambda_free_space > 0 else None)
+        self.measured_depths = None
+        if self.cfg.lambda_ray_free_space > 0:
+            t0 = time.perf_counter()
+            self.measured_depths = measured_depths_of(self.scene, [self.cams[i] for i in self.train_idx],
+                                                      lambda s, f: self._load_image(self.train_idx[s], f), self.device)
+            self._early_seconds += time.perf_counter() - t0
         self.fixed_background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
 
     def _build_kernels(self) -> None:
@@ -358,13 +364,16 @@ class Trainer:
         return sparse_lr(self.cfg.lr, name, rows, step, self.model, visits, self._expected_visits())
 
     # --- the loss (atgs.train.loss_terms) ---------------------------------------------------------
-    def loss_terms(self, dec: Decoded, out, gt: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Each active term of one view's loss, weighted, by name."""
-        return weighted_terms(LossInputs(dec, out, gt, self.model, self.cfg, self.free_space))
+    def loss_terms(self, dec: Decoded, out, gt: torch.Tensor, view: RenderedView | None = None
+                   ) -> dict[str, torch.Tensor]:
+        """Each active term of one view's loss, weighted, by name (``view``: which camera and
+        frame ``out`` is; the terms that need it are off without it)."""
+        return weighted_terms(LossInputs(dec, out, gt, self.model, self.cfg, self.free_space, view,
+                                         self.measured_depths))
 
-    def compute_loss(self, dec: Decoded, out, gt: torch.Tensor) -> torch.Tensor:
+    def compute_loss(self, dec: Decoded, out, gt: torch.Tensor, view: RenderedView | None = None) -> torch.Tensor:
         """One view's loss: the sum of :meth:`loss_terms`."""
-        return total_loss(self.loss_terms(dec, out, gt))
+        return total_loss(self.loss_terms(dec, out, gt, view))
 
     # --- one optimisation step ---------------------------------------------------------------
     @_in_run_threads
@@ -456,11 +465,12 @@ class Trainer:
                 dec.gaussians, rate, render_generator(self.draw_seed, self.step, view.index, k, self.gen.device),
                 dec.anchor_ids * q + dec.slot_ids, model.num_anchors * q)
             background = self._background() if view.backgrounds is None else view.backgrounds[k]
-            out = rasterize_gaussians(shown, cam, background=background, backend=cfg.render_backend)
+            out = rasterize_gaussians(shown, cam, background=background, backend=cfg.render_backend, near=model.near)
             out.means2d.retain_grad()
             if self.exposure is not None:  # the image as this camera exposed it
                 out = replace(out, image=self.exposure.apply(out.image, self.train_slot[ci]))
-            loss = self.compute_loss(dec, out, gt)
+            loss = self.compute_loss(dec, out, gt, RenderedView(cam, self.train_slot[ci], view.frame, shown,
+                                                                 {"near": model.near}))
             total = loss if total is None else total + loss
             outs.append((cam, out))
             views.losses.append(loss.detach())  # read back once at the end of the step

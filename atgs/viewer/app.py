@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from atgs.errors import UserError
+from atgs.model.near_plane import near_of
 from atgs.viewer.adaptive import TARGET_MS, next_render_scale
 from atgs.viewer.camera_control import CameraControl
 from atgs.viewer.decode_cache import DecodeCache
@@ -122,7 +123,7 @@ class PlayerApp:
         imgui.backends.glfw_init_for_opengl(addr, True)
         imgui.backends.opengl3_init("#version 330")
 
-        self.renderer = SplatRenderer(self.ctx)
+        self.renderer = SplatRenderer(self.ctx, near=near_of(source))  # the model's near plane
         self._gl_finish = gil_free_finish(self.ctx.finish)
         self.settings = settings or RenderSettings()
         self.playback = Playback(num_frames=source.num_frames, fps=float(source.fps or 30.0))

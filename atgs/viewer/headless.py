@@ -12,6 +12,7 @@ import torch
 
 from atgs.cameras import Camera
 from atgs.headless_gl import create_headless_context
+from atgs.model.near_plane import near_of
 from atgs.viewer.decode_cache import DecodeCache
 from atgs.viewer.errors import ViewerError
 from atgs.viewer.output import depth_range, display_rgb, to_uint8
@@ -31,7 +32,7 @@ class HeadlessRenderer:
 
     def __post_init__(self) -> None:
         self.ctx = create_headless_context(self.gl)
-        self.renderer = SplatRenderer(self.ctx)
+        self.renderer = SplatRenderer(self.ctx, near=near_of(self.source))  # the model's near plane
         self._frame = -1
         self.gl_decoder = None
         if self.decode == "gl":

@@ -16,6 +16,7 @@ from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
 from atgs.io.gaussian_ply import GaussianPly, read_gaussian_ply
 from atgs.io.ply_sequence import PlySequence, open_ply_sequence
+from atgs.render.constants import NEAR
 from atgs.timeline import frame_at
 
 
@@ -47,6 +48,12 @@ class PlySource:
     @property
     def num_keyframes(self) -> int:
         return 0
+
+    @property
+    def near(self) -> float:
+        """The near plane to draw with: the exporting model's (manifest.json), else 0.01."""
+        man = self.sequence.manifest
+        return float(man["near"]) if man is not None else NEAR
 
     def window_at(self, t: float) -> tuple[int, int]:
         return (0, -1)  # no keyframe window

@@ -19,7 +19,8 @@ from atgs.viewer.device import cpu_threads
 
 @runtime_checkable
 class GaussianSource(Protocol):
-    """The subset of the model API (docs/ARCHITECTURE.md) that the viewer uses."""
+    """The subset of the model API (docs/ARCHITECTURE.md) that the viewer uses. A source may also
+    have ``near``, the near plane it is drawn with (atgs.model.near_plane.near_of; else 0.01)."""
 
     @property
     def num_frames(self) -> int: ...

@@ -30,7 +30,8 @@ RenderMode = Literal["color", "depth", "alpha"]
 MODES: tuple[str, ...] = get_args(RenderMode)
 
 # Same numbers as atgs.render.constants (kept literal here so the viewer imports no torch code
-# path it does not need; tests check they agree).
+# path it does not need; tests check they agree). NEAR is the default near plane only: a model
+# is drawn with its own (``SplatRenderer(near=...)``, atgs.model.near_plane).
 NEAR = 0.01
 DILATION = 0.3
 CLAMP_MARGIN = 0.3
@@ -88,7 +89,7 @@ class _SortKey:
     w2c: bytes = b""
     version: int = -1
     exact: bool = False
-    view: tuple = ()  # intrinsics, size, scale modifier and alpha cutoff (they change the cull)
+    view: tuple = ()  # intrinsics, size, scale modifier, alpha cutoff and near plane (they change the cull)
 
 
 @dataclass
@@ -104,11 +105,14 @@ class SplatRenderer:
 
     Use from the thread that owns ``ctx``. ``set_gaussians`` uploads; ``render`` sorts (if the
     camera or the data changed), draws, and returns nothing; ``read`` returns numpy images.
+    ``near``: Gaussians at view z <= near are not drawn (whoever binds a source passes its
+    near plane, ``atgs.model.near_plane.near_of``, so the player culls as training did).
     """
 
-    def __init__(self, ctx: moderngl.Context, target_dtype: str = "f4") -> None:
+    def __init__(self, ctx: moderngl.Context, target_dtype: str = "f4", near: float = NEAR) -> None:
         self.ctx = ctx
         self.target_dtype = target_dtype  # "f4" exact; "f2" halves blend bandwidth for display
+        self.near = float(near)
         self._programs: dict[int, moderngl.Program] = {}
         self.prog = self._program(-1)  # plain RGB: compiled up front, so a broken GL fails early
         self.present_prog = ctx.program(
@@ -262,7 +266,7 @@ class SplatRenderer:
     # --- sorting --------------------------------------------------------------------------
     def _sort(self, camera: Camera, exact: bool, scale_modifier: float = 1.0, min_alpha: float = ALPHA_MIN) -> None:
         key = camera.w2c.astype(np.float32).tobytes()
-        view = (camera.K.tobytes(), camera.width, camera.height, float(scale_modifier), float(min_alpha))
+        view = (camera.K.tobytes(), camera.width, camera.height, float(scale_modifier), float(min_alpha), self.near)
         sk = self._sort_key
         if sk.w2c == key and sk.version == self._version and sk.exact == exact and sk.view == view:
             self.timings.sort_ms = 0.0
@@ -277,7 +281,7 @@ class SplatRenderer:
             # Off-screen Gaussians are dropped here (conservatively), and so are those too faint
             # to reach the alpha cutoff anywhere: they cost no vertex or setup work.
             cull = self._frustum_cull(camera, scale_modifier)
-            order = back_to_front(g.means, camera.w2c, NEAR, exact=exact, extent=g.extent, cull=cull,
+            order = back_to_front(g.means, camera.w2c, self.near, exact=exact, extent=g.extent, cull=cull,
                                   opacity=g.opacity, min_alpha=float(min_alpha))
             self._drawn = int(order.shape[0])
             if self._drawn:
@@ -304,7 +308,7 @@ class SplatRenderer:
             self._gl_sort = GLDepthSort(self.ctx)
         cull = self._frustum_cull(camera, scale_modifier)
         means, _quat, scales, opacity_rgb = getattr(self._gl_frame, "columns")[:4]
-        self._gl_order = self._gl_sort.sort(means, scales, opacity_rgb, self._count, camera.w2c, NEAR, cull,
+        self._gl_order = self._gl_sort.sort(means, scales, opacity_rgb, self._count, camera.w2c, self.near, cull,
                                             float(min_alpha))
         self._drawn = -1  # known to the GL only (drawn_count() reads it back)
 
@@ -339,7 +343,7 @@ class SplatRenderer:
                 "u_intr": (camera.fx, camera.fy, camera.cx, camera.cy),
                 "u_size": (float(W), float(H)),
                 "u_lim": clamp_limits(camera.K, W, H),
-                "u_near": NEAR,
+                "u_near": self.near,
                 "u_dilation": DILATION,
                 "u_scale_mod": float(s.scale_modifier),
                 "u_campos": tuple(float(v) for v in camera.center),

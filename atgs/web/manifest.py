@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from atgs.cameras import Camera
+from atgs.model.near_plane import near_of
 from atgs.render.constants import ALPHA_MAX, ALPHA_MIN, CLAMP_MARGIN, DILATION, NEAR, RADIUS_SIGMAS
 from atgs.viewer.scene_utils import default_camera, orbit_center
 
@@ -38,9 +39,10 @@ def camera_entry(cam: Camera, held_out: bool) -> dict[str, Any]:
             "cx": cam.cx, "cy": cam.cy, "w2c": [float(v) for v in cam.w2c.reshape(-1)], "held_out": held_out}
 
 
-def render_numerics() -> dict[str, float]:
-    """The rasterizer's numbers, so the browser draws what atgs-view draws."""
-    return {"near": NEAR, "dilation": DILATION, "alpha_min": ALPHA_MIN, "alpha_max": ALPHA_MAX,
+def render_numerics(near: float = NEAR) -> dict[str, float]:
+    """The rasterizer's numbers, so the browser draws what atgs-view draws; ``near``: the
+    model's near plane (atgs.model.near_plane)."""
+    return {"near": float(near), "dilation": DILATION, "alpha_min": ALPHA_MIN, "alpha_max": ALPHA_MAX,
             "extent": RADIUS_SIGMAS, "clamp_margin": CLAMP_MARGIN}
 
 
@@ -73,7 +75,7 @@ def web_manifest(model, frames: list[int], chunk_frames: int, chunks: list[Chunk
         "background": [float(c) for c in getattr(model, "background", (0.0, 0.0, 0.0))],
         "environment": None if env is None else {"file": ENVIRONMENT_NAME,
                                                  "basis": [float(v) for v in np.asarray(env.basis).reshape(-1)]},
-        "render": render_numerics(),
+        "render": render_numerics(near_of(model)),
         "scene": scene_entry(model),
         "source": source,
     }  # fmt: skip

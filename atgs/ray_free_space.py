@@ -1,0 +1,158 @@
+"""Space a training camera sees through, judged per ray: the measured depth of each pixel.
+
+A keyframe point that a training camera sees at its keyframe's frame proves that the camera's
+ray to it passes through empty space up to it. Each training camera keeps, per small cell of
+its image (``CELL_PX`` pixels at the training resolution), the depth of the nearest such point:
+
+- ``static``: the nearest over every keyframe (and the motion keyframes). Space in front of it
+  was empty at every measured moment, so a Gaussian of an always-active (static) anchor there is
+  wrong at every frame;
+- ``at_frame[f]``: that of the keyframe measured at frame ``f`` alone. A Gaussian of a moving
+  (per-keyframe) anchor is judged only at the frames where its space was measured, since
+  between keyframes something may move through a ray that was empty at both of them.
+
+Only points the camera itself sees count: a point measured by other cameras behind a surface
+that this camera sees would claim this camera's ray empty through the surface. A point is taken
+as seen when the camera's pixel at it (3x3 neighbourhood) has the point's colour within
+``VISIBLE_TOLERANCE``; an occluder rarely has the colour of what it hides. Cells are
+min-filtered over their measured 3x3 neighbours so that depth edges keep the nearer side.
+Unmeasured cells say nothing.
+
+The training loss (:func:`atgs.train.losses.ray_free_space_loss`) renders, from a training
+view, the Gaussians standing in front of their pixel's measured depth, and pushes down the
+opacity they accumulate on the rays whose measured depth lies behind them. That is what makes a
+semi-transparent fog in front of a uniform wall, cheap for the training views, go.
+
+Owner of the per-ray test; :mod:`atgs.free_space` is the coarse per-position test of the
+set-up (random anchors, atgs-prepare's fill).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from atgs.cameras import Camera, pinhole_pixels, to_camera_frame
+from atgs.free_space import MARGIN, nearest_depth_grid
+
+CELL_PX = 4  # cell size in training pixels: a pixel's measured depth is its cell's
+VISIBLE_TOLERANCE = 0.2  # mean absolute RGB difference (0..1) under which a camera sees a point
+
+
+def visible_points(cam: Camera, points: np.ndarray, colors: np.ndarray, image: np.ndarray,
+                   tolerance: float = VISIBLE_TOLERANCE) -> np.ndarray:
+    """(P,) bool: the points in front of ``cam`` and inside its image whose colour (P, 3) in
+    [0, 1] the image (H, W, 3) uint8 shows at their pixel or one of its 8 neighbours."""
+    uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
+    with np.errstate(invalid="ignore"):
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    seen = np.zeros(len(z), bool)
+    if not ok.any():
+        return seen
+    H, W = image.shape[:2]
+    px = np.clip((uv[ok, 0] * W / cam.width).astype(np.int64), 0, W - 1)
+    py = np.clip((uv[ok, 1] * H / cam.height).astype(np.int64), 0, H - 1)
+    img = image.astype(np.float32) / 255.0
+    col = np.asarray(colors, np.float32).reshape(-1, 3)[ok]
+    best = np.full(len(px), np.inf, np.float32)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            pix = img[np.clip(py + dy, 0, H - 1), np.clip(px + dx, 0, W - 1)]
+            best = np.minimum(best, np.abs(pix - col).mean(axis=1))
+    seen[ok] = best <= tolerance
+    return seen
+
+
+def _min_filtered(grid: np.ndarray) -> np.ndarray:
+    """3x3 minimum of a depth grid over its measured cells (inf: no point): a depth edge keeps
+    its nearer side; an unmeasured cell stays unmeasured (a textureless occluder with no point
+    of its own must not inherit the depth of what it hides)."""
+    t = torch.as_tensor(grid, dtype=torch.float32)[None, None]
+    low = (-F.max_pool2d(-t, 3, stride=1, padding=1))[0, 0].numpy()
+    return np.where(np.isfinite(grid), low, np.inf)
+
+
+def measured_depth_grid(cam: Camera, points: np.ndarray, colors: np.ndarray, image: np.ndarray,
+                        cell_px: float = CELL_PX) -> np.ndarray:
+    """(rows, cols) nearest depth of the points ``cam`` sees (:func:`visible_points`) per cell of
+    ``cell_px`` pixels, min-filtered over 3x3 cells; inf where no point."""
+    cells = max(1, int(np.ceil(max(cam.width, cam.height) / cell_px)))
+    seen = visible_points(cam, points, colors, image)
+    return _min_filtered(nearest_depth_grid(cam, np.asarray(points)[seen], cells)[0])
+
+
+@dataclass
+class MeasuredDepths:
+    """Per training camera (by its slot in ``cameras``), the measured depth per image cell:
+    ``static`` over all keyframes, ``at_frame`` per measured frame (see the module's doc)."""
+
+    cameras: list[Camera]
+    cell: list[float]  # cell size in pixels, per camera
+    static: list[torch.Tensor]  # (rows, cols) float32, inf: unmeasured
+    at_frame: dict[int, list[torch.Tensor]]
+    margin: float = MARGIN
+
+    @classmethod
+    def measure(cls, cameras: Sequence[Camera], parts: Sequence[tuple[int, np.ndarray, np.ndarray]],
+                image_of: Callable[[int, int], np.ndarray], device: torch.device | str = "cpu",
+                cell_px: float = CELL_PX, margin: float = MARGIN) -> "MeasuredDepths":
+        """``parts``: (frame, points (P, 3), colours (P, 3) in [0, 1]) measured at that frame;
+        ``image_of(slot, frame)``: camera ``cameras[slot]``'s (H, W, 3) uint8 image of a frame."""
+        cams = list(cameras)
+        at_frame: dict[int, list[np.ndarray]] = {}
+        for frame, pts, cols in parts:
+            grids = [measured_depth_grid(c, pts, cols, image_of(s, frame), cell_px) for s, c in enumerate(cams)]
+            old = at_frame.get(frame)
+            at_frame[frame] = grids if old is None else [np.minimum(a, b) for a, b in zip(old, grids)]
+        static = [np.full_like(_empty_grid(c, cell_px), np.inf) for c in cams]
+        for grids in at_frame.values():
+            static = [np.minimum(a, b) for a, b in zip(static, grids)]
+        tensor = lambda g: torch.as_tensor(g, dtype=torch.float32, device=device)  # noqa: E731
+        return cls(cams, [max(c.width, c.height) / np.ceil(max(c.width, c.height) / cell_px) for c in cams],
+                   [tensor(g) for g in static], {f: [tensor(g) for g in gs] for f, gs in at_frame.items()}, margin)
+
+    @property
+    def any_measured(self) -> bool:
+        return any(bool(torch.isfinite(g).any()) for g in self.static)
+
+    def limits(self, slot: int, frame: int, means: torch.Tensor, moving: torch.Tensor) -> torch.Tensor:
+        """(N,) measured depth along the ray of camera ``slot`` through each mean (N, 3): the
+        static depth for static Gaussians, the frame's own for ``moving`` ones (inf where the
+        frame was not measured); inf outside the image, behind the camera or unmeasured."""
+        cam, cell = self.cameras[slot], self.cell[slot]
+        pc = to_camera_frame(cam, means)
+        z = pc[:, 2]
+        u, v = pinhole_pixels(cam, pc, z.clamp_min(1e-9))
+        inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        static = self.static[slot]
+        r = (v / cell).long().clamp(0, static.shape[0] - 1)
+        c = (u / cell).long().clamp(0, static.shape[1] - 1)
+        d = static[r, c]
+        frame_grids = self.at_frame.get(frame)
+        if frame_grids is not None:
+            d = torch.where(moving, frame_grids[slot][r, c], d)
+        else:
+            d = torch.where(moving, torch.full_like(d, float("inf")), d)
+        return torch.where(inside, d.to(means.dtype), torch.full_like(z, float("inf")))
+
+    def pixel_depths(self, slot: int, frame: int) -> torch.Tensor:
+        """(H, W) measured depth of each pixel of camera ``slot``: the nearer of the static and
+        the frame's own (inf: unmeasured)."""
+        cam, cell = self.cameras[slot], self.cell[slot]
+        grid = self.static[slot]
+        own = self.at_frame.get(frame)
+        if own is not None:
+            grid = torch.minimum(grid, own[slot])
+        rows = (torch.arange(cam.height, device=grid.device) + 0.5) / cell
+        cols = (torch.arange(cam.width, device=grid.device) + 0.5) / cell
+        r = rows.long().clamp(0, grid.shape[0] - 1)
+        c = cols.long().clamp(0, grid.shape[1] - 1)
+        return grid[r][:, c]
+
+
+def _empty_grid(cam: Camera, cell_px: float) -> np.ndarray:
+    return nearest_depth_grid(cam, np.zeros((0, 3)), max(1, int(np.ceil(max(cam.width, cam.height) / cell_px))))[0]
