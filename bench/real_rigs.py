@@ -26,7 +26,24 @@ Sources (one function each):
   tilt); it is kept as it is, since R and t were fitted with it. The pickle is read with an
   unpickler that admits numpy arrays only.
 
-Both calibrations put pixel centres at integers (OpenCV); ATGS puts them at +0.5, so 0.5 is
+- ``panoptic``: github.com/open-mmlab/mmpose, ``tests/data/panoptic_body3d/demo`` at commit
+  bb2b14dc (mmpose is Apache-2.0; the folder was removed again at 1e72e948 and is not in the
+  newest tree: the git dir is read at that commit). Images of the CMU Panoptic Studio dome:
+  5 of its 31 HD cameras (00_03, 00_06, 00_12, 00_13, 00_23), 1920x1080, 5 frames each, HD
+  frame numbers 4500, 5514, 6859, 9348, 13007: 34-122 s apart, so not a video (3 people
+  haggling; the calibration ``160422_calib_tent13_norm`` dates them to a 160422 capture,
+  presumably 160422_haggling1, VoxelPose's test sequence of that day). ``camera_parameters.json``
+  holds all 31 HD cameras (K, distCoef k1 k2 p1 p2 k3, R and t world to camera in cm, the
+  world's y pointing down); the converter writes the 5 with images, in metres, in a z-up world
+  ((x, y, z) -> (x, z, -y): the floor is z = 0 as in the synthetic scenes). The CMU Panoptic
+  data have terms of their own: "freely available for non-commercial and research purpose
+  only", citing Joo et al., ICCV 2015 (github.com/CMU-Perceptual-Computing-Lab/panoptic-toolbox,
+  README). The 3D body joints mmpose ships (``tests/data/panoptic_body3d/160906_band*``) belong to
+  other captures without images, so ``--check`` checks the calibration on the images: SIFT
+  matches between every pair against the epipolar geometry the calibration gives, and the 30
+  other HD cameras' centres projected into each view, where their dark bodies should be.
+
+All three calibrations put pixel centres at integers (OpenCV); ATGS puts them at +0.5, so 0.5 is
 added to the principal point. ``--check`` prints the rig geometry and, from the 2D labels the
 sources ship (SLEAP ``*.analysis.h5``, needs h5py; DeepFly3D ``points2d``), the
 reprojection error of points triangulated with all cameras and with each camera left out.
@@ -37,8 +54,11 @@ Usage (repositories fetched to a git dir or checked out anywhere):
         --out /tmp/realrigs/sleap-minimal --check
     python bench/real_rigs.py deepfly3d /work/.mirror/NeLy-EPFL+DeepFly3D/repo \\
         --out /tmp/realrigs/deepfly3d --check
+    python bench/real_rigs.py panoptic /work/.mirror/open-mmlab+mmpose/repo \\
+        --out /tmp/realrigs/panoptic5 --check
     atgs-prepare /tmp/realrigs/sleap-minimal --out /tmp/realrigs/sleap-minimal-prep --downscale 2
     atgs-prepare /tmp/realrigs/deepfly3d --out /tmp/realrigs/deepfly3d-prep
+    atgs-prepare /tmp/realrigs/panoptic5 --out /tmp/realrigs/panoptic5-prep --downscale 6
 """
 
 from __future__ import annotations
@@ -82,6 +102,16 @@ class Tree:
         for p in (self.path / self.prefix / rel, self.path / rel):
             if p.is_file():
                 return p.read_bytes()
+        raise FileNotFoundError(f"{self.path}: {self.prefix}{rel} not found")
+
+    def listdir(self, rel: str = "") -> list[str]:
+        """Names in a folder of the tree, sorted."""
+        if self.git:
+            out = self._git("ls-tree", "--name-only", f"{self.rev}:{self.prefix}{rel}").decode()
+            return sorted(out.split())
+        for p in (self.path / self.prefix / rel, self.path / rel):
+            if p.is_dir():
+                return sorted(q.name for q in p.iterdir())
         raise FileNotFoundError(f"{self.path}: {self.prefix}{rel} not found")
 
     def commit(self) -> str | None:
@@ -407,9 +437,153 @@ def deepfly3d(src: Path, out: Path, check: bool = False) -> None:
         reprojection_report(cams, labels, "DeepFly3D 2D detections (38 joints x 15 frames)")
 
 
+# --- CMU Panoptic dome, mmpose tests/data/panoptic_body3d/demo ----------------------------------
+
+PANOPTIC_PREFIX = "tests/data/panoptic_body3d/demo/"
+PANOPTIC_REV = "bb2b14dcee95971d7c6951bf0cb08edb01da1338"  # the one commit holding the demo images
+# Panoptic's world has y down (the floor is y = 0, people at negative y): (x, y, z) -> (x, z, -y)
+PANOPTIC_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def _panoptic_camera(e: dict) -> Camera:
+    """ATGS camera (metres, z-up world) of one entry of a Panoptic calibration file."""
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.array(e["R"], np.float64) @ PANOPTIC_Z_UP.T
+    w2c[:3, 3] = np.array(e["t"], np.float64).ravel() / 100.0  # cm -> m
+    return _opencv_camera(e["name"], e["resolution"], e["K"], w2c, e["distCoef"])
+
+
+def panoptic(src: Path, out: Path, check: bool = False, rev: str = PANOPTIC_REV) -> None:
+    """github.com/open-mmlab/mmpose tests/data/panoptic_body3d/demo (Apache-2.0; CMU Panoptic data:
+    non-commercial research use): 5 HD cameras of the Panoptic dome, 5 frames each."""
+    tree = Tree(src, PANOPTIC_PREFIX, rev)
+    cal = json.loads(tree.read("camera_parameters.json"))
+    every = {e["name"]: _panoptic_camera(e) for e in cal["cameras"] if e.get("type", "hd") == "hd"}
+    names = [n for n in tree.listdir() if n in every]
+    files = {n: [f for f in tree.listdir(n) if f.endswith(".jpg")] for n in names}
+    numbers = {n: [f.rsplit("_", 1)[1][:-4] for f in v] for n, v in files.items()}
+    if len({tuple(v) for v in numbers.values()}) != 1:
+        raise SystemExit(f"{src}: the cameras hold different frames: {numbers}")
+    cams = [every[n] for n in names]
+    frames = {n: [tree.read(f"{n}/{f}") for f in files[n]] for n in names}
+    source = {"repository": "https://github.com/open-mmlab/mmpose", "commit": tree.commit(), "path": PANOPTIC_PREFIX,
+              "license": "mmpose: Apache-2.0; the images and calibration are CMU Panoptic Studio data: "
+                         "non-commercial research use only, cite Joo et al. ICCV 2015",
+              "units": "m (Panoptic's cm / 100)", "world": "z up: Panoptic (x, y, z) -> (x, z, -y)",
+              "calibration": f"camera_parameters.json ({cal.get('calibDataSource')}) as it is "
+                             "(+0.5 px principal point)",
+              "frames": [int(x) for x in numbers[names[0]]],
+              "note": "HD frame numbers at 29.97 fps: 34-122 s apart, not a video"}
+    _write_layout(out, cams, frames, source)
+    if check:
+        rig_report(cams, "m")
+        images = {n: _grey(frames[n][0]) for n in names}
+        epipolar_report(cams, images)
+        bodies_report(cams, [c for n, c in every.items() if n not in names] + cams, images)
+
+
+def _grey(data: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(data)).convert("L"))
+
+
+def sift_features(img: np.ndarray, max_features: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints (N,2), ATGS pixel convention (COLMAP's puts pixel centres at +0.5 too), and
+    unit descriptors of a grey image."""
+    import warnings
+
+    import pycolmap
+
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.sift.max_num_features = max_features
+    opts.max_image_size = max(img.shape)
+    old, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 2
+    try:
+        with warnings.catch_warnings():  # pycolmap.Sift is deprecated; its replacement returns no arrays
+            warnings.simplefilter("ignore", DeprecationWarning)
+            kp, desc = pycolmap.Sift(opts, pycolmap.Device.cpu).extract(np.ascontiguousarray(img))
+    finally:
+        pycolmap.logging.minloglevel = old
+    desc = desc.astype(np.float32)
+    return kp[:, :2].astype(np.float64), desc / (np.linalg.norm(desc, axis=1, keepdims=True) + 1e-12)
+
+
+def sift_matches(fa, fb, ratio: float = 0.75) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours that pass Lowe's ratio test: matched pixel positions in each."""
+    (ka, da), (kb, db) = fa, fb
+    d = np.sqrt(np.maximum(2.0 - 2.0 * da @ db.T, 0.0))
+    best, second = np.argsort(d, axis=1)[:, :2].T
+    rows = np.arange(len(da))
+    keep = (d[rows, best] < ratio * d[rows, second]) & (np.argmin(d, axis=0)[best] == rows)
+    return ka[keep], kb[best[keep]]
+
+
+def epipolar_distances(ca: Camera, cb: Camera, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Symmetric distance (px, undistorted) of matched pixels to the epipolar lines of the calibration."""
+    pa, pb = undistort_pixels(ua, ca), undistort_pixels(ub, cb)
+    rel = cb.w2c @ np.linalg.inv(ca.w2c)
+    t = rel[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(cb.K).T @ tx @ rel[:3, :3] @ np.linalg.inv(ca.K)
+    ha, hb = np.c_[pa, np.ones(len(pa))], np.c_[pb, np.ones(len(pb))]
+    la, lb = ha @ F.T, hb @ F  # lines in b of the points of a, and in a of the points of b
+    num = np.abs((hb * la).sum(1))
+    return 0.5 * (num / np.hypot(la[:, 0], la[:, 1]) + num / np.hypot(lb[:, 0], lb[:, 1]))
+
+
+def epipolar_report(cams: list[Camera], images: dict[str, np.ndarray]) -> None:
+    """Per pair: SIFT matches and their distance to the calibration's epipolar lines. Across wide
+    baselines and repeated wall panels most matches are wrong, so what tells is the share within
+    2 px against the share of the same matches paired at random (the chance of landing near a
+    line), and the distance of those within 2 px."""
+    print("calibration against SIFT matches (first frame; epipolar distance in px; chance: the matches shuffled):")
+    rng = np.random.default_rng(0)
+    feats = {c.name: sift_features(images[c.name]) for c in cams}
+    for ca, cb in itertools.combinations(cams, 2):
+        ua, ub = sift_matches(feats[ca.name], feats[cb.name])
+        with np.errstate(invalid="ignore"):
+            e = epipolar_distances(ca, cb, ua, ub)
+            chance = np.concatenate([epipolar_distances(ca, cb, ua, ub[rng.permutation(len(ub))]) for _ in range(20)])
+        e, chance = e[np.isfinite(e)], chance[np.isfinite(chance)]
+        if not e.size:
+            print(f"  {ca.name}-{cb.name}: no matches")
+            continue
+        near = e[e < 2]
+        print(f"  {ca.name}-{cb.name}: {e.size} matches, {100 * np.mean(e < 2):.0f} % within 2 px (chance "
+              f"{100 * np.mean(chance < 2):.1f} %), their median {np.median(near) if near.size else np.nan:.2f} px")
+
+
+def bodies_report(cams: list[Camera], others: list[Camera], images: dict[str, np.ndarray], win: int = 12) -> None:
+    """The other cameras' centres projected into each view: a camera body is a dark box on the
+    light wall, so the darkest pixel within ``win`` px of a right projection is dark, unlike at
+    the same places shifted by 5 % of the image (people in front of a body make a few misses)."""
+    print(f"other cameras' centres projected into each view (darkest grey level within {win} px; 0-255):")
+    for cam in cams:
+        img = images[cam.name].astype(np.float64)
+        H, W = img.shape
+        pts = np.array([o.center for o in others if o.name != cam.name])
+        uv, z = cam.project(pts)
+        inside = (z > 0) & (uv[:, 0] >= win) & (uv[:, 0] < W - win) & (uv[:, 1] >= win) & (uv[:, 1] < H - win)
+
+        def darkest(p):
+            return np.array([img[int(v) - win:int(v) + win + 1, int(u) - win:int(u) + win + 1].min() for u, v in p])
+
+        if not inside.any():
+            print(f"  {cam.name}: no other camera in view")
+            continue
+        at = darkest(uv[inside])
+        shift = uv[inside] + np.array([0.05 * W, 0.05 * H])
+        shift = shift[(shift[:, 0] < W - win) & (shift[:, 1] < H - win)]
+        off = darkest(shift)
+        print(f"  {cam.name}: {inside.sum()} cameras in view; darkest at them: median {np.median(at):.0f} "
+              f"({np.mean(at < 60) * 100:.0f} % below 60); shifted: median {np.median(off):.0f} "
+              f"({np.mean(off < 60) * 100:.0f} % below 60)")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("source", choices=["sleap-anipose", "deepfly3d"])
+    ap.add_argument("source", choices=["sleap-anipose", "deepfly3d", "panoptic"])
     ap.add_argument("repo", type=Path, help="git dir of the fetched repository, or a checkout/extracted folder")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--side", choices=["refit", "drop", "keep"], default="refit",
@@ -418,6 +592,8 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     if a.source == "sleap-anipose":
         sleap_anipose(a.repo, a.out, a.side, a.check)
+    elif a.source == "panoptic":
+        panoptic(a.repo, a.out, a.check)
     else:
         deepfly3d(a.repo, a.out, a.check)
 

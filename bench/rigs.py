@@ -1,11 +1,12 @@
 """The rigs people capture with, end to end: synthesize, prepare, train with the default preset
 and its 20-minute budget, score the held-out cameras.
 
-    python bench/rigs.py                                   # every case, one after another (~2 h on 2 cores)
+    python bench/rigs.py                                   # every case, one after another (~2.5 h on 2 cores)
     python bench/rigs.py --cases ring10-loose ring10-oracle
     python bench/rigs.py --minutes 2 --frames 30 --cases sparse4 --out /tmp/rigs.json   # a quick look
     python bench/rigs.py --replot                          # the table again from the results file
     python bench/rigs.py --cases --scenes "sleap4=/tmp/realrigs/sleap-minimal-prep"   # real captures, prepared
+    python bench/rigs.py --cases dome27-stage --extra-train-args="--flag value" --tag=-flag   # an A/B row
 
 Each case runs the commands a user would (`atgs-synth`, `atgs-prepare`, `atgs-train --minutes M`)
 as subprocesses, alone on the machine (a time budget measures the machine), and keeps what
@@ -20,6 +21,19 @@ its warnings). Cases (atgs/data/synth/scene.py LAYOUTS):
 - `dome24`: a capture-stage dome, 24 cameras on three rings that see each other, a walking
   person, cam00 and cam12 held out;
 - `sparse4`: 4 cameras 90 degrees apart (3 training): what such a rig allows.
+- `dome27-stage`: a dome as hard as a real capture stage (layout `dome-stage`): 27 cameras on
+  three rings of 9 (heights 0.6, 1.7, 3.2 m; 4 m out, the top ring 3 m) that see each other's
+  bodies, uniform light-grey walls and floor, lit evenly, with a faint texture (as faint as the
+  CMU Panoptic dome's: where semi-transparent fog in front of a held-out camera costs the
+  training views almost nothing), every camera its own exposure (gain within +-0.35 stops,
+  offset within +-3.5 % of full scale; the held-out frames carry theirs), two people walking
+  (1 m and 2.4 m circles, opposite ways) and the orbiting box, 320x180, near/far 10x too wide
+  (`--bounds loose`); cam00, cam07 (low ring, 0 and 280 degrees), cam11 (middle, 93 degrees) and
+  cam22 (top, 187 degrees) held out.
+
+`--extra-train-args` passes flags on to every atgs-train run (one string, split as a shell
+would: `--extra-train-args="--a 1 --b"`); `--tag` is appended to this run's case names, so that
+an A/B keeps both rows (the row records the flags).
 
 Real captures are prepared beforehand (bench/real_rigs.py converts public test data of other
 projects; atgs-prepare) and given as `--scenes NAME=PREPARED_DIR`; the table names them by NAME.
@@ -33,6 +47,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -64,6 +79,8 @@ CASES = {
     "ring10-oracle": Case("ring10", "loose", oracle=True, what="10-camera ring, true-depth start (oracle)"),
     "dome24": Case("dome24", "true", test_cams=("cam00", "cam12"), what="24-camera dome, 3 rings, person"),
     "sparse4": Case("sparse4", "true", what="4 cameras 90 degrees apart (3 training)"),
+    "dome27-stage": Case("dome-stage", "loose", test_cams=("cam00", "cam07", "cam11", "cam22"),
+                         what="27-camera stage: grey walls, unequal exposure, 2 people, near/far 10x too wide"),
 }
 
 
@@ -76,6 +93,8 @@ class RigsBench:
     keyframes: int = 6
     preset: str = "cpu"
     threads: int = 0  # atgs-train's --train.threads (0: its default); 1 when two benches share the machine
+    extra_train_args: str = ""  # more atgs-train flags, split as a shell would (an A/B of a loss, say)
+    tag: str = ""  # appended to the case names of this run's rows (and run folders): an A/B keeps both
     replot: bool = False  # the table again from the results file, nothing run
     work_dir: Path = Path("/tmp/atgs-bench-rigs")
     out: Path = ROOT / "bench" / "results" / "rigs.json"
@@ -125,8 +144,16 @@ def prepared(case: Case, cfg: RigsBench) -> tuple[Path, list[str]]:
     return prep, said
 
 
+def train_command(scene_dir: Path, out: Path, cfg: RigsBench) -> list[str]:
+    """atgs-train with the bench's budget and preset, then the extra flags (last: they win)."""
+    cmd = [str(BIN / "atgs-train"), "--data", str(scene_dir), "--out", str(out), "--preset", cfg.preset,
+           "--minutes", str(cfg.minutes)] + (["--train.threads", str(cfg.threads)] if cfg.threads else [])
+    return cmd + shlex.split(cfg.extra_train_args)
+
+
 def run_case(name: str, cfg: RigsBench, scene_dir: Path | None = None) -> dict:
-    """One synthetic case of CASES, or (``scene_dir``) a prepared real capture."""
+    """One synthetic case of CASES, or (``scene_dir``) a prepared real capture; its row is named
+    ``name`` + ``cfg.tag``."""
     case = CASES[name] if scene_dir is None else Case("real", "", what=f"real capture ({scene_dir.name})")
     print(f"{name}: {case.what}", flush=True)
     if scene_dir is None:
@@ -134,18 +161,18 @@ def run_case(name: str, cfg: RigsBench, scene_dir: Path | None = None) -> dict:
     else:
         prepare_said = []
     scene = json.loads((scene_dir / "scene.json").read_text())
-    out = cfg.work_dir / f"run-{name}"
+    row = name + cfg.tag
+    out = cfg.work_dir / f"run-{row}"
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
-    cmd = [str(BIN / "atgs-train"), "--data", str(scene_dir), "--out", str(out), "--preset", cfg.preset,
-           "--minutes", str(cfg.minutes)] + (["--train.threads", str(cfg.threads)] if cfg.threads else [])
-    text = run(cmd, cfg.work_dir / f"train-{name}.log")
+    text = run(train_command(scene_dir, out, cfg), cfg.work_dir / f"train-{row}.log")
     wall = time.perf_counter() - t0
     res = json.loads((out / "result.json").read_text())
     cams = scene["cameras"]
     cov = scene.get("coverage", {})
     return {
-        "case": name, "what": case.what, "layout": case.layout, "bounds": case.bounds, "oracle": case.oracle,
+        "case": row, "what": case.what, "train_args": cfg.extra_train_args, "layout": case.layout,
+        "bounds": case.bounds, "oracle": case.oracle,
         "cameras": f"{len(cams) - len(scene['test_cameras'])} training + {len(scene['test_cameras'])} held out, "
                    f"{cams[0]['width']}x{cams[0]['height']}, {scene['num_frames']} frames",
         "keyframe_points": scene.get("keyframe_points"), "coverage_mean": cov.get("mean"),
@@ -171,7 +198,8 @@ def table(rows: list[dict]) -> str:
         said = "; ".join(w[:110] + ("..." if len(w) > 110 else "")
                          for w in dict.fromkeys(r["prepare_warnings"] + r["train_warnings"]))  # each once
         vpp = r.get("views_per_pixel")
-        out.append(f"| {r['case']}: {r['what']} | {r['cameras']} | {mean.get('sift', 0)} + {mean.get('stereo', 0)} + "
+        case = f"{r['case']}: {r['what']}" + (f" (`{r['train_args']}`)" if r.get("train_args") else "")
+        out.append(f"| {case} | {r['cameras']} | {mean.get('sift', 0)} + {mean.get('stereo', 0)} + "
                    f"{mean.get('fill', 0)} | {100 * (r['coverage_mean'] or 0):.0f} % | "
                    f"{'n/a' if vpp is None else f'{vpp:.1f}'} | {r['steps']} ({r['minutes']:g} min) | "
                    f"**{r['psnr']:.2f} dB** / {r['ssim']:.3f} | {said or 'nothing'} |")
@@ -189,7 +217,7 @@ def main() -> None:
         cfg.work_dir.mkdir(parents=True, exist_ok=True)
         real = dict(s.split("=", 1) for s in cfg.scenes)
         for name in list(cfg.cases) + list(real):
-            rows[name] = run_case(name, cfg, Path(real[name]) if name in real else None)
+            rows[name + cfg.tag] = run_case(name, cfg, Path(real[name]) if name in real else None)
             ordered = [rows[c] for c in CASES if c in rows] + [r for c, r in rows.items() if c not in CASES]
             publish({**old, "rows": ordered}, cfg.out, table(ordered), cfg.docs, "rigs")  # after each case: hours of work
     ordered = [rows[c] for c in CASES if c in rows] + [r for c, r in rows.items() if c not in CASES]

@@ -150,3 +150,97 @@ def test_cli_layout_and_bounds(tmp_path) -> None:
     assert {k: side["config"][k] for k in ("cameras", "width", "rig", "dome_rings", "subject", "bounds")} == {
         "cameras": 4, "width": 200, "rig": "dome", "dome_rings": 1, "subject": "person", "bounds": "none"}
     assert not np.load(out / "poses_bounds.npy")[:, 15:].any() and len(side["true_near_far"]) == 4
+
+
+def test_the_stage_layout_is_a_hard_dome() -> None:
+    """dome-stage: 27 cameras on 3 rings, two walkers clear of each other, faint grey walls, and
+    the other layouts' scenes untouched by the options it adds."""
+    cfg = layout("dome-stage", frames=30)
+    scene = SynthScene(cfg)
+    cams = scene.cameras()
+    centers = np.array([c.center for c in cams])
+    assert (cfg.width, cfg.height) == (320, 180) and cfg.bounds == "true"  # the bench states them loose
+    assert np.unique(np.round(centers[:, 2], 6), return_counts=True)[1].tolist() == [9, 9, 9]
+    torso = {p: [scene.model_matrix(next(o for o in scene.objects if o.name == f"{p}_torso"), f)[:3, 3]
+                 for f in range(30)] for p in ("person", "person2")}
+    gap = np.linalg.norm(np.array(torso["person"]) - np.array(torso["person2"]), axis=1)
+    assert gap.min() > 1.0 and np.allclose(np.linalg.norm(np.array(torso["person2"])[:, :2], axis=1), 2.4)
+    # the walls: light grey, colourless, faint; the textured dome's walls are not
+    for tex, base in ((scene.textures[1], 0.93), (scene.textures[0], 0.62)):
+        t = tex.astype(np.float64) / 255
+        assert abs(t.mean() - base) < 0.02 and np.ptp(t.mean((0, 1))) < 0.025 and 0.005 < t.std() < 0.04
+    assert SynthScene(layout("dome24")).textures[1].astype(np.float64).std() / 255 > 0.1
+    plain = SynthScene(replace(cfg, people=1, walls="textured", exposure=0.0))
+    assert all(np.array_equal(a, b) for a, b in zip(plain.textures, SynthScene(layout("dome24")).textures))
+
+
+def test_stage_frames_carry_each_cameras_exposure(tmp_path) -> None:
+    """Every camera records gain * rendered + offset, the same at every frame; the written frames
+    are exactly that, and the ground truth rendered for a camera carries its exposure too."""
+    from atgs.data.synth.videos import synthesize
+    from atgs.data.video import iter_frames
+
+    cfg = layout("dome-stage", frames=2, width=64, height=36)
+    out = synthesize(tmp_path / "raw", cfg, progress=False)
+    side = json.loads((out / "synth.json").read_text())
+    scene = SynthScene(cfg)
+    gains = np.array([scene.exposure_of(c.name) for c in scene.cameras()])
+    assert side["exposure"] == {k: list(v) for k, v in scene.exposure.items()} and len(gains) == 27
+    assert 2 ** (2 * cfg.exposure) == pytest.approx(gains[:, 0].max() / gains[:, 0].min())  # +-0.35 stops
+    assert np.ptp(gains[:, 1]) > 0.05 and scene.exposure_of("novel") == (1.0, 0.0)
+    r = MeshRenderer(scene, cfg.width, cfg.height)
+    means = []
+    for cam in scene.cameras()[:9]:
+        written = [img for _, img in iter_frames(out / f"{cam.name}.mp4")]
+        for f, img in enumerate(written):
+            r.set_frame(f)
+            raw = r.render(cam, exposed=False).astype(np.float64)
+            g, o = scene.exposure_of(cam.name)
+            assert np.abs(img - np.clip(np.round(g * raw + 255 * o), 0, 255)).max() <= 1  # lossless RGB video
+            assert np.array_equal(r.render(cam), img)
+        means.append(written[0].mean() / r.render(cam, exposed=False).mean())
+    r.release()
+    assert np.ptp(means) > 0.2  # the same wall looks brighter in some cameras than in others
+
+
+def _blocks(a: np.ndarray, n: int = 6) -> np.ndarray:
+    """(H/n, W/n, n*n): the pixels of each n x n block."""
+    hb, wb = a.shape[0] // n, a.shape[1] // n
+    return a[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2).reshape(hb, wb, n * n)
+
+
+def _walls_and_bodies(name: str) -> tuple[float, float, list[int]]:
+    """Over a sample of a layout's cameras at 320x180: the wall's local contrast (the spread
+    within 6x6 blocks that are all wall: the shading is smooth, the texture is not), its mean
+    level, and how many other cameras' bodies each camera sees drawn where they are."""
+    cfg = layout(name, texture_size=512, width=320, height=180, exposure=0.0)
+    scene = SynthScene(cfg)
+    cams = scene.cameras()
+    bodies = np.array([c.center - CAMERA_BEHIND * c.forward for c in cams])
+    r = MeshRenderer(scene, cfg.width, cfg.height)
+    r.set_frame(0)
+    local, level, seen = [], [], []
+    v, u = np.mgrid[0:cfg.height, 0:cfg.width]
+    for cam in cams[:: max(1, len(cams) // 6)]:
+        img, d = r.render(cam).astype(np.float64).mean(-1) / 255, r.render_depth(cam)
+        world = (np.stack([(u + 0.5 - cam.cx) / cam.fx * d, (v + 0.5 - cam.cy) / cam.fy * d, d], -1) - cam.t) @ cam.R
+        wall = (np.linalg.norm(world[..., :2], axis=-1) > cfg.backdrop_radius - 0.02) & (world[..., 2] > 0.2)
+        local.append(_blocks(img)[_blocks(wall).all(-1)].std(-1).mean())
+        level.append(img[wall].mean())
+        uv, z = cam.project(bodies)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        depth = d[uv[inside, 1].astype(int), uv[inside, 0].astype(int)]
+        seen.append(int((np.abs(depth - z[inside]) < 0.15).sum()))
+    r.release()
+    return float(np.mean(local)), float(np.mean(level)), seen
+
+
+def test_stage_walls_are_faint_and_the_cameras_see_each_other() -> None:
+    """In the rendered frames the stage's wall is light and nearly flat: a faint texture, as faint
+    as a real dome's (the CMU Panoptic dome's walls measure 0.004-0.007 so at 320x180, mmpose demo
+    frames, bench/real_rigs.py panoptic) and a fraction of the textured dome's; every camera sees
+    other cameras' bodies."""
+    stage, level, seen = _walls_and_bodies("dome-stage")
+    textured, _, _ = _walls_and_bodies("dome24")
+    assert 0.002 < stage < 0.008 and stage < 0.3 * textured, (stage, textured)
+    assert level > 0.65 and min(seen) >= 3, (level, seen)  # the high ring sees few (as in dome24's test)

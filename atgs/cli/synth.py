@@ -54,7 +54,9 @@ class SynthArgs:
     front-facing), 'ring12-flat' (the default with textureless surfaces), 'dome24' (a person in a
     3-ring dome of 24 cameras, 320x240), 'dome12-low' (the same with 12 cameras on 2 rings, 200x150),
     'ring10' (10 cameras at one height, 4.6 m out, 200x150), 'sparse4' (4 cameras 90 degrees apart,
-    200x150); the last four are dome rigs (visible camera bodies)."""
+    200x150), 'dome-stage' (27 cameras on 3 rings, 320x180: light-grey walls with a faint texture,
+    two people, every camera its own exposure: as hard as a real capture stage); the last five are
+    dome rigs (visible camera bodies)."""
     bounds: Bounds = "true"
     """Near/far written to poses_bounds.npy (the pixels do not change): 'true' (measured), 'loose'
     (near/10, far*10), 'narrow' (pulled 3/4 of the way to their geometric mean), 'none' (0/0: missing).

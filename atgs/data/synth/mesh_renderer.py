@@ -1,13 +1,14 @@
 """Ground-truth renderer of the synthetic scenes: textured, Lambert-shaded triangle meshes drawn
 with OpenGL (moderngl, headless llvmpipe), 4x multisampled. Independent of the Gaussian
-rasterizer on purpose: the benchmark must not be rendered by the thing it measures."""
+rasterizer on purpose: the benchmark must not be rendered by the thing it measures. A rig camera's
+image carries its exposure (SynthScene.exposure_of): the held-out ground truth is what it recorded."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from atgs.cameras import Camera
-from atgs.data.synth.scene import Mesh, SynthScene
+from atgs.data.synth.scene import Mesh, SynthScene, expose
 
 _VS = """
 #version 330 core
@@ -28,6 +29,7 @@ _FS = """
 #version 330 core
 uniform sampler2D u_tex;
 uniform vec3 u_light;
+uniform float u_even;  // 0: Lambert; towards 1: the even light of a stage's walls (SceneObject "even_light")
 in vec3 v_nrm;
 in vec2 v_uv;
 out vec4 f_color;
@@ -35,7 +37,7 @@ void main() {
     vec3 n = normalize(v_nrm);
     float key = max(dot(n, u_light), 0.0);
     float fill = max(dot(n, normalize(vec3(-0.5, 0.6, 0.3))), 0.0);
-    float shade = 0.42 + 0.5 * key + 0.15 * fill;
+    float shade = mix(0.42 + 0.5 * key + 0.15 * fill, 0.85, u_even);
     f_color = vec4(min(texture(u_tex, v_uv).rgb * shade, vec3(1.0)), 1.0);
 }
 """
@@ -115,7 +117,9 @@ class MeshRenderer:
                 vbo.write(_interleave(mesh))
         self._frame = frame
 
-    def render(self, cam: Camera) -> np.ndarray:
+    def render(self, cam: Camera, exposed: bool = True) -> np.ndarray:
+        """What ``cam`` records: the rendered image under the camera's exposure
+        (SynthScene.exposure_of, by camera name; ``exposed=False``: as rendered)."""
         import moderngl
 
         if self._frame is None:
@@ -130,11 +134,13 @@ class MeshRenderer:
         for obj, _, vao in self.vaos:
             self.textures[obj.texture].use(0)
             self.prog["u_tex"].value = 0
+            self.prog["u_even"].value = float(obj.params.get("even_light", 0.0))
             vao.render(moderngl.TRIANGLES)
         ctx.copy_framebuffer(self.resolve, self.msaa)
         data = self.resolve.read(components=3, alignment=1)
         img = np.frombuffer(data, np.uint8).reshape(self.height, self.width, 3)
-        return img[::-1].copy()  # OpenGL rows go bottom-up
+        img = img[::-1].copy()  # OpenGL rows go bottom-up
+        return expose(img, *self.scene.exposure_of(cam.name)) if exposed else img
 
     def render_depth(self, cam: Camera) -> np.ndarray:
         """True depth (H,W) float32: the OpenCV z of the nearest surface at each pixel center

@@ -14,8 +14,15 @@ Objects (their speeds depend on the preset, see ``PRESETS``):
 - ``orbiter``: a small box circling the center.
 
 Or (``subject="person"``) a person-sized walker (torso, head, swinging arms and legs) on a circle
-of radius 1 m, plus the orbiter. The ``dome`` rig is a capture stage: 1-3 rings of cameras whose
-bodies are drawn, so that the cameras see each other, inside a backdrop just behind them.
+of radius 1 m, plus the orbiter; ``people=2`` adds a second walker on a wider circle, the other
+way round. The ``dome`` rig is a capture stage: 1-3 rings of cameras whose bodies are drawn, so
+that the cameras see each other, inside a backdrop just behind them.
+
+What makes a real stage hard, on request: ``walls="grey"`` gives the backdrop and the floor a
+uniform light grey with a faint texture, lit almost evenly (a light wall behind fog makes the
+fog cheap for the training views, and stereo finds few points there), and ``exposure`` gives
+every camera its own gain and offset (:meth:`SynthScene.exposure_of`), applied to what it
+records: its frames and the ground truth rendered for it alike (atgs.data.synth.mesh_renderer).
 """
 
 from __future__ import annotations
@@ -33,7 +40,9 @@ Preset = Literal["small-motion", "large-motion"]
 Rig = Literal["ring", "front", "dome"]
 Subject = Literal["objects", "person"]
 Bounds = Literal["true", "loose", "narrow", "none"]
-Layout = Literal["ring12", "ring10-low", "front6", "ring12-flat", "dome24", "dome12-low", "ring10", "sparse4"]
+Walls = Literal["textured", "grey"]
+Layout = Literal["ring12", "ring10-low", "front6", "ring12-flat", "dome24", "dome12-low", "ring10", "sparse4",
+                 "dome-stage"]
 # Named camera layouts of the benchmarks (SynthConfig overrides); "ring12" is the default scene.
 LAYOUTS: dict[str, dict] = {
     "ring12": {"cameras": 12, "width": 256, "height": 192, "rig": "ring", "texture_contrast": 1.0},
@@ -47,6 +56,10 @@ LAYOUTS: dict[str, dict] = {
                    "subject": "person", "texture_contrast": 1.0},
     "ring10": {"cameras": 10, "width": 200, "height": 150, "rig": "dome", "dome_rings": 1, "texture_contrast": 1.0},
     "sparse4": {"cameras": 4, "width": 200, "height": 150, "rig": "dome", "dome_rings": 1, "texture_contrast": 1.0},
+    # as hard as a real stage: grey walls and floor, 27 cameras (3 rings of 9) of unequal exposure
+    # seeing each other, two people walking; 16:9 and small so that it trains on 2 cores
+    "dome-stage": {"cameras": 27, "width": 320, "height": 180, "rig": "dome", "dome_rings": 3, "ring_radius": 4.0,
+                   "subject": "person", "people": 2, "walls": "grey", "exposure": 0.35, "texture_contrast": 1.0},
 }
 # rig "dome": (height m, radius as a fraction of ring_radius) of each ring, by the number of rings;
 # every camera looks at DOME_TARGET, so the low ring looks slightly up and the high one down
@@ -58,6 +71,13 @@ DOME_RINGS: dict[int, tuple[tuple[float, float], ...]] = {
 DOME_TARGET = np.array([0.0, 0.0, 1.0])
 CAMERA_BODY = 0.15  # edge of a camera's box (m); its center sits CAMERA_BEHIND behind the optical center,
 CAMERA_BEHIND = 0.1  # so that a camera never sees its own body (the renderer's near plane is 0.05)
+# walls="grey": base colours (before shading) and what is left of the texture's contrast; a real
+# stage's panels still show seams, screws and dirt, so stereo finds a few points on them
+GREY_WALL = np.array([0.93, 0.93, 0.91])
+GREY_FLOOR = np.array([0.62, 0.62, 0.6])
+GREY_CONTRAST = 0.12
+GREY_EVEN_LIGHT = 0.8  # a stage is lit from all around: its walls and floor shade almost evenly
+EXPOSURE_OFFSET = 0.1  # exposure: the largest black-level offset per stop of gain spread (of full scale)
 
 
 @dataclass(frozen=True)
@@ -105,6 +125,9 @@ class SynthConfig:
     dome_rings: int = 3  # rig "dome": rings of cameras (DOME_RINGS)
     subject: Subject = "objects"  # "objects": the five objects below; "person": a walker and the orbiter
     bounds: Bounds = "true"  # near/far written to poses_bounds.npy (atgs.data.synth.videos); never the pixels
+    people: int = 1  # subject "person": walkers (1 or 2)
+    walls: Walls = "textured"  # "grey": light-grey backdrop and floor with a faint texture (GREY_CONTRAST)
+    exposure: float = 0.0  # per-camera gains spread over +-exposure stops, offsets over +-EXPOSURE_OFFSET*exposure
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -128,7 +151,7 @@ class SynthConfig:
         return self.ring_radius + 0.5 if self.rig == "dome" else self.wall_radius
 
 
-_LATE_FIELDS = ("rig", "texture_contrast", "dome_rings", "subject", "bounds")
+_LATE_FIELDS = ("rig", "texture_contrast", "dome_rings", "subject", "bounds", "people", "walls", "exposure")
 
 
 # --- meshes -----------------------------------------------------------------------------------
@@ -296,6 +319,38 @@ def camera_body_texture(size: int = 128) -> np.ndarray:
     return img
 
 
+def grey_textures(rng: np.random.Generator, ts: int) -> list[np.ndarray]:
+    """Floor and backdrop of a stage (walls="grey"): the usual textures' pattern, colourless and
+    at GREY_CONTRAST of its contrast, around GREY_FLOOR and GREY_WALL."""
+    out = []
+    for size, base in (((4 * ts, 4 * ts), GREY_FLOOR), ((ts, 8 * ts), GREY_WALL)):
+        t = make_texture(rng, size, base, 0.7).astype(np.float64).mean(-1, keepdims=True)
+        t = base * 255 + GREY_CONTRAST * (t - t.mean())
+        out.append(np.clip(np.round(t), 0, 255).astype(np.uint8))
+    return out
+
+
+def camera_exposures(names: list[str], stops: float, seed: int) -> dict[str, tuple[float, float]]:
+    """Per-camera (gain, offset): gains 2**u with u evenly over [-stops, stops], offsets evenly over
+    +-EXPOSURE_OFFSET * stops, both in a shuffled order, so that every rig spans the whole range
+    whatever the seed. Empty without exposure (every camera records what is rendered)."""
+    if stops <= 0 or not names:
+        return {}
+    rng = np.random.default_rng([seed, 3])
+    n = len(names)
+    u = rng.permutation(np.linspace(-1.0, 1.0, n)) if n > 1 else np.zeros(1)
+    v = rng.permutation(np.linspace(-1.0, 1.0, n)) if n > 1 else np.zeros(1)
+    return {name: (float(2.0 ** (stops * a)), float(EXPOSURE_OFFSET * stops * b)) for name, a, b in zip(names, u, v)}
+
+
+def expose(img: np.ndarray, gain: float, offset: float) -> np.ndarray:
+    """What a camera of (gain, offset) records of a rendered uint8 image."""
+    if gain == 1.0 and offset == 0.0:
+        return img
+    out = img.astype(np.float32) * np.float32(gain) + np.float32(255.0 * offset)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
 # --- the scene --------------------------------------------------------------------------------
 
 @dataclass
@@ -332,14 +387,21 @@ _PERSON_PARTS = (
 )
 WALK_SPEED = {"small-motion": 0.4, "large-motion": 1.0}  # m/s along the circle
 WALK_RADIUS = 1.0  # m, around the z axis
+# the second walker: a wider circle, clockwise, slower; clear of the first walker (arms included)
+# and of the orbiter's circle (1.6-1.8 m) at every moment
+SECOND_WALKER = {"radius": 2.4, "turn": -1.0, "pace": 0.8}
 STRIDE = 1.4  # m walked per gait cycle (two steps)
 GAIT_SWING = 0.45  # rad, legs' largest angle from the vertical
 
 
-def person_parts(phase: float) -> list[SceneObject]:
-    return [SceneObject(f"person_{name}", uv_sphere(size, 16, 24) if name == "head" else box(size), tex,
-                        {"phase": phase, "pivot": list(pivot), "drop": drop, "swing": swing})
-            for name, size, tex, pivot, drop, swing in _PERSON_PARTS]
+def person_parts(phase: float, prefix: str = "person", textures: tuple[int, ...] | None = None,
+                 walk: dict | None = None) -> list[SceneObject]:
+    """The walker's parts, named ``<prefix>_<part>``; ``textures`` replaces the parts' texture
+    indices (in _PERSON_PARTS order) and ``walk`` (SECOND_WALKER's keys) its circle."""
+    texs = textures or tuple(p[2] for p in _PERSON_PARTS)
+    return [SceneObject(f"{prefix}_{name}", uv_sphere(size, 16, 24) if name == "head" else box(size), t,
+                        {"phase": phase, "pivot": list(pivot), "drop": drop, "swing": swing, **(walk or {})})
+            for (name, size, _, pivot, drop, swing), t in zip(_PERSON_PARTS, texs)]
 
 
 class SynthScene:
@@ -351,10 +413,12 @@ class SynthScene:
         self.cfg = cfg
         self.motion = PRESETS[cfg.preset]
         # bounds only matter to the writer (atgs.data.synth.videos) but are checked here, before rendering
-        for name, choices in (("subject", get_args(Subject)), ("bounds", get_args(Bounds)),
-                              ("dome_rings", tuple(DOME_RINGS) if cfg.rig == "dome" else None)):
+        for name, choices in (("subject", get_args(Subject)), ("bounds", get_args(Bounds)), ("walls", get_args(Walls)),
+                              ("people", (1, 2)), ("dome_rings", tuple(DOME_RINGS) if cfg.rig == "dome" else None)):
             if choices is not None and getattr(cfg, name) not in choices:
                 raise ValueError(f"{name} must be one of {list(choices)}, got {getattr(cfg, name)!r}")
+        if not 0.0 <= cfg.exposure <= 2.0:
+            raise ValueError(f"exposure must be within 0 and 2 stops, got {cfg.exposure!r}")
         rng = np.random.default_rng(cfg.seed)
         ts = cfg.texture_size
         self.textures = [
@@ -364,14 +428,27 @@ class SynthScene:
         if cfg.texture_contrast != 1.0:  # after all random draws: the rest of the scene is unchanged
             self.textures = [scale_contrast(t, cfg.texture_contrast) for t in self.textures]
         ph = rng.uniform(0, 2 * np.pi, 8)
+        # what the options below add draws from generators of its own: the rest of the scene is unchanged
+        if cfg.walls == "grey":
+            self.textures[:2] = grey_textures(np.random.default_rng([cfg.seed, 1]), ts)
         wall = cfg.backdrop_radius
         self.objects = [
             SceneObject("ground", grid_plane(2 * wall + 0.5, 8, 1.0), 0, static=True),
             SceneObject("backdrop", cylinder_wall(wall, 6.0, 96, (1.0, 1.0)), 1, static=True),
         ]
+        if cfg.walls == "grey":
+            for o in self.objects:
+                o.params["even_light"] = GREY_EVEN_LIGHT
         orbiter = SceneObject("orbiter", box((0.35, 0.35, 0.35)), 6, {"phase": float(ph[4])})
         if cfg.subject == "person":  # the walker wears the textures of the objects it replaces
             self.objects += person_parts(float(ph[5])) + [orbiter]
+            if cfg.people == 2:  # in clothes of its own
+                rng2 = np.random.default_rng([cfg.seed, 2])
+                first = len(self.textures)
+                self.textures += [scale_contrast(make_texture(rng2, (ts, ts), rng2.uniform(0.2, 0.7, 3), 0.8, 300),
+                                                 cfg.texture_contrast) for _ in range(4)]
+                texs = tuple(first + t - 2 for _, _, t, *_ in _PERSON_PARTS)  # the parts' 2..5 -> the new four
+                self.objects += person_parts(float(ph[5]) + np.pi, "person2", texs, SECOND_WALKER)
         else:
             self.objects += [
                 SceneObject("crosser", box((0.7, 0.5, 0.6)), 2, {"phase": float(ph[0]), "dir": float(ph[1])}),
@@ -385,6 +462,7 @@ class SynthScene:
             self.textures.append(camera_body_texture())
             self.objects.append(SceneObject("camera_bodies", camera_bodies(self.cameras()), len(self.textures) - 1,
                                             static=True))
+        self.exposure = camera_exposures([c.name for c in self.cameras()], cfg.exposure, cfg.seed)
         self.light_dir = np.array([0.4, -0.3, 0.85]) / np.linalg.norm([0.4, -0.3, 0.85])
 
     # --- motion ---------------------------------------------------------------------------
@@ -421,10 +499,12 @@ class SynthScene:
             a = 2 * np.pi * m.orbit_rate * s + p["phase"]
             pos = np.array([m.orbit_radius * np.cos(a), m.orbit_radius * np.sin(a), 1.2 + 0.2 * np.sin(3 * a)])
             return _M(axis_angle_matrix([0.2, 1, 0.3], 2 * a), pos)
-        if obj.name.startswith("person_"):
-            v = WALK_SPEED[self.cfg.preset]
-            a = p["phase"] + v * s / WALK_RADIUS  # counter-clockwise: the body's x (forward) turns with a + 90 deg
-            body = _M(axis_angle_matrix([0, 0, 1], a + np.pi / 2), WALK_RADIUS * np.array([np.cos(a), np.sin(a), 0.0]))
+        if obj.name.startswith(("person_", "person2_")):
+            v = WALK_SPEED[self.cfg.preset] * p.get("pace", 1.0)
+            radius, turn = p.get("radius", WALK_RADIUS), p.get("turn", 1.0)
+            a = p["phase"] + turn * v * s / radius  # turn 1: counter-clockwise, the body's x (forward) at a + 90 deg
+            body = _M(axis_angle_matrix([0, 0, 1], a + turn * np.pi / 2),
+                      radius * np.array([np.cos(a), np.sin(a), 0.0]))
             R = axis_angle_matrix([0, 1, 0], p["swing"] * GAIT_SWING * np.sin(2 * np.pi * v * s / STRIDE + p["phase"]))
             return body @ _M(R, np.asarray(p["pivot"], np.float64) - R[:, 2] * p["drop"])
         raise KeyError(obj.name)
@@ -446,6 +526,11 @@ class SynthScene:
         return [(o, self.object_space_mesh(o, frame).transformed(self.model_matrix(o, frame))) for o in self.objects]
 
     # --- cameras --------------------------------------------------------------------------
+    def exposure_of(self, name: str) -> tuple[float, float]:
+        """(gain, offset) of camera ``name``: it records clip(gain * rendered + offset), in [0, 1]
+        units; (1, 0) for a camera of no rig (a novel view) or without ``exposure``."""
+        return self.exposure.get(name, (1.0, 0.0))
+
     def cameras(self) -> list[Camera]:
         cfg = self.cfg
         f = 0.5 * cfg.width / np.tan(np.radians(cfg.fov_x_deg) / 2)
@@ -503,6 +588,7 @@ class SynthScene:
             "objects": [{"name": o.name, "static": o.static, "params": o.params,
                          "num_triangles": int(len(o.mesh.faces))} for o in self.objects],
             "scene_size": self.cfg.scene_size,
+            **({"exposure": {k: list(v) for k, v in self.exposure.items()}} if self.exposure else {}),
             "world": "z up, ground z=0, backdrop cylinder of radius wall_radius around the z axis",
         }
 

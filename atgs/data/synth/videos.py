@@ -4,7 +4,9 @@
 (``camXX.mp4`` + ``poses_bounds.npy``) so that synthetic data goes through the same
 ``atgs-prepare`` path as real captures, plus ``synth.json``: the config that rebuilds the exact
 ground-truth geometry (see :func:`load_ground_truth`) and the true near/far of every camera
-(``true_near_far``; ``cfg.bounds`` chooses what poses_bounds.npy states, see :func:`stated_bounds`).
+(``true_near_far``; ``cfg.bounds`` chooses what poses_bounds.npy states, see :func:`stated_bounds`)
+and, with ``cfg.exposure``, each camera's (gain, offset) (``exposure``): the frames are written as
+each camera records them (atgs.data.synth.mesh_renderer applies it), never as rendered.
 """
 
 from __future__ import annotations
