@@ -60,15 +60,20 @@ def _quiet_glog(where: Path | None = None):
 
 
 def _extract_and_match(db: Path, image_root: Path, names: Sequence[str], opts: ColmapOptions,
-                       camera_model: str = "PINHOLE", shared_intrinsics: bool = False) -> None:
+                       camera_model: str = "PINHOLE", shared_intrinsics: bool = False,
+                       camera_id: int | None = None) -> None:
+    """Add ``names`` to the database (created if missing) and match them with every image in it.
+    ``camera_id``: an existing camera (and its rig) the new images share (shared intrinsics)."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
+    if camera_id is not None:
+        reader.existing_camera_id = camera_id
     # Import sequentially first so that ids are deterministic (parallel extraction would shuffle
     # them): each image gets its own camera, rig and frame, all of one id; COLMAP, not ``names``,
     # orders the ids (database_ids reads them back by name).
-    pycolmap.Database.open(db).close()  # creates the empty database
+    pycolmap.Database.open(db).close()  # creates the database if missing
     mode = pycolmap.CameraMode.SINGLE if shared_intrinsics else pycolmap.CameraMode.PER_IMAGE
     pycolmap.import_images(db, image_root, camera_mode=mode, image_names=list(names), options=reader)
     ext = pycolmap.FeatureExtractionOptions()
@@ -85,6 +90,7 @@ def _extract_and_match(db: Path, image_root: Path, names: Sequence[str], opts: C
     # from run to run. A fixed seed makes every pair's RANSAC the same on any thread count.
     verify = pycolmap.TwoViewGeometryOptions()
     verify.ransac.random_seed = RANDOM_SEED
+    # pairs already in the database (an earlier call's) are not matched again
     pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verify,
                               device=pycolmap.Device.cpu)
 
@@ -157,44 +163,105 @@ def database_ids(db_path: Path, names: Sequence[str], image_root: Path) -> list[
 def sfm_static_cameras(image_root: Path, image_names: Sequence[str], camera_names: Sequence[str],
                        work_dir: Path, opts: ColmapOptions = ColmapOptions(),
                        camera_model: str = "SIMPLE_RADIAL", shared_intrinsics: bool = True,
-                       source: str | Path | None = None) -> list[Camera]:
+                       source: str | Path | None = None, held_out: Sequence[str] = ()) -> list[Camera]:
     """Poses and intrinsics of static cameras from one image each (incremental SfM).
 
     With one image per camera the focal length of each camera is weakly constrained, so by
     default all cameras share one intrinsic model (typical of a capture rig of identical
     cameras); ``shared_intrinsics=False`` estimates one model per camera.
 
+    Nothing about a held-out camera (``held_out``, camera names) may change what training uses,
+    so two passes: SfM on the training cameras' images alone (the database holds nothing else
+    yet), then each held-out image is added and registered against that reconstruction with
+    the training frames and intrinsics fixed. The training cameras are pass 1's values, the
+    same whatever the held-out images show, or whether there are any.
+
     Every camera must register, else a :class:`DataError` names the ones that failed. Errors
     name ``source`` (the user's capture), else ``image_root``.
     """
-    import pycolmap
-
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     db_path = work_dir / "database.db"
     if db_path.exists():
         db_path.unlink()
-    with _quiet_glog(image_root):
-        _extract_and_match(db_path, image_root, image_names, opts, camera_model, shared_intrinsics)
-        popts = pycolmap.IncrementalPipelineOptions()
-        popts.num_threads = opts.num_threads
-        popts.random_seed = RANDOM_SEED
-        popts.multiple_models = False
-        out_dir = work_dir / "sparse"
-        out_dir.mkdir(exist_ok=True)
-        models = pycolmap.incremental_mapping(db_path, image_root, out_dir, options=popts)
     where = image_root if source is None else source
+    held = set(held_out)
+    train = [(n, cn) for n, cn in zip(image_names, camera_names) if cn not in held]
+    test = [(n, cn) for n, cn in zip(image_names, camera_names) if cn in held]
+    with _quiet_glog(image_root):
+        _extract_and_match(db_path, image_root, [n for n, _ in train], opts, camera_model, shared_intrinsics)
+        models = _incremental_mapping(db_path, image_root, work_dir / "sparse", opts)
     if not models:
         raise DataError(f"{where}: structure-from-motion found no model from the first frames; "
                         "the cameras need overlapping, textured views (or provide poses)")
     rec = max(models.values(), key=lambda r: r.num_reg_images())
-    by_name = {img.name: img for img in rec.images.values() if img.has_pose}
-    missing = [cn for n, cn in zip(image_names, camera_names) if n not in by_name]
+    cams = _registered(rec, train)
+    missing = [cn for n, cn in train if n not in cams]
     if missing:
         raise DataError(f"{where}: SfM could not register camera(s) {', '.join(missing)}; "
                         "they need more overlap with the others (or provide poses)")
-    cams = []
-    for n, cn in zip(image_names, camera_names):
-        img = by_name[n]
-        cams.append(camera_from_colmap(rec.cameras[img.camera_id], img.cam_from_world(), cn))
-    return cams
+    if test:
+        cams.update(_register_held_out(db_path, image_root, rec, train, test, work_dir, opts, camera_model,
+                                       shared_intrinsics, where))
+    return [cams[n] for n in image_names]
+
+
+def _incremental_mapping(db_path: Path, image_root: Path, out_dir: Path, opts: ColmapOptions,
+                         input_path: Path | None = None, constant_cameras: Sequence[int] = ()) -> dict:
+    import pycolmap
+
+    popts = pycolmap.IncrementalPipelineOptions()
+    popts.num_threads = opts.num_threads
+    popts.random_seed = RANDOM_SEED
+    popts.multiple_models = False
+    if input_path is not None:  # continue a model: its frames and the given cameras' intrinsics stay
+        popts.fix_existing_frames = True
+        popts.constant_cameras = set(constant_cameras)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return pycolmap.incremental_mapping(db_path, image_root, out_dir, options=popts,
+                                        input_path="" if input_path is None else input_path)
+
+
+def _registered(rec, named: Sequence[tuple[str, str]]) -> dict[str, Camera]:
+    """Camera of each (image name, camera name) registered in ``rec``, by image name."""
+    by_name = {img.name: img for img in rec.images.values() if img.has_pose}
+    return {n: camera_from_colmap(rec.cameras[by_name[n].camera_id], by_name[n].cam_from_world(), cn)
+            for n, cn in named if n in by_name}
+
+
+def _register_held_out(db_path: Path, image_root: Path, rec, train: Sequence[tuple[str, str]],
+                       test: Sequence[tuple[str, str]], work_dir: Path, opts: ColmapOptions, camera_model: str,
+                       shared_intrinsics: bool, where) -> dict[str, Camera]:
+    """Pass 2: the held-out images registered into the training reconstruction ``rec`` (left as it
+    is), their cameras in ``rec``'s frame."""
+    import pycolmap
+
+    train_dir = work_dir / "sparse_train"
+    train_dir.mkdir(parents=True, exist_ok=True)
+    rec.write(train_dir)
+    train_cams = sorted({img.camera_id for img in rec.images.values() if img.has_pose})
+    with _quiet_glog(image_root):
+        _extract_and_match(db_path, image_root, [n for n, _ in test], opts, camera_model, shared_intrinsics,
+                           camera_id=train_cams[0] if shared_intrinsics else None)
+        models = _incremental_mapping(db_path, image_root, work_dir / "sparse_held_out", opts,
+                                      input_path=train_dir, constant_cameras=train_cams)
+    rec2 = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+    cams = _registered(rec2, test) if rec2 is not None else {}
+    missing = [cn for n, cn in test if n not in cams]
+    if missing:
+        raise DataError(f"{where}: SfM could not register held-out camera(s) {', '.join(missing)} against the "
+                        "training cameras; hold out another camera (--test-cams) or provide poses")
+    # COLMAP's global refinement re-normalizes the model it continues (shifts and scales it, fixed
+    # frames included; by ~1e-15 on the test rig): back to pass 1's frame, fitted on the training cameras
+    s, R, t = _similarity(list(_registered(rec2, train).values()), list(_registered(rec, train).values()))
+    rec2.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+    return _registered(rec2, test)
+
+
+def _similarity(src: Sequence[Camera], dst: Sequence[Camera]) -> tuple[float, np.ndarray, np.ndarray]:
+    """s, R, t with dst's world = s R (src's world) + t, for the same rigid set of cameras posed in
+    two worlds (two cameras suffice, where Umeyama on the centers needs three)."""
+    cs, cd = np.array([c.center for c in src]), np.array([c.center for c in dst])
+    s = np.linalg.norm(cd - cd.mean(0)) / np.linalg.norm(cs - cs.mean(0))
+    R = dst[0].R.T @ src[0].R  # cam_from_world rotations: R_src = R_dst R
+    return float(s), R, cd.mean(0) - s * R @ cs.mean(0)

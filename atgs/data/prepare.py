@@ -199,7 +199,7 @@ def prepare(cfg: PrepareConfig) -> Path:
         cams = src.cameras
         if cams is None:
             t = time.perf_counter()
-            cams = _sfm_cameras(src, sel[0], work / "sfm", cfg, colmap_opts)
+            cams = _sfm_cameras(src, sel[0], work / "sfm", cfg, colmap_opts, test)
             timings["sfm"] = time.perf_counter() - t
         cams = [_match_frame_size(c, wh, src.file_of(i)) for i, (c, wh) in enumerate(zip(cams, src.sizes))]
         out_cams = [_output_camera(c, cfg.downscale) for c in cams]
@@ -353,7 +353,10 @@ def _output_camera(cam: Camera, downscale: float) -> Camera:
     return c if downscale == 1.0 else c.scaled(1.0 / downscale)
 
 
-def _sfm_cameras(src: Source, frame: int, work: Path, cfg: PrepareConfig, opts: ColmapOptions) -> list[Camera]:
+def _sfm_cameras(src: Source, frame: int, work: Path, cfg: PrepareConfig, opts: ColmapOptions,
+                 test: list[str]) -> list[Camera]:
+    """SfM on the training cameras' first frames; the held-out ``test`` cameras are registered
+    after, against that reconstruction, so they change none of the training cameras' values."""
     from tqdm import tqdm
 
     img_dir = work / "images"
@@ -363,8 +366,8 @@ def _sfm_cameras(src: Source, frame: int, work: Path, cfg: PrepareConfig, opts: 
         for _, img in src.frames(ci, [frame]):
             Image.fromarray(img).save(img_dir / f"{name}.png")
         names.append(f"{name}.png")
-    print(f"running SfM on {len(names)} cameras (pycolmap, CPU)...", file=sys.stderr) if cfg.progress else None
+    if cfg.progress:
+        print(f"running SfM on {len(names) - len(test)} training cameras"
+              + (f", then registering {len(test)} held-out" if test else "") + " (pycolmap, CPU)...", file=sys.stderr)
     return sfm_static_cameras(img_dir, names, src.camera_names, work, opts, cfg.sfm_camera_model,
-                              cfg.sfm_shared_intrinsics, source=src.root)
-
-
+                              cfg.sfm_shared_intrinsics, source=src.root, held_out=test)
