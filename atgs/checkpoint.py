@@ -7,7 +7,8 @@ A checkpoint is a dict of tensors and plain Python types only, read with
      "model_config": {...}, "train_config": {...},      # dataclasses as dicts
      "cameras": [Camera.to_dict()], "test_cameras": [names],
      "num_frames": F, "fps": fps, "time_range": [0.0, (F - 1) / fps], "keyframes": [frames],
-     "step": int, "model": {...tensors...}, "trainer": {...optimizer state, RNG...} | None}
+     "step": int, "model": {...tensors...}, "trainer": {...optimizer state, RNG...} | None,
+     "run_id": str}                                     # the run's identity (atgs.train.run_dir)
 
 Tensors are saved on the CPU whatever the device they were trained on, so a checkpoint loads on
 any machine; :func:`load_model` / :func:`model_from_checkpoint` move the model to ``device``.

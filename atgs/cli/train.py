@@ -74,8 +74,9 @@ class TrainArgs:
     atgs.cli.train would); --train.views-per-step must be at least N."""
     max_restarts: int = 0
     """With --workers N: after a worker fails (killed, crashed, lost), torchrun restarts all of
-    them this many times; the restarted workers continue from the last checkpoint, as --resume
-    does (steps after it are trained again). 0: a failure stops the run with one line."""
+    them this many times; the restarted workers continue from the last checkpoint of this start's
+    run, as --resume does (steps after it are trained again), or start afresh when there is none
+    (a replaced run's is not continued). 0: a failure stops the run with one line."""
     worker_timeout: float = 1800.0
     """Seconds a worker waits for the others in an exchange before it stops (several workers;
     rank 0's set-up of the velocities from optical flow must fit in it; a worker that dies is noticed at once)."""
@@ -249,15 +250,35 @@ def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
 
 
 def restarted_run(args: TrainArgs) -> bool:
-    """True in a worker that torchrun restarted after a failure (--max-restarts) while --out holds
-    a checkpoint: it continues that checkpoint, as --resume does (--overwrite applied to the
-    first start only)."""
+    """True in a worker that torchrun restarted after a failure (--max-restarts) when --out holds a
+    checkpoint of the run this start began or resumed: it continues that checkpoint, as --resume
+    does. Any other checkpoint (the run an --overwrite start replaces, before the new run's first
+    checkpoint) is left alone: the restart starts afresh, as the first start did. One line says
+    which (rank 0)."""
     restart = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0"))
-    if restart <= 0 or not (args.out / "ckpt.pt").is_file():
+    if restart <= 0:
         return False
-    print(f"{PROG}: restarted by the launcher after a worker failed (restart {restart}); continuing from "
-          f"{args.out / 'ckpt.pt'}", flush=True)
-    return True
+    ckpt = args.out / "ckpt.pt"
+    not_ours = _not_this_starts(args, ckpt)
+    done = f"continuing from {ckpt}" if not_ours is None else f"{not_ours}: starting afresh, as the first start did"
+    print(f"{PROG}: restarted by the launcher after a worker failed (restart {restart}); {done}", flush=True)
+    return not_ours is None
+
+
+def _not_this_starts(args: TrainArgs, ckpt: Path) -> str | None:
+    """Why ``ckpt`` is not a checkpoint of this start's run, None when it is: a --resume start
+    continues the run there; a fresh one wrote its start's id into its checkpoints (atgs.train.run_dir)."""
+    from atgs.train.run_dir import run_id_of, start_id
+
+    if args.resume:
+        return None
+    if not ckpt.is_file():
+        return "no checkpoint written yet"
+    if start_id() is None:  # (several machines without --rdzv-id: every start's id is "none")
+        return f"{ckpt} cannot be told from another run's without torchrun's --rdzv-id (pass one to continue)"
+    if run_id_of(ckpt) != start_id():
+        return f"{ckpt} is another run's (this start wrote none yet)"
+    return None
 
 
 def _train(args: TrainArgs, explicit: set[str], workers) -> dict:

@@ -15,6 +15,11 @@ an earlier run (``--overwrite``) also drops that run's result.json and eval/. La
 always ends at the step of ckpt.pt or later. config.json is rewritten with every checkpoint from
 the configuration it holds, so it says what ran: the schedule a time budget sized, the background
 and camera exposure resolved from the scene (a resumed run keeps the preset and data it names).
+
+A run has an identity, ``run_id``, written into every checkpoint and config.json from the first
+one on: a resumed run keeps it, a fresh run has a new one. Under torchrun it is the start's own
+(:func:`start_id`), so that a worker restarted after a failure tells a checkpoint of the run it
+started from the one an ``--overwrite`` start replaces (atgs.cli.train.restarted_run).
 """
 
 from __future__ import annotations
@@ -22,20 +27,45 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 import shutil
+import uuid
 from pathlib import Path
 
-from atgs.checkpoint import save_checkpoint
+from atgs.checkpoint import read_checkpoint, save_checkpoint
 from atgs.io.atomic import write_json_atomic, write_text_atomic
 
 LOG_FIELDS = ("step", "loss", "psnr", "anchors", "gaussians", "seconds", "skipped", "eval_psnr", "eval_ssim")
 
 
+def start_id() -> str | None:
+    """The identity of this start under torchrun, the same in the workers it restarts after a
+    failure: its rendezvous id (a fresh uuid per launch on one machine, ``--rdzv-id`` on
+    several). None outside torchrun, or on several machines without ``--rdzv-id`` ("none")."""
+    launch = os.environ.get("TORCHELASTIC_RUN_ID", "")
+    return None if launch in ("", "none") else launch
+
+
+def new_run_id() -> str:
+    """The identity of a run that starts now: this start's (so that its restarts know their own
+    checkpoints), else a random one."""
+    return start_id() or str(uuid.uuid4())
+
+
+def run_id_of(ckpt: Path) -> str | None:
+    """The run a checkpoint belongs to (None: written before runs had an identity). Memory-mapped:
+    reads the pickle, not the tables."""
+    run_id = read_checkpoint(ckpt, mmap=True).get("run_id")
+    return run_id if isinstance(run_id, str) else None
+
+
 class RunDir:
-    def __init__(self, out: str | Path, resume_step: int | None = None) -> None:
-        """``resume_step``: the step of the checkpoint a resumed run continues from (None: fresh)."""
+    def __init__(self, out: str | Path, resume_step: int | None = None, run_id: str | None = None) -> None:
+        """``resume_step``: the step of the checkpoint a resumed run continues from (None: fresh);
+        ``run_id``: the identity that checkpoint carries (None: a new one, as a fresh run's)."""
         self.out = Path(out)
         self.resume_step = resume_step
+        self.run_id = run_id if isinstance(run_id, str) and run_id else new_run_id()
         self.replaces_run = resume_step is None and self.ckpt_path.exists()
         self.committed = False
         # config.json less the configuration: None writes no config.json (a run started in code)
@@ -55,9 +85,10 @@ class RunDir:
         self._rows.append(row)
 
     def save_checkpoint(self, payload: dict) -> Path:
-        save_checkpoint(self.ckpt_path, payload)
+        save_checkpoint(self.ckpt_path, {**payload, "run_id": self.run_id})
         if self._header is not None:
-            write_json_atomic(self.out / "config.json", {**self._header, "model": payload["model_config"],
+            write_json_atomic(self.out / "config.json", {**self._header, "run_id": self.run_id,
+                                                         "model": payload["model_config"],
                                                          "train": payload["train_config"]})
         if self.committed:
             self._append_rows()

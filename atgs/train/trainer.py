@@ -754,7 +754,7 @@ class Trainer:
             tr.gen.manual_seed(cfg.seed + 7919 * tr.time_rank + int(data["step"]))
         tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
         tr.step = int(data["step"])
-        tr.run = RunDir(tr.out, resume_step=tr.step)
+        tr.run = RunDir(tr.out, resume_step=tr.step, run_id=data.get("run_id"))  # (the run it continues)
         saved = st.get("budget")
         if tr.budget is not None and saved is not None:  # the time used so far counts
             tr.budget = TimeBudget.resumed(saved, 60.0 * cfg.minutes)
