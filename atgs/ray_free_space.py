@@ -4,17 +4,22 @@ A keyframe point that a training camera sees at its keyframe's frame proves that
 ray to it passes through empty space up to it. Each training camera keeps, per small cell of
 its image (``CELL_PX`` pixels at the training resolution), the depth of the nearest such point:
 
-- ``static``: the nearest over every keyframe (and the motion keyframes). Space in front of it
-  was empty at every measured moment, so a Gaussian of an always-active (static) anchor there is
-  wrong at every frame;
-- ``at_frame[f]``: that of the keyframe measured at frame ``f`` alone. A Gaussian of a moving
-  (per-keyframe) anchor is judged only at the frames where its space was measured, since
-  between keyframes something may move through a ray that was empty at both of them.
+- ``at_frame[f]``: that of the points measured at frame ``f`` (a keyframe or a motion
+  keyframe). At such a frame every Gaussian is judged against it where it measured the ray: a
+  static anchor's Gaussians change with time too, and a ghost of a walking person left where
+  she stood at another moment is as wrong as fog;
+- ``static``: the nearest over every measured frame. Space in front of it was empty at every
+  measured moment, so at any other frame a Gaussian of an always-active (static) anchor there is
+  wrong; a Gaussian of a moving (per-keyframe) anchor is judged only at measured frames, since
+  between them something may move through a ray that was empty at both.
 
 Only points the camera itself sees count: a point measured by other cameras behind a surface
 that this camera sees would claim this camera's ray empty through the surface. A point is taken
 as seen when the camera's pixel at it (3x3 neighbourhood) has the point's colour within
-``VISIBLE_TOLERANCE``; an occluder rarely has the colour of what it hides. Cells are
+``VISIBLE_TOLERANCE``; an occluder rarely has the colour of what it hides. A cell's depth is the
+median of its points' depths, not the nearest: stereo on a uniform wall leaves a few wrong
+points in the air in front of it, grey like the wall, which no colour test catches; the nearest
+would let each of them shield the fog that training builds around it. Cells are then
 min-filtered over their measured 3x3 neighbours so that depth edges keep the nearer side.
 Unmeasured cells say nothing.
 
@@ -76,13 +81,33 @@ def _min_filtered(grid: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(grid), low, np.inf)
 
 
+def median_depth_grid(cam: Camera, points: np.ndarray, cells: int) -> np.ndarray:
+    """(rows, cols) grid of the median depth of the points in each image cell of ``cam`` (the
+    lower median; inf: no point), on the cells of :func:`atgs.free_space.nearest_depth_grid`."""
+    rows_cols = nearest_depth_grid(cam, np.zeros((0, 3)), cells)[0].shape
+    cell = max(cam.width, cam.height) / cells
+    grid = np.full(rows_cols[0] * rows_cols[1], np.inf)
+    if len(points):
+        uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
+        with np.errstate(invalid="ignore"):
+            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        idx = (uv[ok, 1] // cell).astype(np.int64) * rows_cols[1] + (uv[ok, 0] // cell).astype(np.int64)
+        z = z[ok]
+        order = np.lexsort((z, idx))  # by cell, then by depth
+        idx, z = idx[order], z[order]
+        starts = np.flatnonzero(np.r_[True, idx[1:] != idx[:-1]])
+        counts = np.diff(np.r_[starts, len(idx)])
+        grid[idx[starts]] = z[starts + (counts - 1) // 2]
+    return grid.reshape(rows_cols)
+
+
 def measured_depth_grid(cam: Camera, points: np.ndarray, colors: np.ndarray, image: np.ndarray,
                         cell_px: float = CELL_PX) -> np.ndarray:
-    """(rows, cols) nearest depth of the points ``cam`` sees (:func:`visible_points`) per cell of
-    ``cell_px`` pixels, min-filtered over 3x3 cells; inf where no point."""
+    """(rows, cols) median depth of the points ``cam`` sees (:func:`visible_points`) per cell of
+    ``cell_px`` pixels, min-filtered over measured 3x3 cells; inf where no point."""
     cells = max(1, int(np.ceil(max(cam.width, cam.height) / cell_px)))
     seen = visible_points(cam, points, colors, image)
-    return _min_filtered(nearest_depth_grid(cam, np.asarray(points)[seen], cells)[0])
+    return _min_filtered(median_depth_grid(cam, np.asarray(points)[seen], cells))
 
 
 @dataclass
@@ -120,9 +145,10 @@ class MeasuredDepths:
         return any(bool(torch.isfinite(g).any()) for g in self.static)
 
     def limits(self, slot: int, frame: int, means: torch.Tensor, moving: torch.Tensor) -> torch.Tensor:
-        """(N,) measured depth along the ray of camera ``slot`` through each mean (N, 3): the
-        static depth for static Gaussians, the frame's own for ``moving`` ones (inf where the
-        frame was not measured); inf outside the image, behind the camera or unmeasured."""
+        """(N,) measured depth along the ray of camera ``slot`` through each mean (N, 3): at a
+        measured frame, the frame's own where it measured the ray; elsewhere the static depth for
+        static Gaussians and nothing (inf) for ``moving`` ones; inf outside the image, behind the
+        camera or unmeasured."""
         cam, cell = self.cameras[slot], self.cell[slot]
         pc = to_camera_frame(cam, means)
         z = pc[:, 2]
@@ -131,22 +157,22 @@ class MeasuredDepths:
         static = self.static[slot]
         r = (v / cell).long().clamp(0, static.shape[0] - 1)
         c = (u / cell).long().clamp(0, static.shape[1] - 1)
-        d = static[r, c]
+        inf = torch.full_like(static[r, c], float("inf"))
+        d = torch.where(moving, inf, static[r, c])
         frame_grids = self.at_frame.get(frame)
-        if frame_grids is not None:
-            d = torch.where(moving, frame_grids[slot][r, c], d)
-        else:
-            d = torch.where(moving, torch.full_like(d, float("inf")), d)
+        if frame_grids is not None:  # measured now: the frame's own depth, for every Gaussian
+            own = frame_grids[slot][r, c]
+            d = torch.where(torch.isfinite(own), own, d)
         return torch.where(inside, d.to(means.dtype), torch.full_like(z, float("inf")))
 
     def pixel_depths(self, slot: int, frame: int) -> torch.Tensor:
-        """(H, W) measured depth of each pixel of camera ``slot``: the nearer of the static and
-        the frame's own (inf: unmeasured)."""
+        """(H, W) measured depth of each pixel of camera ``slot``: the frame's own where it
+        measured the pixel, else the static one (inf: unmeasured)."""
         cam, cell = self.cameras[slot], self.cell[slot]
         grid = self.static[slot]
         own = self.at_frame.get(frame)
         if own is not None:
-            grid = torch.minimum(grid, own[slot])
+            grid = torch.where(torch.isfinite(own[slot]), own[slot], grid)
         rows = (torch.arange(cam.height, device=grid.device) + 0.5) / cell
         cols = (torch.arange(cam.width, device=grid.device) + 0.5) / cell
         r = rows.long().clamp(0, grid.shape[0] - 1)

@@ -9,9 +9,8 @@ import pytest
 import torch
 
 from atgs.cameras import Camera
-from atgs.free_space import nearest_depth_grid
 from atgs.gaussians import Gaussians
-from atgs.ray_free_space import MeasuredDepths, measured_depth_grid, visible_points
+from atgs.ray_free_space import MeasuredDepths, measured_depth_grid, median_depth_grid, visible_points
 from atgs.render import rasterize
 from atgs.train.losses import ray_free_space_loss
 
@@ -66,16 +65,34 @@ def test_a_depth_edge_keeps_its_nearer_side():
     nearer surface straddling the edge is never charged."""
     cam = front_camera()
     wall = wall_points()
-    near = wall[(wall[:, 0] > 0)] * np.array([1, 1, 0.5])  # right half at depth 2.5 (in view: x/z doubles)
-    near = near[near[:, 0] < 0.8]
-    pts = np.concatenate([wall, near])
+    left = wall[wall[:, 0] < 0]
+    near = wall[wall[:, 0] >= 0] * np.array([1, 1, 0.5])  # the right half at depth 2.5, the same pixels
+    pts = np.concatenate([left, near])
     grid = measured_depth_grid(cam, pts, np.full_like(pts, GREY), grey_image(), cell_px=4)
-    raw = nearest_depth_grid(cam, pts, grid.shape[1])[0]
+    raw = median_depth_grid(cam, pts, grid.shape[1])
     row, raw_row = grid[6], raw[6]
     edge = int(np.argmax(raw_row < 3))  # first cell of the near surface, from the left
     assert raw_row[edge - 1] == pytest.approx(WALL, rel=1e-3) and raw_row[edge - 2] == pytest.approx(WALL, rel=1e-3)
     assert row[edge - 1] == pytest.approx(2.5, rel=1e-3), "the wall's cell beside the edge takes the nearer depth"
     assert row[edge - 2] == pytest.approx(WALL, rel=1e-3), "one cell only"
+
+
+def test_a_few_wrong_points_in_front_of_a_uniform_wall_do_not_set_its_depth():
+    """Stereo on a grey wall leaves a few grey points in the air; a cell's depth is the median of
+    its points, so they neither shield what stands around them nor claim the wall nearer. The
+    reference: the depths of each cell's points, sorted by hand."""
+    cam = front_camera()
+    wall = wall_points(step=0.02)
+    rng = np.random.default_rng(0)
+    floaters = wall[rng.choice(len(wall), len(wall) // 10, replace=False)] * np.array([1, 1, 0.5])
+    pts = np.concatenate([wall, floaters])
+    grid = median_depth_grid(cam, pts, 16)
+    uv, z = cam.project(pts)
+    cell = W / 16
+    r, c = 5, 7
+    mine = np.sort(z[(uv[:, 1] // cell == r) & (uv[:, 0] // cell == c)])
+    assert len(mine) > 10 and mine[0] == pytest.approx(2.5) and grid[r, c] == mine[(len(mine) - 1) // 2]
+    assert np.allclose(grid, WALL, rtol=1e-3), "every cell: the wall's depth, not the floaters'"
 
 
 def measured(frames=(0,)) -> MeasuredDepths:
@@ -137,3 +154,19 @@ def test_a_gaussian_straddling_a_depth_edge_is_charged_only_on_the_rays_it_occlu
     ref = (out.alpha * (torch.isfinite(depth) & (depth > 3.0 / md.margin))).sum() / (W * H)
     assert float(ref) > 0 and float(ref) < 0.8 * float(out.alpha.mean())
     assert float(loss) == pytest.approx(float(ref), rel=1e-3)
+
+
+def test_at_a_measured_frame_every_gaussian_is_judged_by_that_frame():
+    """A walker stood at depth 2 at frame 3 and left: the static depth (the nearest over the
+    measured frames) is 2, so at an unmeasured frame a static Gaussian at depth 3 is not charged;
+    at frame 0, which measured the wall at 5 behind it, it is (a ghost of the walker), and at
+    frame 3, where the walker was in front of it, it is not."""
+    cam = front_camera()
+    wall = wall_points()
+    walker = wall * np.array([1, 1, 0.4])
+    grey = np.full_like(wall, GREY)
+    md = MeasuredDepths.measure([cam], [(0, wall, grey), (3, walker, grey)], lambda s, f: grey_image())
+    ghost, static = [[0.0, 0.0, 3.0]], torch.zeros(1, dtype=torch.bool)
+    assert ray_free_space_loss(gaussians(ghost), static, md, 0, 1, cam) is None
+    assert ray_free_space_loss(gaussians(ghost), static, md, 0, 3, cam) is None
+    assert float(ray_free_space_loss(gaussians(ghost), static, md, 0, 0, cam).detach()) > 0
