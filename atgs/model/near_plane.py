@@ -19,6 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from atgs.cameras import Camera
+from atgs.model.clearance import clearance_radius
 from atgs.render.constants import NEAR
 
 
@@ -26,11 +27,8 @@ def near_plane(train_cameras: Sequence[Camera], scene_centre: np.ndarray, fracti
     """``fraction`` of the median distance from the training cameras' centres to
     ``scene_centre``; the fixed :data:`~atgs.render.constants.NEAR` for a fraction of 0, no
     cameras, or cameras at the centre itself (no scale to measure)."""
-    if fraction <= 0 or not train_cameras:
-        return NEAR
-    centres = np.stack([c.center for c in train_cameras])
-    distance = float(np.median(np.linalg.norm(centres - np.asarray(scene_centre, dtype=np.float64)[None], axis=1)))
-    near = fraction * distance
+    # (the clearance's rule: a fraction of the training cameras' median distance to the scene)
+    near = clearance_radius(train_cameras, np.asarray(scene_centre, dtype=np.float64), fraction)
     return near if np.isfinite(near) and near > 0 else NEAR
 
 
