@@ -28,7 +28,7 @@ STEPS = 8
 def _configs():
     m, t = growing_tiny_config(STEPS)
     m.random_anchors, m.smoothing_3d = 64, 0.2
-    t.lambda_free_space, t.camera_exposure = 0.05, "on"
+    t.lambda_free_space, t.lambda_ray_free_space, t.camera_exposure = 0.05, 0.1, "on"
     t.cameras_per_frame = 2
     t.eval_every, t.eval_max_frames = 4, 1  # a periodic evaluation on the held-out camera mid-run
     return m, t
