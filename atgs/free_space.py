@@ -26,19 +26,28 @@ GRID_CELLS = 32  # cells along each image's long side
 MARGIN = 0.8  # a position at depth < MARGIN x the cell's nearest point depth is in empty space
 
 
+def points_in_cells(cam: Camera, points: np.ndarray, cells: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int], float]:
+    """The points in front of ``cam`` and inside its image: their flat cell index and depth, on a
+    grid of ``cells`` cells along the image's long side; the grid's (rows, cols) and cell size
+    in pixels."""
+    cell = max(cam.width, cam.height) / cells
+    shape = int(np.ceil(cam.height / cell)), int(np.ceil(cam.width / cell))
+    if not len(points):
+        return np.zeros(0, np.int64), np.zeros(0), shape, cell
+    uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
+    with np.errstate(invalid="ignore"):
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    idx = (uv[ok, 1] // cell).astype(np.int64) * shape[1] + (uv[ok, 0] // cell).astype(np.int64)
+    return idx, z[ok], shape, cell
+
+
 def nearest_depth_grid(cam: Camera, points: np.ndarray, cells: int = GRID_CELLS) -> tuple[np.ndarray, float]:
     """(rows, cols) grid of the nearest point depth per image cell of ``cam`` (inf: no point),
     and the cell size in pixels."""
-    cell = max(cam.width, cam.height) / cells
-    rows, cols = int(np.ceil(cam.height / cell)), int(np.ceil(cam.width / cell))
-    grid = np.full(rows * cols, np.inf)
-    if len(points):
-        uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
-        with np.errstate(invalid="ignore"):
-            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        idx = (uv[ok, 1] // cell).astype(np.int64) * cols + (uv[ok, 0] // cell).astype(np.int64)
-        np.minimum.at(grid, idx, z[ok])
-    return grid.reshape(rows, cols), cell
+    idx, z, shape, cell = points_in_cells(cam, points, cells)
+    grid = np.full(shape[0] * shape[1], np.inf)
+    np.minimum.at(grid, idx, z)
+    return grid.reshape(shape), cell
 
 
 @dataclass

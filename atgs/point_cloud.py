@@ -24,9 +24,11 @@ class PointCloud:
         """(n, 3) float32: keyframe ``k``'s points."""
         return _xyz(self.rows(k))
 
-    def colors(self, k: int) -> np.ndarray:
-        """(n, 3) float32 in [0, 1]: keyframe ``k``'s points' colours."""
-        return _rgb(self.rows(k))
+    def read_with_colors(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe ``k``'s points (n, 3) float32 and their colours (n, 3) float32 in [0, 1], from
+        one read of its rows."""
+        recs = self.rows(k)
+        return _xyz(recs), _rgb(recs)
 
     def __len__(self) -> int:
         return sum(self.count(k) for k in range(self.num_keyframes))

@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from atgs.cameras import Camera, pinhole_pixels, to_camera_frame
-from atgs.free_space import MARGIN, nearest_depth_grid
+from atgs.free_space import MARGIN, points_in_cells
 
 CELL_PX = 4  # cell size in training pixels: a pixel's measured depth is its cell's
 VISIBLE_TOLERANCE = 0.2  # mean absolute RGB difference (0..1) under which a camera sees a point
@@ -81,33 +81,30 @@ def _min_filtered(grid: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(grid), low, np.inf)
 
 
+def cells_of(cam: Camera, cell_px: float) -> int:
+    """Cells along ``cam``'s long side for cells of about ``cell_px`` pixels."""
+    return max(1, int(np.ceil(max(cam.width, cam.height) / cell_px)))
+
+
 def median_depth_grid(cam: Camera, points: np.ndarray, cells: int) -> np.ndarray:
     """(rows, cols) grid of the median depth of the points in each image cell of ``cam`` (the
     lower median; inf: no point), on the cells of :func:`atgs.free_space.nearest_depth_grid`."""
-    rows_cols = nearest_depth_grid(cam, np.zeros((0, 3)), cells)[0].shape
-    cell = max(cam.width, cam.height) / cells
-    grid = np.full(rows_cols[0] * rows_cols[1], np.inf)
-    if len(points):
-        uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
-        with np.errstate(invalid="ignore"):
-            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        idx = (uv[ok, 1] // cell).astype(np.int64) * rows_cols[1] + (uv[ok, 0] // cell).astype(np.int64)
-        z = z[ok]
-        order = np.lexsort((z, idx))  # by cell, then by depth
-        idx, z = idx[order], z[order]
-        starts = np.flatnonzero(np.r_[True, idx[1:] != idx[:-1]])
-        counts = np.diff(np.r_[starts, len(idx)])
-        grid[idx[starts]] = z[starts + (counts - 1) // 2]
-    return grid.reshape(rows_cols)
+    idx, z, shape, _ = points_in_cells(cam, points, cells)
+    grid = np.full(shape[0] * shape[1], np.inf)
+    order = np.lexsort((z, idx))  # by cell, then by depth
+    idx, z = idx[order], z[order]
+    starts = np.flatnonzero(np.r_[True, idx[1:] != idx[:-1]]) if len(idx) else np.zeros(0, np.int64)
+    counts = np.diff(np.r_[starts, len(idx)])
+    grid[idx[starts]] = z[starts + (counts - 1) // 2]
+    return grid.reshape(shape)
 
 
 def measured_depth_grid(cam: Camera, points: np.ndarray, colors: np.ndarray, image: np.ndarray,
                         cell_px: float = CELL_PX) -> np.ndarray:
     """(rows, cols) median depth of the points ``cam`` sees (:func:`visible_points`) per cell of
     ``cell_px`` pixels, min-filtered over measured 3x3 cells; inf where no point."""
-    cells = max(1, int(np.ceil(max(cam.width, cam.height) / cell_px)))
     seen = visible_points(cam, points, colors, image)
-    return _min_filtered(median_depth_grid(cam, np.asarray(points)[seen], cells))
+    return _min_filtered(median_depth_grid(cam, np.asarray(points)[seen], cells_of(cam, cell_px)))
 
 
 @dataclass
@@ -133,11 +130,11 @@ class MeasuredDepths:
             grids = [measured_depth_grid(c, pts, cols, image_of(s, frame), cell_px) for s, c in enumerate(cams)]
             old = at_frame.get(frame)
             at_frame[frame] = grids if old is None else [np.minimum(a, b) for a, b in zip(old, grids)]
-        static = [np.full_like(_empty_grid(c, cell_px), np.inf) for c in cams]
+        static = [median_depth_grid(c, np.zeros((0, 3)), cells_of(c, cell_px)) for c in cams]  # all inf
         for grids in at_frame.values():
             static = [np.minimum(a, b) for a, b in zip(static, grids)]
         tensor = lambda g: torch.as_tensor(g, dtype=torch.float32, device=device)  # noqa: E731
-        return cls(cams, [max(c.width, c.height) / np.ceil(max(c.width, c.height) / cell_px) for c in cams],
+        return cls(cams, [max(c.width, c.height) / cells_of(c, cell_px) for c in cams],
                    [tensor(g) for g in static], {f: [tensor(g) for g in gs] for f, gs in at_frame.items()}, margin)
 
     @property
@@ -178,7 +175,3 @@ class MeasuredDepths:
         r = rows.long().clamp(0, grid.shape[0] - 1)
         c = cols.long().clamp(0, grid.shape[1] - 1)
         return grid[r][:, c]
-
-
-def _empty_grid(cam: Camera, cell_px: float) -> np.ndarray:
-    return nearest_depth_grid(cam, np.zeros((0, 3)), max(1, int(np.ceil(max(cam.width, cam.height) / cell_px))))[0]

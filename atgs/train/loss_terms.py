@@ -74,7 +74,7 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("free_space", lambda cfg: cfg.lambda_free_space,
              lambda i: None if i.free_space is None
              else free_space_loss(i.dec.gaussians.opacities, i.dec.gaussians.means, i.free_space)),
-    # the opacity each training ray accumulates in front of its measured depth (on by default)
+    # the opacity each training ray accumulates in front of its measured depth (off by default)
     LossTerm("ray_free_space", lambda cfg: cfg.lambda_ray_free_space, lambda i: _ray_free_space(i)),
 )
 

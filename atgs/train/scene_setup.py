@@ -108,9 +108,9 @@ def measured_depths_of(scene: "SceneData", cams: "list[Camera]", image_of: "Call
 
     def parts():
         for pc, k, frame, n in sources:
-            pts = pc.read(k)[:n]
-            if len(pts):
-                yield int(frame), pts, pc.colors(k)[:n]
+            pts, cols = pc.read_with_colors(k)
+            if len(pts[:n]):
+                yield int(frame), pts[:n], cols[:n]
 
     depths = MeasuredDepths.measure(cams, list(parts()), image_of, device)
     return depths if depths.any_measured else None
