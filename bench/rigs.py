@@ -151,6 +151,32 @@ def train_command(scene_dir: Path, out: Path, cfg: RigsBench) -> list[str]:
     return cmd + shlex.split(cfg.extra_train_args)
 
 
+def training_view_figure(out: Path, scene: dict, cfg: RigsBench) -> dict | None:
+    """atgs-eval of up to 4 evenly spread training cameras, every 10th frame: the training views'
+    PSNR beside the held-out figure (the lag the periodic evaluation warns about). Both sides are
+    also given exposure-matched (docs/evaluation.md), since held-out cameras have no learned
+    exposure."""
+    test = set(scene["test_cameras"])
+    train = [c["name"] for c in scene["cameras"] if c["name"] not in test]
+    if not train:
+        return None
+    pick = [train[round(k * (len(train) - 1) / 3)] for k in range(4)] if len(train) > 4 else train
+    ev = out / "eval-training-views"
+    run([str(BIN / "atgs-eval"), str(out / "ckpt.pt"), "--out", str(ev), "--cameras", *dict.fromkeys(pick),
+         "--every", "10", "--images-per-camera", "0", "--no-lpips"], out / "eval-training-views.log")
+    mean = json.loads((ev / "summary.json").read_text())["mean"]
+    return {"cameras": list(dict.fromkeys(pick)), "psnr": round(mean["psnr"], 2),
+            "psnr_matched": round(mean["psnr_matched"], 2)}
+
+
+def held_out_figures(out: Path) -> dict:
+    """The final evaluation's per-camera PSNR and exposure-matched PSNR (out/eval/summary.json)."""
+    summary = json.loads((out / "eval" / "summary.json").read_text())
+    return {"psnr_matched": round(summary["mean"]["psnr_matched"], 2),
+            "per_camera": {c: {"psnr": round(m["psnr"], 2), "psnr_matched": round(m["psnr_matched"], 2)}
+                           for c, m in summary["per_camera"].items()}}
+
+
 def run_case(name: str, cfg: RigsBench, scene_dir: Path | None = None) -> dict:
     """One synthetic case of CASES, or (``scene_dir``) a prepared real capture; its row is named
     ``name`` + ``cfg.tag``."""
@@ -168,6 +194,8 @@ def run_case(name: str, cfg: RigsBench, scene_dir: Path | None = None) -> dict:
     text = run(train_command(scene_dir, out, cfg), cfg.work_dir / f"train-{row}.log")
     wall = time.perf_counter() - t0
     res = json.loads((out / "result.json").read_text())
+    held_out = held_out_figures(out) if res["eval"].get("on_test_cameras", True) else {}
+    training_views = training_view_figure(out, scene, cfg)
     cams = scene["cameras"]
     cov = scene.get("coverage", {})
     return {
@@ -180,17 +208,28 @@ def run_case(name: str, cfg: RigsBench, scene_dir: Path | None = None) -> dict:
         "prepare_warnings": prepare_said, "minutes": cfg.minutes, "preset": cfg.preset, "threads": cfg.threads,
         "steps": res.get("steps"), "train_wall_s": round(wall, 1),
         "psnr": round(res["eval"]["psnr"], 2), "ssim": round(res["eval"]["ssim"], 4),
-        "on_test_cameras": res["eval"].get("on_test_cameras", True),
+        "on_test_cameras": res["eval"].get("on_test_cameras", True), **held_out,
+        "training_views": training_views,
         "train_warnings": res.get("warnings", []) + [w for w in warnings_in(text) if w not in res.get("warnings", [])],
         "date": time.strftime("%Y-%m-%d %H:%M"), "load_1min_at_end": round(os.getloadavg()[0], 2),
         "commit": git_commit(ROOT), "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
     }
 
 
+def matched(r: dict) -> str:
+    """'23.44 dB (22.3, 23.5, ...) / 26.50 dB' (rows of before psnr_matched: 'n/a')."""
+    if "psnr_matched" not in r:
+        return "n/a"
+    cams = ", ".join(f"{m['psnr_matched']:.1f}" for m in r["per_camera"].values())
+    tv = r.get("training_views")
+    return f"{r['psnr_matched']:.2f} dB ({cams})" + (f" / {tv['psnr_matched']:.2f} dB" if tv else "")
+
+
 def table(rows: list[dict]) -> str:
     head = ("| case | cameras | keyframe points (mean: SIFT + stereo + fill) | coverage (training) | "
-            "cameras per measured pixel | steps in budget | held out PSNR / SSIM | what the commands said |\n"
-            "|---|---|---|---|---|---|---|---|")
+            "cameras per measured pixel | steps in budget | held out PSNR / SSIM | exposure-matched: held out "
+            "(per camera) / training views | what the commands said |\n"
+            "|---|---|---|---|---|---|---|---|---|")
     out = [head]
     for r in rows:
         kp = r.get("keyframe_points") or {}
@@ -202,7 +241,7 @@ def table(rows: list[dict]) -> str:
         out.append(f"| {case} | {r['cameras']} | {mean.get('sift', 0)} + {mean.get('stereo', 0)} + "
                    f"{mean.get('fill', 0)} | {100 * (r['coverage_mean'] or 0):.0f} % | "
                    f"{'n/a' if vpp is None else f'{vpp:.1f}'} | {r['steps']} ({r['minutes']:g} min) | "
-                   f"**{r['psnr']:.2f} dB** / {r['ssim']:.3f} | {said or 'nothing'} |")
+                   f"**{r['psnr']:.2f} dB** / {r['ssim']:.3f} | {matched(r)} | {said or 'nothing'} |")
     return "\n".join(out)
 
 

@@ -150,6 +150,16 @@ def test_cli_layout_and_bounds(tmp_path) -> None:
     assert {k: side["config"][k] for k in ("cameras", "width", "rig", "dome_rings", "subject", "bounds")} == {
         "cameras": 4, "width": 200, "rig": "dome", "dome_rings": 1, "subject": "person", "bounds": "none"}
     assert not np.load(out / "poses_bounds.npy")[:, 15:].any() and len(side["true_near_far"]) == 4
+    # the stage's ingredients one by one, on any rig
+    assert main([str(tmp_path / "bad3"), "--subject", "person", "--people", "3", "--frames", "1"]) == 2
+    stage = tmp_path / "ring-stage"
+    assert main([str(stage), "--cameras", "4", "--width", "64", "--height", "48", "--frames", "1", "--subject",
+                 "person", "--people", "2", "--walls", "grey", "--exposure", "0.3"]) == 0
+    side = json.loads((stage / "synth.json").read_text())
+    assert {k: side["config"][k] for k in ("people", "walls", "exposure")} == {"people": 2, "walls": "grey",
+                                                                              "exposure": 0.3}
+    gains = [g for g, _ in side["exposure"].values()]
+    assert len(gains) == 4 and min(gains) == pytest.approx(2 ** -0.3) and max(gains) == pytest.approx(2 ** 0.3)
 
 
 def test_the_stage_layout_is_a_hard_dome() -> None:

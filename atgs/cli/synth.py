@@ -13,7 +13,7 @@ from typing import Annotated
 import tyro
 
 from atgs.data.synth.videos import EncodeConfig, synthesize
-from atgs.data.synth.scene import LAYOUTS, Bounds, Layout, Preset, Rig, Subject, SynthConfig
+from atgs.data.synth.scene import LAYOUTS, Bounds, Layout, Preset, Rig, Subject, SynthConfig, Walls
 from atgs.io.cli import run_cli
 
 
@@ -46,6 +46,14 @@ class SynthArgs:
     subject: Subject = "objects"
     """'objects': the five moving objects; 'person': a 1.75 m figure walking a circle of 1 m radius
     (1 m/s with large-motion, 0.4 m/s with small-motion) and the small orbiting box."""
+    people: int = 1
+    """--subject person: walkers, 1 or 2 (the second on a 2.4 m circle, the other way round)."""
+    walls: Walls = "textured"
+    """'grey': a light-grey backdrop and floor, lit evenly, with a faint texture (as a real capture
+    stage's, where semi-transparent fog costs the training views almost nothing)."""
+    exposure: float = 0.0
+    """Give every camera its own exposure: gains spread over +-EXPOSURE stops, black-level offsets
+    over +-0.1*EXPOSURE of full scale, applied to its frames (the held-out ground truth too)."""
     texture_contrast: float = 1.0
     """1: the textures as made; towards 0: flatter (0: textureless flat colours)."""
     layout: Layout | None = None
@@ -84,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = SynthConfig(frames=a.frames, cameras=a.cameras, width=a.width, height=a.height, seed=a.seed,
                           preset=a.preset, fps=a.fps, arc_deg=a.arc_deg, rig=a.rig,
                           texture_contrast=a.texture_contrast, dome_rings=a.dome_rings, subject=a.subject,
-                          bounds=a.bounds)
+                          bounds=a.bounds, people=a.people, walls=a.walls, exposure=a.exposure)
         if a.layout is not None:
             cfg = replace(cfg, **LAYOUTS[a.layout])
         t = time.perf_counter()

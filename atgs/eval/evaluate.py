@@ -8,7 +8,7 @@ ground-truth image and returns per-view rows and a summary. With an output direc
 writes::
 
     OUT/
-      per_view.csv           camera, frame, psnr, ssim, dssim1, dssim2, ms_ssim, dssim_ms, lpips
+      per_view.csv           camera, frame, psnr, psnr_matched, ssim, dssim1, dssim2, ms_ssim, dssim_ms, lpips
       summary.json           means (overall, per camera), settings, metric definitions
       images/<camera>/<frame:06d>.png   render | ground truth | error, a few frames per camera
 
@@ -36,6 +36,7 @@ from atgs.cameras import Camera
 from atgs.data.scene import resize_frame
 from atgs.errors import UserError
 from atgs.io.atomic import atomic_dir
+from atgs.eval.exposure_match import add_matched_psnr, view_sums
 from atgs.eval.lpips import LPIPS, load_lpips
 from atgs.eval.metrics import all_metrics, ms_ssim_levels
 from atgs.gaussians import Gaussians
@@ -46,9 +47,12 @@ from atgs.render import rasterize_gaussians
 from atgs.render.constants import NEAR
 from atgs.timeline import evenly_spaced
 
-METRICS = ("psnr", "ssim", "dssim1", "dssim2", "ms_ssim", "dssim_ms", "lpips")
+METRICS = ("psnr", "psnr_matched", "ssim", "dssim1", "dssim2", "ms_ssim", "dssim_ms", "lpips")
 METRIC_DEFINITIONS = {
     "psnr": "10 log10(1 / MSE), MSE over all pixels and channels of the view; averaged over views",
+    "psnr_matched": "PSNR after each camera's own gain and bias per colour channel, fitted by least "
+                    "squares over all its evaluated views (the exposure a held-out camera's images "
+                    "carry, which training cannot learn; atgs/eval/exposure_match.py)",
     "ssim": "Gaussian window 11, sigma 1.5, K1 0.01, K2 0.03, data range 1, zero 'same' padding (3DGS)",
     "dssim1": "(1 - ssim) / 2",
     "dssim2": "(1 - SSIM with data range 2) / 2: scikit-image legacy defaults (7x7 uniform window, "
@@ -269,9 +273,11 @@ def evaluate(model: EvalModel, scene: EvalScene, cfg: EvalConfig | None = None, 
                       pictured, picture)
 
     def finish(scored: _Scored, tmp: Path | None) -> EvalResult:
+        exposure_fit = add_matched_psnr(scored.rows)  # needs every frame of a camera: after gathering
         summary = _summary(scored.rows, cams, frames, cfg, lpips_net is not None, lpips_reason,
                            [scored.gaussians[f] for f in frames if f in scored.gaussians],
                            time.perf_counter() - t0, bg, settings or {})
+        summary["exposure_fit"] = exposure_fit
         if tmp is not None:
             write_csv(tmp / "per_view.csv", scored.rows)
             (tmp / "summary.json").write_text(json.dumps(json_safe(summary), indent=1) + "\n")
@@ -363,6 +369,7 @@ def _score(model: EvalModel, scene: EvalScene, cfg: EvalConfig, cam_indices: lis
                         render = camera_transform(ci, render).clamp(0, 1)
                     gt = torch.from_numpy(gt_np).to(render.device, render.dtype)
                     row: dict[str, Any] = {"camera": cam.name, "frame": f, **all_metrics(render, gt)}
+                    row["_exposure_sums"] = view_sums(render, gt)  # psnr_matched, once the camera is fitted
                     row["lpips"] = UNAVAILABLE if lpips_net is None else float(lpips_net(render.cpu(), gt.cpu()))
                     scored.rows.append(row)
                     render_np = render.cpu().numpy().astype(np.float32)

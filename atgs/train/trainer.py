@@ -634,7 +634,8 @@ class Trainer:
                        camera_transform=as_exposed if exposure is not None else None, share=share)
         if res is None:  # (spread: another worker's result)
             return None
-        return {"psnr": res.mean("psnr"), "ssim": res.mean("ssim"), "views": res.summary["num_views"],
+        return {"psnr": res.mean("psnr"), "psnr_matched": res.mean("psnr_matched"), "ssim": res.mean("ssim"),
+                "views": res.summary["num_views"],
                 "on_test_cameras": bool(self.test_idx)}
 
     def final_views(self) -> int:
