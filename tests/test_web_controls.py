@@ -223,13 +223,24 @@ def test_play_pause_speed_loop_and_the_scrub_bar(browser, url):
 
     # the scrub bar by pointer: its middle is the middle frame, its right end the last
     box = page.locator("#scrub").bounding_box()
-    y = box["y"] + box["height"] / 2
-    page.mouse.click(box["x"] + box["width"] / 2, y)
+    x0, x1, y = box["x"], box["x"] + box["width"], box["y"] + box["height"] / 2
+    page.mouse.click((x0 + x1) / 2, y)
     clock.run_for(50)
     assert abs(s.state()["frame"] - (FRAMES - 1) / 2) <= 1.0, s.state()
-    s.drag(box["x"] + box["width"] / 2, y, box["x"] + box["width"] + 20, y)
+    s.drag((x0 + x1) / 2, y, x1 + 20, y)
     clock.run_for(50)
     assert s.state()["frame"] == FRAMES - 1
+    # dragged while playing (loop on), playback holds under the pointer and goes on after it
+    page.click("#play")
+    page.mouse.move(x0 + 0.25 * (x1 - x0), y)
+    page.mouse.down()
+    clock.run_for(200)
+    state = s.state()
+    assert not state["playing"] and abs(state["frame"] - (FRAMES - 1) / 4) <= 1.0, state
+    page.mouse.up()
+    clock.run_for(100)
+    assert s.state()["playing"] and s.state()["frame"] > state["frame"]
+    page.click("#play")
     assert s.state()["error"] in (None, "")
     s.close()
 

@@ -134,6 +134,7 @@ export class Player {
     if (this.options.frame >= n) throw new Error(`URL parameter frame=${this.options.frame}: the stream has ${n} frames (0..${n - 1})`);
     scrub.max = String(n - 1);
     scrub.addEventListener('input', () => this._requestFrame(Number(scrub.value)));
+    scrub.addEventListener('pointerdown', () => this._pauseWhileScrubbing());
     play.addEventListener('click', () => (this.playing ? this.pause() : this.play()));
     loop.checked = true;
     for (const s of SPEEDS) speed.add(new Option(`${s}x`, String(s), s === 1, s === 1));
@@ -144,6 +145,21 @@ export class Player {
     });
     fillHelp(this.el.helpKeys);
     this._showPlaying();
+  }
+
+  // Playback holds while the scrub bar is dragged and goes on from where it is let go (not at the
+  // end of a video that does not loop), as a video player's does.
+  _pauseWhileScrubbing() {
+    if (!this.playing) return;
+    this.pause();
+    const win = this.doc.defaultView;
+    const resume = () => {
+      win.removeEventListener('pointerup', resume);
+      win.removeEventListener('pointercancel', resume);
+      if (this.el.loop.checked || Math.floor(this.position) < this.manifest.frames.length - 1) this.play();
+    };
+    win.addEventListener('pointerup', resume);
+    win.addEventListener('pointercancel', resume);
   }
 
   _setupView(manifest) {
