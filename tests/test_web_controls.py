@@ -71,7 +71,8 @@ def url(tmp_path_factory):
     manifest = {"format": FORMAT, "version": VERSION, "fps": FPS, "frames": list(range(FRAMES)),
                 "chunk_frames": CHUNK_FRAMES, "chunks": chunks,
                 "cameras": [camera_entry(c, held_out=False) for c in cameras], "background": [0.0, 0.0, 0.0],
-                "environment": None, "render": render_numerics(), "scene": {"center": [0.0, 0.0, 0.0], "radius": DISTANCE},
+                "environment": None, "render": render_numerics(),
+                "scene": {"center": [0.0, 0.0, 0.0], "radius": DISTANCE},
                 "source": {"test": "tests/test_web_controls.py"}}
     (out / STREAM_DIR / MANIFEST_NAME).write_text(json.dumps(manifest))
     copy_player(out)

@@ -189,7 +189,9 @@ export function attachControls(canvas, commands) {
     gestures.down(e.pointerId, e.clientX, e.clientY, e.button === 1 || e.button === 2 || e.shiftKey);
     canvas.setPointerCapture(e.pointerId);
   });
-  canvas.addEventListener('pointermove', (e) => applyMotion(gestures.move(e.pointerId, e.clientX, e.clientY), commands, canvasPixels()));
+  canvas.addEventListener('pointermove', (e) => {
+    applyMotion(gestures.move(e.pointerId, e.clientX, e.clientY), commands, canvasPixels());
+  });
   for (const type of ['pointerup', 'pointercancel', 'lostpointercapture']) {
     canvas.addEventListener(type, (e) => gestures.up(e.pointerId));
   }
