@@ -17,7 +17,11 @@ import pytest
 from atgs.eval.metrics import psnr
 from atgs.web.browser import PlayerPage, chromium, serving
 
-PSNR_MIN_DB = 35.0  # issue 39's target for the browser's frames against atgs-render
+# The page draws 57.5 dB (frame 5) and 58.0 dB (frame 10) against atgs-view here (Debian's
+# Chromium 156 with SwiftShader, this module's checkpoint; measured 2026-11-29 by printing the PSNR
+# of the test below): a few dB under that, so that a change to the projection's numerics fails it,
+# while SwiftShader's and a GPU's rounding do not. (Issue 39's target was 35 dB.)
+PSNR_MIN_DB = 54.0
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:

@@ -65,11 +65,17 @@ def chromium() -> Iterator[object]:
 
 
 class PlayerPage:
-    """One open player page. ``params``: the page's URL parameters (docs/web.md)."""
+    """One open player page. ``params``: the page's URL parameters (docs/web.md). ``touch``: a
+    touch screen (touch events, pointers of type touch); ``fake_clock``: Playwright's clock drives
+    the page's time (requestAnimationFrame included), so a test can step playback by exact times
+    (``page.clock.run_for``) after ``page.clock.pause_at``."""
 
-    def __init__(self, browser, url: str, params: dict[str, object] | None = None, timeout_s: float = 60.0):
+    def __init__(self, browser, url: str, params: dict[str, object] | None = None, timeout_s: float = 60.0,
+                 touch: bool = False, fake_clock: bool = False):
         query = "&".join(f"{k}={v}" for k, v in (params or {}).items())
-        self.page = browser.new_page(device_scale_factor=1)
+        self.page = browser.new_page(device_scale_factor=1, has_touch=touch)
+        if fake_clock:
+            self.page.clock.install()
         self.page.set_default_timeout(timeout_s * 1000)
         self.console: list[str] = []
         self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))

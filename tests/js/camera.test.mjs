@@ -2,7 +2,7 @@
 import assert from 'node:assert/strict';
 import { test } from 'node:test';
 
-import { ViewCamera, cameraCenter, clampLimits, fitIntrinsics, project, transform, upDirection } from '../../atgs/web/player/camera.js';
+import { MAX_ZOOM_OUT_RADII, ViewCamera, cameraCenter, clampLimits, fitIntrinsics, project, transform, upDirection } from '../../atgs/web/player/camera.js';
 
 const close = (a, b, tol = 1e-9) => {
   assert.equal(a.length, b.length);
@@ -92,4 +92,21 @@ test('pan keeps the centre under the pointer; zoom scales its distance', () => {
 test('up direction is the mean of the cameras\' -y axes', () => {
   close(upDirection([{ w2c: W2C }]), [0, 0, 1]);
   close(upDirection([]), [0, 0, 1]);
+});
+
+test('zoom stops 0.001 radii from the centre and MAX_ZOOM_OUT_RADII away from it', () => {
+  const view = new ViewCamera({ center: [0, 0, 0], radius: 2, up: [0, 0, 1] });
+  view.setTraining(CAM, 0);  // 4 from the centre
+  const dist = () => Math.hypot(...cameraCenter(view.w2c));
+  view.zoom(1e-9);
+  close([dist()], [2e-3]);
+  view.zoom(1e9);
+  close([dist()], [MAX_ZOOM_OUT_RADII * 2], 1e-9);
+  // a view already beyond the limit may come closer, never go farther
+  const far = new ViewCamera({ center: [0, 0, 0], radius: 0.1, up: [0, 0, 1] });
+  far.setTraining(CAM, 0);
+  far.zoom(3);
+  close([Math.hypot(...cameraCenter(far.w2c))], [4]);
+  far.zoom(0.5);
+  close([Math.hypot(...cameraCenter(far.w2c))], [2]);
 });

@@ -5,6 +5,9 @@
 /** gsplat's Jacobian clamp margin (atgs.render.constants.CLAMP_MARGIN). */
 export const CLAMP_MARGIN = 0.3;
 
+/** How far zooming out goes, in scene radii from the orbit centre. */
+export const MAX_ZOOM_OUT_RADII = 20;
+
 /**
  * Intrinsics {width, height, fx, fy, cx, cy} drawn into a width x height canvas: scaled by
  * one factor (no stretching) so that the camera's whole image fits, centred. A canvas of the
@@ -183,13 +186,16 @@ export class ViewCamera {
   }
 
   /**
-   * Move the camera towards (factor < 1) or away from (factor > 1) the centre.
+   * Move the camera towards (factor < 1) or away from (factor > 1) the centre, no nearer than
+   * 0.001 scene radii and no farther than MAX_ZOOM_OUT_RADII (or where it is, if farther
+   * already): beyond that the scene is a dot and a wheel spun on finds no way back.
    * @param {number} factor distance multiplier
    */
   zoom(factor) {
     const C = cameraCenter(this.w2c);
-    const dist = Math.hypot(C[0] - this.center[0], C[1] - this.center[1], C[2] - this.center[2]);
-    const f = Math.max(factor, (1e-3 * this.radius) / Math.max(dist, 1e-12));
+    const dist = Math.max(Math.hypot(C[0] - this.center[0], C[1] - this.center[1], C[2] - this.center[2]), 1e-12);
+    const farthest = Math.max(dist, MAX_ZOOM_OUT_RADII * this.radius);
+    const f = Math.min(Math.max(factor, (1e-3 * this.radius) / dist), farthest / dist);
     const Cn = C.map((v, c) => this.center[c] + (v - this.center[c]) * f);
     const w = this.w2c;
     for (let r = 0; r < 3; r++) w[4 * r + 3] = -(w[4 * r] * Cn[0] + w[4 * r + 1] * Cn[1] + w[4 * r + 2] * Cn[2]);

@@ -2,12 +2,11 @@
 // index.html, plays the frames in time, and exposes the small test API (Player.api below).
 
 import { ViewCamera, fitIntrinsics, upDirection } from './camera.js';
+import { attachControls, fillHelp } from './controls.js';
 import { Renderer } from './renderer.js';
 import { Stream } from './stream.js';
 
 const SPEEDS = [0.25, 0.5, 1, 1.5, 2];
-const ORBIT_RADIANS_PER_PIXEL = 0.005;
-const ZOOM_PER_WHEEL_PIXEL = 0.001;
 
 /**
  * The page's options from its URL parameters (docs/web.md):
@@ -51,11 +50,12 @@ export class Player {
     this.el = {
       canvas: $('view'), error: $('error'), status: $('status'), play: $('play'), scrub: $('scrub'),
       readout: $('readout'), loop: $('loop'), speed: $('speed'), camera: $('camera'),
-      progress: $('progress'), progressText: $('progress-text'),
+      progress: $('progress'), progressText: $('progress-text'), help: $('help'), helpKeys: $('help-keys'),
     };
     this.stream = null;
     this.renderer = null;
     this.view = null;
+    this.homeCamera = 0;            // the training camera last chosen: where resetView returns
     this.manifest = null;
     this.error = null;              // the first error shown
     this.stopped = false;           // after a fatal error: nothing more is drawn
@@ -134,6 +134,7 @@ export class Player {
     if (this.options.frame >= n) throw new Error(`URL parameter frame=${this.options.frame}: the stream has ${n} frames (0..${n - 1})`);
     scrub.max = String(n - 1);
     scrub.addEventListener('input', () => this._requestFrame(Number(scrub.value)));
+    scrub.addEventListener('pointerdown', () => this._pauseWhileScrubbing());
     play.addEventListener('click', () => (this.playing ? this.pause() : this.play()));
     loop.checked = true;
     for (const s of SPEEDS) speed.add(new Option(`${s}x`, String(s), s === 1, s === 1));
@@ -142,13 +143,23 @@ export class Player {
     camera.addEventListener('change', () => {
       if (camera.value !== 'free') this.setCamera(Number(camera.value));
     });
-    this.doc.addEventListener('keydown', (e) => {
-      if (e.key === ' ' && e.target === this.doc.body) {
-        e.preventDefault();
-        if (this.playing) this.pause(); else this.play();
-      }
-    });
+    fillHelp(this.el.helpKeys);
     this._showPlaying();
+  }
+
+  // Playback holds while the scrub bar is dragged and goes on from where it is let go (not at the
+  // end of a video that does not loop), as a video player's does.
+  _pauseWhileScrubbing() {
+    if (!this.playing) return;
+    this.pause();
+    const win = this.doc.defaultView;
+    const resume = () => {
+      win.removeEventListener('pointerup', resume);
+      win.removeEventListener('pointercancel', resume);
+      if (this.el.loop.checked || Math.floor(this.position) < this.manifest.frames.length - 1) this.play();
+    };
+    win.addEventListener('pointerup', resume);
+    win.addEventListener('pointercancel', resume);
   }
 
   _setupView(manifest) {
@@ -172,38 +183,30 @@ export class Player {
       new ResizeObserver(fit).observe(canvas);
     }
     this.setCamera(index);
-    this._setupPointer(canvas);
+    attachControls(canvas, this._commands());
   }
 
-  _setupPointer(canvas) {
-    let drag = null;
-    canvas.addEventListener('contextmenu', (e) => e.preventDefault());
-    canvas.addEventListener('pointerdown', (e) => {
-      drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey };
-      canvas.setPointerCapture(e.pointerId);
-    });
-    canvas.addEventListener('pointermove', (e) => {
-      if (!drag) return;
-      const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
-      drag.x = e.clientX;
-      drag.y = e.clientY;
-      if (drag.pan) {
-        // CSS pixels to canvas pixels, then the scene under the pointer follows it
-        const k = canvas.width / Math.max(1, canvas.clientWidth);
-        this.view.pan(dx * k, dy * k, this._intrinsics());
-      } else {
-        this.view.orbit(dx * ORBIT_RADIANS_PER_PIXEL, dy * ORBIT_RADIANS_PER_PIXEL);
-      }
-      this.el.camera.value = 'free';
-    });
-    const end = () => { drag = null; };
-    canvas.addEventListener('pointerup', end);
-    canvas.addEventListener('pointercancel', end);
-    canvas.addEventListener('wheel', (e) => {
-      e.preventDefault();
-      this.view.zoom(Math.exp(e.deltaY * ZOOM_PER_WHEEL_PIXEL));
-      this.el.camera.value = 'free';
-    }, { passive: false });
+  // What the pointer, wheel and keys do (controls.js): view moves make the camera menu "free".
+  _commands() {
+    const free = () => { this.el.camera.value = 'free'; };
+    const n = this.manifest.frames.length, cams = this.manifest.cameras.length;
+    const speed = this.el.speed;
+    return {
+      orbit: (yaw, pitch) => { this.view.orbit(yaw, pitch); free(); },
+      pan: (dx, dy) => { this.view.pan(dx, dy, this._intrinsics()); free(); },
+      zoom: (factor) => { this.view.zoom(factor); free(); },
+      togglePlay: () => (this.playing ? this.pause() : this.play()),
+      step: (frames) => {
+        this.pause();
+        this._requestFrame(Math.min(n - 1, Math.max(0, Math.floor(this.position) + frames)));
+      },
+      seekFraction: (f) => this._requestFrame(Math.round(f * (n - 1))),
+      toggleLoop: () => { this.el.loop.checked = !this.el.loop.checked; },
+      changeSpeed: (d) => { speed.selectedIndex = Math.min(speed.length - 1, Math.max(0, speed.selectedIndex + d)); },
+      resetView: () => this.setCamera(this.homeCamera),
+      changeCamera: (d) => this.setCamera((((this.view.trainingIndex ?? this.homeCamera) + d) % cams + cams) % cams),
+      toggleHelp: () => { this.el.help.open = !this.el.help.open; },
+    };
   }
 
   async _loadEnvironment(env) {
@@ -249,6 +252,7 @@ export class Player {
     const cams = this.manifest.cameras;
     if (!Number.isInteger(i) || i < 0 || i >= cams.length) throw new RangeError(`camera ${i}: the stream has ${cams.length} cameras`);
     this.view.setTraining(cams[i], i);
+    this.homeCamera = i;
     this.el.camera.value = String(i);
     if (this.options.cameraSize) {
       const canvas = this.el.canvas;
@@ -369,7 +373,7 @@ export class Player {
    * - seek(i): Promise, resolved once exported frame i is drawn (waits for its chunk)
    * - setCamera(i): show training camera i; returns a Promise resolved once it is drawn
    * - play(), pause()
-   * - state(): {frame, frames, playing, buffering, camera (training index or null), loadedBytes,
+   * - state(): {frame, frames, playing, loop, speed, buffering, camera (training index or null), loadedBytes,
    *   totalBytes, framesDrawn, error, firstFrameMs (ms from navigation start to the first
    *   drawn frame), drawFps (draws per second over the last 2 s)}
    * - readPixels(): {width, height, encoding: 'base64', data}: the last drawn image (RGBA bytes,
@@ -398,6 +402,7 @@ export class Player {
         frame: this.frame,
         frames: this.manifest ? this.manifest.frames.length : 0,
         playing: this.playing,
+        loop: this.el.loop.checked, speed: Number(this.el.speed.value),
         buffering: this.buffering,
         camera: this.view ? this.view.trainingIndex : null,
         loadedBytes: this.stream ? this.stream.loadedBytes : 0,
