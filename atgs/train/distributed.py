@@ -4,8 +4,9 @@ Launch: ``torchrun --nproc-per-node N -m atgs.cli.train ...`` or ``atgs-train --
 runs torchrun's launcher in-process, atgs.cli.train); the workers meet through torch's env://
 rendezvous (RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT, set by torchrun). gloo on the CPU, NCCL on
 CUDA when every worker has a GPU of its own (else gloo through host memory: NCCL refuses two
-workers on one GPU). A :class:`Workers` is this process's place among them; one process trains
-without one (``Trainer(workers=None)``: the single-process path, untouched).
+workers on one GPU). A :class:`Workers` is this process's place among them and carries the
+collectives; how a run uses them is its partition's (atgs.train.partition: one process trains
+without one, ``Trainer(workers=None)``).
 
 What a step does on N workers (docs/training.md, "Several workers"):
 

@@ -17,7 +17,7 @@ run's (``--train.threads``) while the trainer works and is restored when it retu
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import replace
 import functools
@@ -35,12 +35,12 @@ from atgs.config_dict import from_dict, to_dict
 from atgs.point_cloud import PointCloud
 from atgs.data.scene import resize_frame
 from atgs.errors import UserError
-from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded, num_segments_for
+from atgs.model.atgs_model import ATGSModel, Decoded, num_segments_for
 from atgs.model.config import ModelConfig
 from atgs.model.culling import REFRESH_STEPS as REACH_REFRESH_STEPS
 from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
-from atgs.render import rasterize_gaussians, warm_up
+from atgs.render import RasterOutput, rasterize_gaussians, warm_up
 from atgs.render.environment import EnvironmentMap
 from atgs.threads import torch_threads
 from atgs.timeline import evenly_spaced
@@ -380,7 +380,7 @@ class Trainer:
         return True
 
     def _render(self, dec: Decoded, view: View, k: int, ci: int, cam: Camera, rate: float,
-                views: StepViews) -> tuple[torch.Tensor, Camera, object]:
+                views: StepViews) -> tuple[torch.Tensor, Camera, RasterOutput]:
         """The view's ``k``-th camera (training camera ``ci``): its render of the decode (with
         Gaussian dropout at ``rate``) and its loss, noted in ``views``; returns (loss, cam, render)."""
         q = self.model.cfg.gaussians_per_anchor
