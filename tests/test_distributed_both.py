@@ -1,4 +1,4 @@
-"""Several workers partitioned by both (--train.partition both, atgs.train.time_partition): four gloo
+"""Several workers partitioned by both (--train.partition both, atgs.train.partition.both): four gloo
 workers in two time groups of two. Each group holds one block of time segments, as a worker of the
 time partition does, and its two workers share each of its steps' views, as the views partition
 shares a step. So the run must equal the time partition on two workers (each a whole time group),
@@ -65,9 +65,10 @@ def _both_worker(rank: int, world: int, port: int, d: Path) -> None:
     try:
         tr = _trainer(d / "both", workers, "both")
         _in_halves(tr, d, "both")
-        seen = {"time_rank": tr.time_rank, "crew": [tr.crew.rank, tr.crew.world], "grids": tr.model.hash.num_grids,
-                "segments": [tr.part.segments.start, tr.part.segments.stop], "own": tr.own_eval_frames(),
-                "all": tr.eval_frames(), "periodic": tr._evaluate_on_every_worker(),
+        p = tr.partition
+        seen = {"time_rank": p.time_rank, "crew": [p.crew.rank, p.crew.world], "grids": tr.model.hash.num_grids,
+                "segments": [p.part.segments.start, p.part.segments.stop], "own": tr.own_eval_frames(),
+                "all": tr.eval_frames(), "periodic": tr.periodic_evaluation(),
                 "final": tr.final_evaluation(None)}
         (d / f"both{rank}.json").write_text(json.dumps(seen))
         _resumed(d, "time_half.pt", "time_then_both", workers, partition="both")
@@ -119,9 +120,9 @@ def test_each_time_group_holds_its_segments_and_its_workers_split_the_evaluation
 def _unreduced_worker(rank: int, world: int, port: int, d: Path) -> None:
     """The run by both with a wrong exchange: each worker keeps its own share of the owned
     gradients (the time group's workers never sum them)."""
-    from atgs.train import time_partition
+    from atgs.train.partition import both
 
-    time_partition.reduce_owned = lambda crew, owned, tables, reach: owned
+    both.reduce_owned = lambda crew, owned, tables, reach: owned
     workers = _join(rank, world, port)
     try:
         tr = _trainer(d / "unreduced", workers, "both")

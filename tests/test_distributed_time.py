@@ -1,4 +1,4 @@
-"""Several workers partitioned by time (--train.partition time, atgs.train.time_partition): two gloo
+"""Several workers partitioned by time (--train.partition time, atgs.train.partition.time): two gloo
 workers on the CPU each hold their time segments' tables and the anchors their frames reach, keep
 the shared parameters identical, write one checkpoint that one process loads, and resume 2 -> 1
 and 1 -> 2. Equality with a one-process run is not expected: each worker draws its own views."""
@@ -48,7 +48,7 @@ def _join(rank: int, world: int, port: int):
 
 def _run_recorded(tr, stop_at=None) -> dict:
     """Run ``tr`` recording the hash rows its own views touched; returns what the checks read."""
-    from atgs.train import time_partition
+    from atgs.train.partition import time as time_partition
 
     start = tr.model.hash.table.clone()
     touched = []
@@ -63,13 +63,14 @@ def _run_recorded(tr, stop_at=None) -> dict:
         tr.run_steps(progress=False, stop_at=stop_at)
     finally:
         time_partition.keep_owned = keep_owned
-    m, n = tr.model, tr.part.num_shared(tr.model)
+    part = tr.partition.part
+    m, n = tr.model, part.num_shared(tr.model)
     shared = {"spatial": m.spatial.table, "exposure": tr.exposure.table,
               **{f"decoder/{k}": v for k, v in m.decoder.state_dict().items()},
               **{name: getattr(m, name)[:n] for name in ("anchor_mu", "anchor_keyframe", "anchor_feature",
                                                           "anchor_log_scale", "anchor_velocity", "anchor_fade")},
               **{f"adam/{k}": getattr(tr.sparse_opt, k)["spatial"] for k in ("exp_avg", "exp_avg_sq", "steps")}}
-    return {"segments": (tr.part.segments.start, tr.part.segments.stop), "num_shared": n,
+    return {"segments": (part.segments.start, part.segments.stop), "num_shared": n,
             "num_anchors": m.num_anchors, "hash": m.hash.table.clone(), "start": start,
             "touched": torch.unique(torch.cat(touched)) if touched else torch.zeros(0, dtype=torch.int64),
             "tmlp_w1": m.tmlp_w1.clone(), "own_feature": m.anchor_feature[n:].clone(),
@@ -101,7 +102,7 @@ def _worker(rank: int, world: int, port: int, d: Path) -> None:
 
 def _broken(rank: int, world: int, port: int, d: Path, variant: str) -> None:
     """The same run with a wrong exchange: an owned table reduced, or a shared one not."""
-    from atgs.train import time_partition
+    from atgs.train.partition import time as time_partition
 
     if variant == "owned reduced":
         time_partition.EXCHANGED["hash"] = "all"
@@ -225,7 +226,7 @@ def _eval_worker(rank: int, world: int, port: int, d: Path) -> None:
         for partition in ("time", "views"):
             tr = _trainer(d / partition, workers, partition=partition)
             tr.run_steps(progress=False, stop_at=3)
-            out[partition] = {"ev": tr._evaluate_on_every_worker(), "own": tr.own_eval_frames(),
+            out[partition] = {"ev": tr.periodic_evaluation(), "own": tr.own_eval_frames(),
                               "all": tr.eval_frames()}
             tr.save(d / f"{partition}.pt")
             out[partition]["final"] = tr.final_evaluation(d / f"{partition}-eval")  # rank 0: the figures

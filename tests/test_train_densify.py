@@ -88,3 +88,42 @@ def test_record_accumulates_visible_gaussians():
     assert stats.grad_count[slots[0]] == 0 and stats.grad_count[slots[1]] == 1
     assert stats.grad_accum[slots[1]].item() == torch.tensor([10.0, 5.0]).norm().item()
     torch.testing.assert_close(stats.opacity_accum[dec.active], dec.raw.opacities.sum(1))
+
+
+def test_the_statistics_travel_as_flat_buffers_and_rows_that_they_restore_themselves() -> None:
+    """What several workers move of the statistics (atgs.train.distributed, the time partition's
+    checkpoint parts), against slices of the fields written out by hand."""
+    q, g = 3, torch.Generator().manual_seed(0)
+    s = DensifyStats(*(torch.rand(shape, generator=g) for shape in ((5 * q,), (5 * q,), (5 * q, 3), (5,), (5,))))
+    block = range(1, 4)
+    flat = s.flat_sums(block)
+    assert torch.equal(flat, torch.cat([s.grad_accum[3:12], s.grad_count[3:12], s.opacity_accum[1:4],
+                                        s.anchor_count[1:4]]))
+    other = DensifyStats.zeros(5, q)
+    other.restore_sums(block, flat)
+    assert torch.equal(other.grad_count[3:12], s.grad_count[3:12]) and torch.equal(other.anchor_count[1:4], s.anchor_count[1:4])
+    assert not other.grad_count[:3].any() and not other.opacity_accum[4:].any() and not other.last_pos.any()
+    assert torch.equal(s.positions(block), s.last_pos[3:12])
+    kept = s.last_pos.clone()
+    s.set_positions(block, torch.zeros(9, 3))
+    assert not s.last_pos[3:12].any() and torch.equal(s.last_pos[:3], kept[:3]) and torch.equal(s.last_pos[12:], kept[12:])
+    before = s.state_dict()
+    before = {k: v.clone() for k, v in before.items()}
+    s.zero_sums(range(4, 5))
+    assert not s.grad_accum[12:].any() and not s.anchor_count[4:].any() and torch.equal(s.grad_accum[:12], before["grad_accum"][:12])
+    rows = s.rows_from(2)
+    assert list(rows) == list(s.state_dict())
+    assert all(torch.equal(rows[k], v[2 * q:] if v.shape[0] == 5 * q else v[2:]) for k, v in s.state_dict().items())
+
+
+def test_the_sparse_optimizer_state_gives_rows_of_its_tables() -> None:
+    tables = {"a": torch.rand(6, 2), "b": torch.rand(4)}
+    opt = SparseAdam(tables, backend="torch")
+    opt.step("a", tables["a"], torch.tensor([1, 4]), torch.rand(2, 2), 0.1)
+    state = opt.state_dict()
+    assert {k: v.shape[0] for k, v in opt.rows_from("a", 3).items()} == {"exp_avg": 3, "exp_avg_sq": 3, "steps": 3}
+    assert torch.equal(opt.rows_from("a", 3)["steps"], torch.tensor([0, 1, 0]))
+    kept = SparseAdam.rows_of_state(state, ("a",), torch.tensor([4, 1]))
+    assert torch.equal(kept["exp_avg"]["a"], state["exp_avg"]["a"][[4, 1]]) and kept["steps"]["b"] is state["steps"]["b"]
+    assert SparseAdam.state_paths("b") == [("exp_avg", "b"), ("exp_avg_sq", "b"), ("steps", "b")]
+    assert all(state[key][name] is not None for key, name in SparseAdam.state_paths("a"))

@@ -71,7 +71,8 @@ class TrainArgs:
     """Worker processes on this machine, each rendering its share of every step's views, their
     gradients summed (torch.distributed: gloo on the CPU, NCCL on CUDA; docs/training.md, "Several
     workers"). N > 1 runs torchrun's launcher here (as torchrun --nproc-per-node N -m
-    atgs.cli.train would); --train.views-per-step must be at least N."""
+    atgs.cli.train would); without --train.views-per-step, a new run takes at least N views per
+    step (one each; a value given must be at least N)."""
     max_restarts: int = 0
     """With --workers N: after a worker fails (killed, crashed, lost), torchrun restarts all of
     them this many times; the restarted workers continue from the last checkpoint of this start's
@@ -203,6 +204,7 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     scene = load_scene(args)
     if args.auto:
         apply_auto(args, scene, explicit)
+    chosen = _views_for_workers(args, explicit, workers)
     trainer = Trainer(scene, args.model, args.train, args.out, device=device, progress=args.progress, workers=workers)
     # config.json: these, and the configuration of each checkpoint (what ran; atgs.train.run_dir)
     trainer.run.stage_config({"preset": args.preset, "data": str(args.data) if args.data else None,
@@ -210,7 +212,7 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     m = trainer.model
     print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
           f"{scene.num_frames} frames, {len(trainer.train_idx)} training / {len(trainer.test_idx)} test cameras, "
-          f"on {_where(device, workers, trainer)}; "
+          f"on {_where(device, workers, trainer)}{chosen}; "
           + (f"{args.train.minutes:g} min time budget" if args.train.minutes > 0 else f"{args.train.iterations} steps"))
     sparse = sparse_rig_warning([scene.cameras[i] for i in trainer.train_idx],
                                 ((getattr(scene, "coverage", None) or {}).get("views_per_pixel") or {}).get("mean"))
@@ -228,10 +230,23 @@ def _where(device, workers, trainer) -> str:
     """Where the run trains and how the workers split it, for the start-up line."""
     if workers is None:
         return device_description(device)
-    g = trainer.time_groups
-    split = ("partitioned by views" if g == 1 else "partitioned by time" if g == workers.world
-             else f"partitioned by both: {g} time groups of {workers.world // g}")
-    return device_description(device) + f" x {workers.world} workers ({workers.backend}, {split})"
+    return device_description(device) + f" x {workers.world} workers ({workers.backend}, {trainer.partition.describe()})"
+
+
+def _views_for_workers(args: TrainArgs, explicit: set[str], workers) -> str:
+    """A new run on several workers without --train.views-per-step: as many views per step as
+    they need (atgs.train.distributed.views_that_work), set in ``args``; returns the start-up
+    line's note of the choice ("" when none was made). A value given keeps its check."""
+    from atgs.train.distributed import views_that_work
+
+    if workers is None or "train.views_per_step" in explicit:
+        return ""
+    t = args.train
+    views = views_that_work(t.views_per_step, workers.world, t.partition, t.time_groups, workers.nodes)
+    if views == t.views_per_step:
+        return ""
+    args.train = replace(t, views_per_step=views)
+    return f", {views} views per step (--train.views-per-step not given; {t.views_per_step} is too few for them)"
 
 
 def run(args: TrainArgs, explicit: set[str] = frozenset()) -> dict:
@@ -357,7 +372,7 @@ def launch_workers(argv: list[str], args: TrainArgs) -> int:
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import get_args_parser, run as torchrun
 
-    from atgs.train.distributed import check_settings
+    from atgs.train.distributed import check_settings, views_that_work
 
     for name in list(logging.root.manager.loggerDict):  # (and those loaded already): this process says what failed
         if name.startswith("torch.distributed"):
@@ -373,7 +388,10 @@ def launch_workers(argv: list[str], args: TrainArgs) -> int:
     given = given_flags(argv, "--train.")
     partition = args.train.partition if "partition" in given else cfg.partition
     groups = args.train.time_groups if "time-groups" in given else cfg.time_groups
-    check_settings(cfg.views_per_step, n, partition, groups)  # (one machine: one node)
+    views = cfg.views_per_step
+    if not args.resume and "views-per-step" not in given:  # (the workers choose as many as they need)
+        views = views_that_work(views, n, partition, groups)
+    check_settings(views, n, partition, groups)  # (one machine: one node)
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
     launcher = get_args_parser().parse_args(["--standalone", f"--nproc-per-node={n}",
                                              f"--max-restarts={args.max_restarts}", "--module", "atgs.cli.train", *argv])
@@ -415,7 +433,8 @@ def main(argv: list[str] | None = None) -> int:
             return launch_workers(argv, args)
         # (--train.partition / --train.time-groups on a resume: the workers split the run from here on so)
         given = given_flags(argv, "--train.")
-        partition = {f"train.{k.replace('-', '_')}" for k in ("partition", "time-groups") if k in given}
+        partition = {f"train.{k.replace('-', '_')}" for k in ("partition", "time-groups", "views-per-step")
+                     if k in given}
         result = run(args, explicit_model_flags(argv) | partition)
         return EXIT_INTERRUPTED if "stopped_early" in result else None  # (a worker other than rank 0)
 

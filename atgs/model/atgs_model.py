@@ -101,7 +101,7 @@ class ATGSModel:
                  seed: int = 0, clearance: float = 0.0, segments: range | None = None,
                  draw_hash: bool = True) -> None:
         """``segments``: the per-segment tables (hash grids, temporal MLPs) hold only these
-        segments' rows (a worker of the time partition, atgs.train.time_partition): decoding
+        segments' rows (a worker of the time partition, atgs.train.partition.time_slice): decoding
         then reaches only frames of these segments; None: all of them. ``draw_hash=False``: the
         hash table is left uninitialised, for a loaded one (:meth:`from_state`)."""
         self.cfg, self.timeline = cfg, timeline

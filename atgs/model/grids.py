@@ -169,7 +169,7 @@ class HashGrid4D:
                  generator: torch.Generator | None = None, backend: str = "auto",
                  grids: range | None = None, draw: bool = True) -> None:
         """``grids``: keep only these grids' rows (a worker of the time partition,
-        atgs.train.time_partition; the generator is still advanced over all of them, one grid's
+        atgs.train.partition.time_slice; the generator is still advanced over all of them, one grid's
         draws at a time); the table then holds ``len(grids)`` grids, queried by local index.
         ``draw=False``: leave the table uninitialised (a loaded table replaces it)."""
         self.levels, self.features = int(levels), int(features)

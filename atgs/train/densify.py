@@ -24,8 +24,17 @@ from atgs.train.config import DensifyConfig
 from atgs.train.optim import SparseAdam
 
 
+_PER_SLOT = ("grad_accum", "grad_count", "last_pos")  # per Gaussian slot (anchor * q + slot)
+_PER_ANCHOR = ("opacity_accum", "anchor_count")
+_SUMS = ("grad_accum", "grad_count", "opacity_accum", "anchor_count")  # summed over views (and workers)
+
+
 @dataclass
 class DensifyStats:
+    """The statistics growth and pruning read. Several workers (atgs.train.distributed) move
+    them as flat buffers and rows of anchors (:meth:`flat_sums`, :meth:`rows_from`): only this
+    class knows its fields."""
+
     grad_accum: torch.Tensor  # (A*q,)
     grad_count: torch.Tensor  # (A*q,)
     last_pos: torch.Tensor  # (A*q, 3)
@@ -41,6 +50,52 @@ class DensifyStats:
     @property
     def device(self) -> torch.device:
         return self.grad_accum.device
+
+    @property
+    def num_slots(self) -> int:
+        return self.grad_accum.numel()
+
+    @property
+    def num_anchors(self) -> int:
+        return self.opacity_accum.numel()
+
+    @property
+    def slots_per_anchor(self) -> int:
+        return self.num_slots // max(1, self.num_anchors)
+
+    def _rows(self, name: str, anchors: range) -> torch.Tensor:
+        per = self.slots_per_anchor if name in _PER_SLOT else 1
+        return getattr(self, name)[anchors.start * per:anchors.stop * per]
+
+    # --- as buffers (several workers sum them, a checkpoint gathers them) -------------------
+    def flat_sums(self, anchors: range) -> torch.Tensor:
+        """The sums (everything but the last positions) of ``anchors``, as one flat buffer."""
+        return torch.cat([self._rows(name, anchors).reshape(-1) for name in _SUMS])
+
+    def restore_sums(self, anchors: range, flat: torch.Tensor) -> None:
+        """Overwrite ``anchors``' sums with a buffer of :meth:`flat_sums`' layout."""
+        at = 0
+        with torch.no_grad():
+            for name in _SUMS:
+                rows = self._rows(name, anchors)
+                rows.copy_(flat[at:at + rows.numel()].view_as(rows))
+                at += rows.numel()
+
+    def zero_sums(self, anchors: range) -> None:
+        for name in _SUMS:
+            self._rows(name, anchors).zero_()
+
+    def positions(self, anchors: range) -> torch.Tensor:
+        """(slots, 3): the last positions of ``anchors``' slots."""
+        return self._rows("last_pos", anchors)
+
+    def set_positions(self, anchors: range, positions: torch.Tensor) -> None:
+        q = self.slots_per_anchor
+        self.last_pos = torch.cat([self.last_pos[:anchors.start * q], positions, self.last_pos[anchors.stop * q:]])
+
+    def rows_from(self, first_anchor: int) -> dict[str, torch.Tensor]:
+        """Every field's rows of the anchors from ``first_anchor`` on, by :meth:`state_dict` name."""
+        return {name: self._rows(name, range(first_anchor, self.num_anchors)) for name in self.__dataclass_fields__}
 
     def record(self, dec: Decoded, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int,
                height: int, q: int) -> torch.Tensor | None:
@@ -71,9 +126,9 @@ class DensifyStats:
             slot_keep = keep[:, None].expand(-1, q).reshape(-1)
         else:
             slot_keep = (keep[:, None] * q + torch.arange(q, device=keep.device)).reshape(-1)
-        for name in ("grad_accum", "grad_count", "last_pos"):
+        for name in _PER_SLOT:
             setattr(self, name, getattr(self, name)[slot_keep])
-        for name in ("opacity_accum", "anchor_count"):
+        for name in _PER_ANCHOR:
             setattr(self, name, getattr(self, name)[keep])
 
     def state_dict(self) -> dict:

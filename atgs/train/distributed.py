@@ -4,8 +4,9 @@ Launch: ``torchrun --nproc-per-node N -m atgs.cli.train ...`` or ``atgs-train --
 runs torchrun's launcher in-process, atgs.cli.train); the workers meet through torch's env://
 rendezvous (RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT, set by torchrun). gloo on the CPU, NCCL on
 CUDA when every worker has a GPU of its own (else gloo through host memory: NCCL refuses two
-workers on one GPU). A :class:`Workers` is this process's place among them; one process trains
-without one (``Trainer(workers=None)``: the single-process path, untouched).
+workers on one GPU). A :class:`Workers` is this process's place among them and carries the
+collectives; how a run uses them is its partition's (atgs.train.partition: one process trains
+without one, ``Trainer(workers=None)``).
 
 What a step does on N workers (docs/training.md, "Several workers"):
 
@@ -24,7 +25,7 @@ What a step does on N workers (docs/training.md, "Several workers"):
   growing and pruning then run on every worker from the same statistics and the same generator.
 
 So every worker holds the same model, rank 0 writes the checkpoint, and a checkpoint resumes on any
-number of workers. Partitioned by time or by both (atgs.train.time_partition), the same exchange
+number of workers. Partitioned by time or by both (atgs.train.partition), the same exchange
 carries only what every worker holds, and a time group's workers (a :meth:`Workers.crew`, a
 process group of their own) run it among themselves for what their group owns.
 """
@@ -33,7 +34,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 from datetime import timedelta
 import math
@@ -41,7 +42,6 @@ import os
 import re
 import time
 
-import numpy as np
 import torch
 import torch.distributed as dist
 
@@ -50,6 +50,7 @@ from atgs.errors import UserError
 from atgs.io.torch_zip import Streamed
 from atgs.model.culling import AnchorReach
 from atgs.train.optim import merge_rows
+from atgs.train.step import StepViews
 
 _HEADER = 6  # bad, stop, loss sum, PSNR sum, renders, Gaussians rendered
 REACH = "reach"  # the sparse part's last item: anchors' reach, reduced by max
@@ -65,7 +66,7 @@ def time_groups_of(partition: str, workers: int, asked: int = 0, nodes: int = 1)
     """How many blocks of time segments ``workers`` workers split the model into: none for the
     views partition (1: everyone holds all), one per worker for the time partition, and for both
     at once ``asked`` (--train.time-groups; 0: one per node, torchrun's --nnodes), each block's
-    views shared by ``workers / groups`` workers (atgs.train.time_partition)."""
+    views shared by ``workers / groups`` workers (atgs.train.partition.time_slice)."""
     if partition == "views" or workers <= 1:
         return 1
     if partition == "time":
@@ -85,44 +86,28 @@ def time_group_of(rank: int, workers: int, groups: int) -> int:
     return rank // (workers // groups)
 
 
+def sharing_workers(workers: int, partition: str = "views", time_groups: int = 0, nodes: int = 1) -> int:
+    """How many workers share each step's views: all of them partitioned by views, a time
+    group's partitioned by both, one partitioned by time (each draws its own)."""
+    return workers // time_groups_of(partition, workers, time_groups, nodes) if workers > 1 else 1
+
+
 def check_settings(views_per_step: int, workers: int, partition: str = "views", time_groups: int = 0,
                    nodes: int = 1) -> None:
     """Refuse settings that N workers cannot train as one process would: the workers that share a
-    step's views (all of them partitioned by views, a time group's partitioned by both) need one
-    view each at least; partitioned by time, every worker draws its own (atgs.train.time_partition)."""
-    if workers <= 1:
-        return
-    sharing = workers // time_groups_of(partition, workers, time_groups, nodes)
+    step's views (:func:`sharing_workers`) need one view each at least."""
+    sharing = sharing_workers(workers, partition, time_groups, nodes)
     if views_per_step < sharing:
         who = f"{sharing} workers" if sharing == workers else f"the {sharing} workers of each time group"
         raise ConfigError(f"{who} share each step's views, but --train.views-per-step is "
                           f"{views_per_step}; pass --train.views-per-step {sharing} (or a multiple of it)")
 
 
-@dataclass
-class StepViews:
-    """What one step's views leave for the update: all of the step's views in one process, this
-    worker's share on several (until :meth:`Workers.reduce_step` puts everyone's in)."""
-
-    grads: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = field(default_factory=dict)  # table -> (rows, grad)
-    losses: list[torch.Tensor] = field(default_factory=list)  # per render
-    psnrs: list[torch.Tensor] = field(default_factory=list)
-    n_gauss: int = 0
-    bad: bool = False  # a non-finite decode or loss: the step changes nothing
-    segments: list[int] = field(default_factory=list)  # of every view of the step
-    decoded: list[torch.Tensor] = field(default_factory=list)  # anchors each decode measured the reach of
-    totals: tuple[float, float, int, int] | None = None  # all workers' (loss sum, PSNR sum, renders, Gaussians)
-
-    def means(self) -> tuple[float, float, int] | None:
-        """(mean loss, mean PSNR, Gaussians per render) of the step's renders; None without any."""
-        if self.totals is not None:
-            loss, p, n, g = self.totals
-            return (loss / n, p / n, g // n) if n else None
-        if not self.losses:
-            return None
-        values = torch.cat([torch.stack(self.losses).double(), torch.stack(self.psnrs).double()]).tolist()
-        n = len(self.losses)
-        return float(np.mean(values[:n])), float(np.mean(values[n:])), self.n_gauss // n
+def views_that_work(views_per_step: int, workers: int, partition: str = "views", time_groups: int = 0,
+                    nodes: int = 1) -> int:
+    """The views per step of a run whose --train.views-per-step was not given: the preset's, or
+    the fewest that the workers sharing a step can split (one each) when the preset's are fewer."""
+    return max(views_per_step, sharing_workers(workers, partition, time_groups, nodes))
 
 
 @dataclass
@@ -447,7 +432,7 @@ class Workers:
     def note_positions(self, stats, slots: torch.Tensor, stamp: int) -> None:
         """Slots whose last position this worker's view ``stamp`` (step * views + view) just wrote
         (not collective)."""
-        n = stats.grad_accum.numel()
+        n = stats.num_slots
         if self._written is None or self._written.numel() != n:
             self._written = torch.full((n,), -1, dtype=torch.int64, device=stats.device)
         self._written.index_fill_(0, slots, stamp)
@@ -458,32 +443,25 @@ class Workers:
         worker's views and the last positions of the latest views (the same on every worker);
         afterwards rank 0 keeps the sums and the others count their own views from zero.
         ``anchors``: only these anchors' statistics (the time partition's shared anchors, or a
-        time group's own ones; the others are left as they are), read before and after the block."""
-        total = stats.grad_accum.numel()
-        per = total // max(1, stats.opacity_accum.numel())
-        block = range(stats.opacity_accum.numel()) if anchors is None else anchors()
-        a0, a1 = block.start, block.stop
-        n0, n1 = a0 * per, a1 * per
-        written = (self._written[n0:n1] if self._written is not None and self._written.numel() == total
+        time group's own ones; the others are left as they are), read before and after the block.
+        (The statistics travel as the buffers they flatten themselves into.)"""
+        block = range(stats.num_anchors) if anchors is None else anchors()
+        n0, n1 = block.start * stats.slots_per_anchor, block.stop * stats.slots_per_anchor
+        written = (self._written[n0:n1] if self._written is not None and self._written.numel() == stats.num_slots
                    else torch.full((n1 - n0,), -1, dtype=torch.int64, device=stats.device))
         latest = written.to(self.comm, copy=True)
         self._call(dist.all_reduce, latest, op=dist.ReduceOp.MAX, group=self.group)
         latest = latest.to(stats.device)
         mine = (written == latest) & (latest >= 0)
-        sums = (stats.grad_accum[n0:n1], stats.grad_count[n0:n1], stats.opacity_accum[a0:a1], stats.anchor_count[a0:a1])
-        last = stats.last_pos[n0:n1]
+        last = stats.positions(block)
         ours = torch.where(mine[:, None], last, torch.zeros_like(last))
-        buf = torch.cat([s.reshape(-1) for s in sums] + [ours.reshape(-1)]).to(self.comm)
+        buf = torch.cat([stats.flat_sums(block), ours.reshape(-1)]).to(self.comm)
         self._call(dist.all_reduce, buf, group=self.group)
         self.traffic.statistics += buf.numel() * buf.element_size() + latest.numel() * latest.element_size()
         buf = buf.to(stats.device)
-        at = 0
-        with torch.no_grad():
-            for s in sums:
-                s.copy_(buf[at:at + s.numel()].view_as(s))
-                at += s.numel()
-        last = torch.where((latest >= 0)[:, None], buf[at:].view_as(last), last)
-        stats.last_pos = torch.cat([stats.last_pos[:n0], last, stats.last_pos[n1:]])
+        sums = buf.numel() - ours.numel()
+        stats.restore_sums(block, buf[:sums])
+        stats.set_positions(block, torch.where((latest >= 0)[:, None], buf[sums:].view_as(last), last))
         try:
             yield
         finally:
@@ -495,9 +473,4 @@ class Workers:
         what was summed before): after a reduction, and on a resume (not collective).
         ``anchors``: only these ones' (see :meth:`stats_reduced`)."""
         if self.rank != 0:
-            block = range(stats.opacity_accum.numel()) if anchors is None else anchors
-            per = stats.grad_accum.numel() // max(1, stats.opacity_accum.numel())
-            for name in ("grad_accum", "grad_count"):
-                getattr(stats, name)[block.start * per:block.stop * per].zero_()
-            for name in ("opacity_accum", "anchor_count"):
-                getattr(stats, name)[block.start:block.stop].zero_()
+            stats.zero_sums(range(stats.num_anchors) if anchors is None else anchors)

@@ -55,6 +55,8 @@ def _taken_over(saved: dict[str, torch.Tensor], tables: dict[str, torch.Tensor],
 
 
 class SparseAdam:
+    STORES = ("exp_avg", "exp_avg_sq", "steps")  # per table: a row each (the state's layout)
+
     def __init__(self, tables: dict[str, torch.Tensor], betas: tuple[float, float] = (0.9, 0.999),
                  eps: float = 1e-15, backend: str = "auto", state: dict | None = None) -> None:
         """``state``: a saved :meth:`state_dict` of these tables to continue from, taken over
@@ -63,7 +65,7 @@ class SparseAdam:
         if backend not in OPTIM_BACKENDS:
             raise ValueError(f"SparseAdam backend must be one of {OPTIM_BACKENDS}, got {backend!r}")
         self.betas, self.eps, self.backend = betas, eps, backend
-        for key in ("exp_avg", "exp_avg_sq", "steps"):
+        for key in self.STORES:
             setattr(self, key, _taken_over({} if state is None else state[key], tables, key))
         # build the kernel now (seconds, once per version), not inside a time-budgeted step
         self._kernel = _compiled_kernel() if backend == "auto" and any(
@@ -131,4 +133,21 @@ class SparseAdam:
             store[name] = store[name][keep].contiguous()
 
     def state_dict(self) -> dict:
-        return {"exp_avg": dict(self.exp_avg), "exp_avg_sq": dict(self.exp_avg_sq), "steps": dict(self.steps)}
+        return {key: dict(getattr(self, key)) for key in self.STORES}
+
+    # --- rows of the state (several workers: a worker's share, a checkpoint's pieces) -----------
+    def rows_from(self, name: str, first: int) -> dict[str, torch.Tensor]:
+        """Table ``name``'s state from row ``first`` on, by :meth:`state_dict` key."""
+        return {key: getattr(self, key)[name][first:] for key in self.STORES}
+
+    @classmethod
+    def state_paths(cls, name: str) -> list[tuple[str, str]]:
+        """Where table ``name``'s rows are in a :meth:`state_dict`."""
+        return [(key, name) for key in cls.STORES]
+
+    @classmethod
+    def rows_of_state(cls, state: dict, names: "set[str] | tuple[str, ...]", ids: torch.Tensor) -> dict:
+        """A :meth:`state_dict` with only the rows ``ids`` of the tables ``names`` (the others whole)."""
+        ids = ids.cpu()
+        return {key: {name: (rows[ids.to(rows.device)].contiguous() if name in names else rows)
+                      for name, rows in state[key].items()} for key in cls.STORES}

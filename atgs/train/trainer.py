@@ -4,8 +4,10 @@ non-finite values, periodic evaluation (through atgs.eval), checkpoints and resu
 What the trainer needs around the loop lives next to it, one module each: the set-up from the
 scene (``scene_setup``), the loss terms (``loss_terms``), the learning rates (``schedule``), the
 schedule's sizing to a step count (``step_schedule``), the time budget (``budget``) and the files
-of the output directory (``run_dir``). Several workers training one run together: ``distributed``
-(each renders its share of a step's views; ``Trainer(workers=...)``).
+of the output directory (``run_dir``), the types of a step (``step``). How the run is split among
+processes is a strategy of ``partition`` (one process, or several workers partitioned by views,
+by time or by both: ``Trainer(workers=...)``, atgs.train.distributed); the trainer asks it and
+holds no branch of its own for workers.
 
 Device: the model, optimizer states, densification statistics, image cache and everything a
 step creates live on ``device``; rasterization goes through ``atgs.render`` (gsplat for CUDA
@@ -15,9 +17,9 @@ run's (``--train.threads``) while the trainer works and is restored when it retu
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import AbstractContextManager, ExitStack, nullcontext
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import replace
 import functools
 import math
 from pathlib import Path
@@ -33,27 +35,27 @@ from atgs.config_dict import from_dict, to_dict
 from atgs.point_cloud import PointCloud
 from atgs.data.scene import resize_frame
 from atgs.errors import UserError
-from atgs.model.atgs_model import ANCHOR_TABLES, ATGSModel, Decoded, num_segments_for
+from atgs.model.atgs_model import ATGSModel, Decoded, num_segments_for
 from atgs.model.config import ModelConfig
 from atgs.model.culling import REFRESH_STEPS as REACH_REFRESH_STEPS
 from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
-from atgs.render import rasterize_gaussians, warm_up
+from atgs.render import RasterOutput, rasterize_gaussians, warm_up
 from atgs.render.environment import EnvironmentMap
 from atgs.threads import torch_threads
 from atgs.timeline import evenly_spaced
 from atgs.train.budget import TimeBudget
 from atgs.train.config import TrainConfig
-from atgs.train.densify import DensifyStats, grow_anchors, prune_anchors, prune_final
-from atgs.train.distributed import StepViews, Workers, check_settings, time_group_of, time_groups_of
-from atgs.train import time_partition
-from atgs.train.time_partition import TimeSlice, segment_block
+from atgs.train.densify import DensifyStats, prune_anchors, prune_final
+from atgs.train.distributed import Workers
+from atgs.train.partition import Partition, partition_of
 from atgs.train.dropout import drop_gaussians, drop_rate, render_generator
 from atgs.train.exposure import CameraExposure, measure_scene_exposure
 from atgs.train.generalisation import evaluation_gap_warning
 from atgs.train.loss_terms import LossInputs, RenderedView, total_loss, weighted_terms
 from atgs.train.losses import psnr
 from atgs.train.optim import SparseAdam, merge_rows
+from atgs.train.step import StepResult, StepViews, View
 from atgs.train.run_dir import RunDir
 from atgs.train.sampling import ImageCache, SegmentSampler
 from atgs.train.scene_setup import (check_backend, free_space_of, measured_depths_of, model_from_scene,
@@ -98,24 +100,6 @@ class NonFiniteError(UserError, RuntimeError):
     """Training diverged (too many non-finite steps in a row); the message names the fix."""
 
 
-@dataclass
-class View:
-    """One view of a step: a frame, decoded once, rendered from ``cams`` (training camera indices)."""
-
-    index: int  # in the step's views
-    cams: list[int]
-    frame: int
-    backgrounds: list | None = None  # drawn in advance (several workers); None: drawn at render time
-
-
-@dataclass
-class StepResult:
-    loss: float
-    psnr: float
-    gaussians: int
-    skipped: bool
-
-
 def _in_run_threads(method: Callable) -> Callable:
     """Run a Trainer method with the run's torch thread count (--train.threads), then restore
     torch's (nested calls keep it)."""
@@ -129,24 +113,22 @@ def _in_run_threads(method: Callable) -> Callable:
 class Trainer:
     def __init__(self, scene: SceneData, model_cfg: ModelConfig, cfg: TrainConfig, out_dir: str | Path,
                  model: ATGSModel | None = None, device: torch.device | str = "cpu", progress: bool = True,
-                 workers: Workers | None = None, sparse_state: dict | None = None) -> None:
+                 workers: Workers | None = None, sparse_state: dict | None = None,
+                 partition: Partition | None = None) -> None:
         """``device``: where training runs (``atgs.device.resolve_device`` picks it for the CLI);
         a given ``model`` is moved there. ``progress``: a bar for the set-up's longer steps.
         ``workers``: this process's place among several training the run together
         (atgs.train.distributed; every worker builds its Trainer alike); None: one process.
         ``sparse_state``: the given model's sparse optimizer state (:meth:`resume`), taken over.
+        ``partition``: how the run is split (atgs.train.partition; :meth:`resume` passes the one it
+        read the checkpoint for); default: from ``workers`` and ``cfg``.
         The set-up, in order (each step one method below):"""
         self.scene, self.device, self.out = scene, torch.device(device), Path(out_dir)
-        self.workers = workers
         self.train_idx, self.test_idx = list(scene.train_indices), list(scene.test_indices)
         self._check(cfg, model_cfg)
-        self._set_up_workers(cfg)
+        self.partition = partition_of(workers, cfg) if partition is None else partition
         # (with torch's own thread count, as these always ran: their sums are part of the run)
         self._resolve_scene_settings(cfg, None if model is None else model.environment)
-        # several workers partitioned by time: this one's share (atgs.train.time_partition), set
-        # with the model; None: one process, or the views partition
-        self.part: TimeSlice | None = None
-        self._taken: torch.Tensor | None = None  # the anchors of a given model it kept
         self._early_seconds = 0.0  # set-up a time budget pays for, spent before it exists
         self.run = RunDir(self.out)
         with self.run_threads():
@@ -157,9 +139,9 @@ class Trainer:
             self._set_up_images_and_exposure()
             self._set_up_loss_inputs()
             self._build_kernels()
+            self._start_velocities(progress)
             self._set_up_budget()
-            self._start_velocities(fresh_model=model is None, progress=progress)
-            self._replicate()
+            self.partition.replicate(self.model, self.exposure)  # every worker starts from rank 0's
 
     # --- set-up ------------------------------------------------------------------------------
     def _check(self, cfg: TrainConfig, model_cfg: ModelConfig) -> None:
@@ -167,22 +149,6 @@ class Trainer:
         cfg.validate()
         model_cfg.validate()
         check_backend(self.device, cfg.render_backend)
-        if self.workers is not None:
-            check_settings(cfg.views_per_step, self.workers.world, cfg.partition, cfg.time_groups, self.workers.nodes)
-
-    def _set_up_workers(self, cfg: TrainConfig) -> None:
-        """Several workers: how they split the model into blocks of time segments (time groups:
-        1 partitioned by views, one per worker by time, --train.time-groups by both) and which of
-        them share each step's views (the crew: all of them by views, a time group's by both,
-        none by time; atgs.train.distributed.Workers.crew)."""
-        self.time_groups, self.time_rank, self.crew = 1, 0, None
-        if self.workers is None:
-            return
-        w = self.workers
-        self.time_groups = time_groups_of(cfg.partition, w.world, cfg.time_groups, w.nodes)
-        size = w.world // self.time_groups
-        self.time_rank = time_group_of(w.rank, w.world, self.time_groups)
-        self.crew = w if self.time_groups == 1 else (w.crew(size) if size > 1 else None)
 
     def _resolve_scene_settings(self, cfg: TrainConfig, environment: EnvironmentMap | None) -> None:
         """Background and camera exposure from the scene, once for the run (scene_setup)."""
@@ -192,58 +158,38 @@ class Trainer:
         """torch's thread count of this run's work (--train.threads), restored afterwards."""
         return torch_threads(self.cfg.threads) if self.cfg.threads > 0 else nullcontext()
 
-    @property
-    def timed(self) -> bool:
-        """Several workers partitioned by time, or by both (each time group draws its own views
-        from its segments)."""
-        return self.time_groups > 1
-
     def _set_up_views(self) -> None:
         """Training cameras at the training resolution, and the generator every draw comes from
-        (partitioned by time, each worker's own: rank 0's is the run's)."""
+        (each time group's own: the first's is the run's)."""
         s = self.cfg.resolution_scale
         self.cams = [c.scaled(s) if s != 1.0 else c for c in self.scene.cameras]
         self.train_slot = {ci: k for k, ci in enumerate(self.train_idx)}
-        self.draw_seed = self.cfg.seed + 7919 * self.time_rank
+        self.draw_seed = self.partition.draw_seed(self.cfg.seed)
         self.gen = torch.Generator(device="cpu").manual_seed(self.draw_seed)
 
     def _set_up_model(self, model_cfg: ModelConfig, model: ATGSModel | None) -> None:
-        """A new model from the scene (on the CPU, then moved) or the given one, on the device."""
+        """A new model from the scene (on the CPU, then moved) or the given one, on the device;
+        then this process's share of it."""
         fresh = model is None
         if fresh:
-            segments = (segment_block(num_segments_for(model_cfg, self.scene.num_frames), self.time_rank,
-                                      self.time_groups) if self.timed else None)
+            segments = self.partition.new_model_segments(num_segments_for(model_cfg, self.scene.num_frames))
             model = model_from_scene(self.scene, model_cfg, self.train_idx, self.cfg.seed, segments,
-                                     spread=self.workers)
+                                     spread=self.partition.workers)
         self.model = model.to(self.device)
         self.model_cfg = self.model.cfg  # a loaded model may have switched features off
         self.model.test_camera_names = list(self.scene.test_cameras)
         self.model.background = tuple(float(c) for c in self.cfg.background)
         self.model.environment = self._environment
-        if self.timed:
-            self._take_time_slice(fresh)
+        self.scene_flow_stats: dict | None = None
+        self._velocities_due = fresh and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity
+        self.partition.take_share(self.model, functools.partial(self._measure_velocities, False))
         # measured before the first culled decode (atgs.model.culling): unknown reach culls nothing
         self.model.refresh_reach()
 
-    def _take_time_slice(self, fresh: bool) -> None:
-        """Partitioned by time: the anchors' start (rank 0's, velocities included) on every
-        worker, then this worker's share of them (and of a given whole model's segments)."""
-        m = self.model
-        if fresh and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity:
-            t0 = time.perf_counter()
-            self.scene_flow_stats = velocities_from_flow(m, self.scene, self.train_idx, progress=False,
-                                                         spread=self.workers)
-            self._early_seconds += time.perf_counter() - t0
-        self.workers.replicate([m.anchor_mu, m.anchor_keyframe, *(getattr(m, n) for n in ANCHOR_TABLES),
-                                m.spatial.table, *m.decoder.parameters()])
-        self.part = TimeSlice.plan(m.timeline, m, self.time_rank, self.time_groups)
-        self._taken = self.part.take_model(m)
-
     def _set_up_optimizers(self, sparse_state: dict | None) -> None:
         """Sparse Adam for the tables (rows a step touches; ``sparse_state``: a resumed run's,
-        of the anchors this worker kept), dense Adam for the decoder heads."""
-        if sparse_state is not None and self._taken is not None:
-            sparse_state = time_partition.held_anchors_of_state(sparse_state, self._taken)
+        of the rows this process kept), dense Adam for the decoder heads."""
+        sparse_state = self.partition.held_optimizer_state(sparse_state)
         self.sparse_opt = SparseAdam(self.model.sparse_tensors(), eps=self.cfg.adam_eps, state=sparse_state)
         dec = self.model.decoder
         self.dense_opt = torch.optim.Adam(
@@ -253,8 +199,7 @@ class Trainer:
     def _set_up_step_state(self) -> None:
         """What a checkpoint carries besides the model and optimizers."""
         self.stats = DensifyStats.zeros(self.model.num_anchors, self.model_cfg.gaussians_per_anchor, self.device)
-        self.sampler = SegmentSampler(self.model.timeline, self.train_idx, self.gen,
-                                      None if self.part is None else self.part.segments)
+        self.sampler = SegmentSampler(self.model.timeline, self.train_idx, self.gen, self.partition.held_segments())
         self.grid_visits = torch.zeros(self.model.num_segments, dtype=torch.int64, device=self.device)
         self.step = self.bad_in_row = self.skipped = self.final_pruned = 0
         # Ctrl-C: the request polled during run_steps; several workers stop after the step at
@@ -292,8 +237,25 @@ class Trainer:
         warm_up(self.device, self.cfg.render_backend)
         grid_kernels(self.model.hash.table, self.model.hash.backend)
 
+    def _start_velocities(self, progress: bool) -> None:
+        """A new model's anchor velocities from optical flow (unless its partition measured them
+        before it took its share): set-up a budget pays for."""
+        self._measure_velocities(progress and self.leads)
+
+    def _measure_velocities(self, progress: bool) -> None:
+        """Once: a new model's velocities from optical flow (several workers: each measures its
+        share of the keyframes, and all gather them)."""
+        if not self._velocities_due:
+            return
+        self._velocities_due = False
+        t0 = time.perf_counter()
+        self.scene_flow_stats = velocities_from_flow(self.model, self.scene, self.train_idx, progress,
+                                                     spread=self.partition.workers)
+        self._early_seconds += time.perf_counter() - t0
+
     def _set_up_budget(self) -> None:
-        """--minutes: the step count is sized from the measured pace (atgs.train.budget)."""
+        """--minutes: the step count is sized from the measured pace (atgs.train.budget); the
+        set-up it paid for so far counts as time used."""
         self.budget = (TimeBudget(60.0 * self.cfg.minutes, reserve_views=self.final_views())
                        if self.cfg.minutes > 0 else None)
         if self.budget is not None:
@@ -305,38 +267,10 @@ class Trainer:
         self._planned_once = False
         self.warnings: list[str] = []  # said during the run (atgs.train.generalisation), also in the result
 
-    def _start_velocities(self, fresh_model: bool, progress: bool) -> None:
-        """A new model's anchor velocities from optical flow: set-up a budget pays for."""
-        if self.timed:  # (measured with the model's set-up)
-            self.scene_flow_stats = getattr(self, "scene_flow_stats", None)
-            return
-        self.scene_flow_stats: dict | None = None
-        if fresh_model and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity:
-            # (several workers: each measures its share of the keyframes, and all gather them)
-            t0 = time.perf_counter()
-            self.scene_flow_stats = velocities_from_flow(self.model, self.scene, self.train_idx,
-                                                         progress and self.leads, spread=self.workers)
-            if self.budget is not None:  # it counts as time used
-                self.budget.used += time.perf_counter() - t0
-
-    def _replicate(self) -> None:
-        """Several workers: every one starts from rank 0's model (whatever the round-off of its
-        own set-up)."""
-        if self.workers is None:
-            return
-        if self.timed:  # (the model's shared parts with its set-up)
-            if self.exposure is not None:
-                self.workers.replicate([self.exposure.table])
-            return
-        m = self.model
-        tensors = [m.anchor_mu, m.anchor_keyframe, *m.sparse_tensors().values(), *m.decoder.parameters(),
-                   m.reach.settled, m.reach.recent]
-        self.workers.replicate(tensors + ([self.exposure.table] if self.exposure is not None else []))
-
     @property
     def leads(self) -> bool:
         """This process prints, evaluates and writes the run's files (one process, or rank 0)."""
-        return self.workers is None or self.workers.leads
+        return self.partition.leads
 
     # --- data -------------------------------------------------------------------------------
     def _load_image(self, cam: int, frame: int) -> np.ndarray:
@@ -358,9 +292,7 @@ class Trainer:
         return dense_lrs(self.cfg.lr, step, self.cfg.iterations)
 
     def sparse_lr(self, name: str, rows: torch.Tensor, step: int) -> float | torch.Tensor:
-        visits = self.grid_visits  # (partitioned by time: of this worker's segments, as its tables)
-        if self.part is not None:
-            visits = visits[self.part.segments.start:self.part.segments.stop]
+        visits = self.partition.segment_visits(self.grid_visits)  # (of the segments its tables hold)
         return sparse_lr(self.cfg.lr, name, rows, step, self.model, visits, self._expected_visits())
 
     # --- the loss (atgs.train.loss_terms) ---------------------------------------------------------
@@ -379,31 +311,20 @@ class Trainer:
     @_in_run_threads
     def train_step(self) -> StepResult:
         """One step: ``views_per_step`` frames, each decoded once and rendered from
-        ``cameras_per_frame`` training cameras, their mean loss back-propagated; then the sparse
-        and dense updates and, when due, densification. (Several workers: each renders its share
-        of the views, then they exchange what the update needs, atgs.train.distributed.)"""
-        cfg, model = self.cfg, self.model
+        ``cameras_per_frame`` training cameras, their mean loss back-propagated; then the
+        partition's exchange (several workers: what the update needs of the others' views), the
+        sparse and dense updates and, when due, densification."""
         self.dense_opt.zero_grad(set_to_none=True)
         views = StepViews()
-        rate = drop_rate(cfg.drop_gaussians, self.step, cfg.iterations)
-        for view in self._views_of_step(views):
+        rate = drop_rate(self.cfg.drop_gaussians, self.step, self.cfg.iterations)
+        for view in self.partition.views_of_step(self.cfg.views_per_step, functools.partial(self._draw_view, views)):
             if not self._learn_view(view, rate, views):
                 views.bad = True
                 break
-        if self.workers is not None:
-            dense = [p for g in self.dense_opt.param_groups for p in g["params"]]
-            dense += [self.exposure.table] if self.exposure is not None else []
-            tables = model.sparse_tensors()
-            if self.part is not None:  # only the shared parameters' gradients travel among all
-                owned = time_partition.keep_owned(views, self.part.num_shared(model))
-                tables = {n: t for n, t in tables.items() if n in time_partition.EXCHANGED}
-            stop = self.workers.reduce_step(views, dense, tables, model.reach,
-                                            self._should_stop is not None and self._should_stop())
-            if self.part is not None:
-                if self.crew is not None:  # (partitioned by both: the owned ones within the time group)
-                    owned = time_partition.reduce_owned(self.crew, owned, model.sparse_tensors(), model.reach)
-                time_partition.with_owned(views, owned, self.time_groups, dense)
-            self._agreed_stop = self._agreed_stop or stop
+        dense = [p for g in self.dense_opt.param_groups for p in g["params"]]
+        dense += [self.exposure.table] if self.exposure is not None else []
+        if self.partition.exchange(views, dense, self.model, self._asked_to_stop):
+            self._agreed_stop = True
         if views.bad:
             return self._skip_step()
         self.bad_in_row = 0
@@ -412,87 +333,77 @@ class Trainer:
         self._apply_sparse(views.grads)
         self._apply_dense()
         if self.exposure is not None:
-            self.exposure.step(cfg.grad_clip)
+            self.exposure.step(self.cfg.grad_clip)
         self.step += 1
         if self.step % REACH_REFRESH_STEPS == 0:  # anchors no view decoded lately: their reach drifts
-            model.refresh_reach()
+            self.model.refresh_reach()
         self._maybe_densify()
         means = views.means()
         if means is None:
             return StepResult(float("nan"), float("nan"), 0, False)
         return StepResult(means[0], means[1], means[2], False)
 
-    def _views_of_step(self, views: StepViews) -> Iterator[View]:
-        """The step's views as one process draws them (the sampler, then each camera's random
-        background as it renders). Workers that share the step's views (the crew) draw all of
-        them, backgrounds included, in that order (each keeps the same generator), and each
-        yields its share."""
-        cfg = self.cfg
-        timeline = self.model.timeline
-        if self.crew is None:
-            for v in range(cfg.views_per_step):
-                cis, f = self.sampler.next_views(cfg.cameras_per_frame)
-                views.segments.append(timeline.segment_of_frame(f))
-                yield View(v, cis, f)
-            return
-        drawn = []
-        for v in range(cfg.views_per_step):
-            cis, f = self.sampler.next_views(cfg.cameras_per_frame)
-            views.segments.append(timeline.segment_of_frame(f))
-            drawn.append(View(v, cis, f, [self._background() for _ in cis] if cfg.random_background else None))
-        for v in self.crew.share(cfg.views_per_step):
-            yield drawn[v]
+    def _draw_view(self, views: StepViews, v: int, ahead: bool) -> View:
+        """The step's view ``v`` from the sampler (its segment noted in ``views``); ``ahead``: its
+        cameras' random backgrounds drawn now too (else each as it renders)."""
+        cis, f = self.sampler.next_views(self.cfg.cameras_per_frame)
+        views.segments.append(self.model.timeline.segment_of_frame(f))
+        backgrounds = [self._background() for _ in cis] if ahead and self.cfg.random_background else None
+        return View(v, cis, f, backgrounds)
 
     def _learn_view(self, view: View, rate: float, views: StepViews) -> bool:
         """Decode the view's frame, render it from its cameras and back-propagate its renders'
         share of the step's mean loss (gradients and statistics into ``views`` and the
         densification statistics); False when the decode or the loss is not finite."""
-        cfg, model = self.cfg, self.model
-        q = model.cfg.gaussians_per_anchor
-        per_view = cfg.views_per_step * cfg.cameras_per_frame
         cams = [self.cams[ci] for ci in view.cams]
-        dec = model.decode_frame(view.frame, cams, track=True)
+        dec = self.model.decode_frame(view.frame, cams, track=True)
         views.decoded.append(dec.active)
         # one host-device synchronisation for the five tensors
         if not bool(torch.stack([torch.isfinite(x).all() for x in dec.gaussians.as_tuple()]).all()):
             return False
         if len(dec.gaussians) == 0:  # nothing of the model in these views: nothing to learn
             return True
-        outs, total = [], None
-        for k, (ci, cam) in enumerate(zip(view.cams, cams)):  # one decode, rendered from each camera
-            gt = self.images.get(ci, view.frame)
-            shown = dec.gaussians if rate <= 0 else drop_gaussians(  # (a draw of its own: dropout.py)
-                dec.gaussians, rate, render_generator(self.draw_seed, self.step, view.index, k, self.gen.device),
-                dec.anchor_ids * q + dec.slot_ids, model.num_anchors * q)
-            background = self._background() if view.backgrounds is None else view.backgrounds[k]
-            out = rasterize_gaussians(shown, cam, background=background, backend=cfg.render_backend, near=model.near)
-            out.means2d.retain_grad()
-            if self.exposure is not None:  # the image as this camera exposed it
-                out = replace(out, image=self.exposure.apply(out.image, self.train_slot[ci]))
-            loss = self.compute_loss(dec, out, gt, RenderedView(cam, self.train_slot[ci], view.frame, shown,
-                                                                 {"near": model.near}))
-            total = loss if total is None else total + loss
-            outs.append((cam, out))
-            views.losses.append(loss.detach())  # read back once at the end of the step
-            views.psnrs.append(psnr(out.image, gt))
-            views.n_gauss += len(dec.gaussians)
+        outs = [self._render(dec, view, k, ci, cam, rate, views) for k, (ci, cam) in enumerate(zip(view.cams, cams))]
+        total = functools.reduce(lambda a, b: a + b, (loss for loss, _, _ in outs))
         if not bool(torch.isfinite(total)):
             return False
-        (total / per_view).backward()  # the step's renders, on every worker: their gradients sum
-        for cam, out in outs:
+        (total / (self.cfg.views_per_step * self.cfg.cameras_per_frame)).backward()  # (every worker's: they sum)
+        q = self.model.cfg.gaussians_per_anchor
+        for _, cam, out in outs:
             g2d = out.means2d.grad
             slots = self.stats.record(dec, g2d if g2d is not None else None, out.radii, cam.width, cam.height, q)
-            if self.workers is not None and slots is not None:
-                stamp = self.step * cfg.views_per_step + view.index
-                if self.timed:  # (every time group renders views of that index)
-                    stamp = stamp * self.time_groups + self.time_rank
-                self.workers.note_positions(self.stats, slots, stamp)
-                if self.crew is not None and self.crew is not self.workers:
-                    self.crew.note_positions(self.stats, slots, stamp)
+            if slots is not None:
+                self.partition.note_positions(self.stats, slots, self.step * self.cfg.views_per_step + view.index)
         for s in dec.sparse:
             if s.leaf.grad is not None:
                 views.grads.setdefault(s.name, []).append((s.rows, s.leaf.grad))
         return True
+
+    def _render(self, dec: Decoded, view: View, k: int, ci: int, cam: Camera, rate: float,
+                views: StepViews) -> tuple[torch.Tensor, Camera, RasterOutput]:
+        """The view's ``k``-th camera (training camera ``ci``): its render of the decode (with
+        Gaussian dropout at ``rate``) and its loss, noted in ``views``; returns (loss, cam, render)."""
+        q = self.model.cfg.gaussians_per_anchor
+        gt = self.images.get(ci, view.frame)
+        shown = dec.gaussians if rate <= 0 else drop_gaussians(  # (a draw of its own: dropout.py)
+            dec.gaussians, rate, render_generator(self.draw_seed, self.step, view.index, k, self.gen.device),
+            dec.anchor_ids * q + dec.slot_ids, self.model.num_anchors * q)
+        background = self._background() if view.backgrounds is None else view.backgrounds[k]
+        out = rasterize_gaussians(shown, cam, background=background, backend=self.cfg.render_backend,
+                                  near=self.model.near)
+        out.means2d.retain_grad()
+        if self.exposure is not None:  # the image as this camera exposed it
+            out = replace(out, image=self.exposure.apply(out.image, self.train_slot[ci]))
+        loss = self.compute_loss(dec, out, gt, RenderedView(cam, self.train_slot[ci], view.frame, shown,
+                                                            {"near": self.model.near}))
+        views.losses.append(loss.detach())  # read back once at the end of the step
+        views.psnrs.append(psnr(out.image, gt))
+        views.n_gauss += len(dec.gaussians)
+        return loss, cam, out
+
+    def _asked_to_stop(self) -> bool:
+        """Ctrl-C was pressed here (polled; the partition says when the run stops)."""
+        return self._should_stop is not None and self._should_stop()
 
     def _skip_step(self) -> StepResult:
         """A step with non-finite Gaussians or loss changes nothing; too many in a row stop the run."""
@@ -535,21 +446,9 @@ class Trainer:
         if not d.enabled or self.step < d.start or self.step > stop or self.step % d.interval:
             return
         with self._stats_of_all_views():
-            if self.part is None:
-                grow_anchors(self.model, self.stats, d, self.sparse_opt, self.gen)
-            else:
-                self._grow_time_partitioned()
+            self.partition.grow(self.model, self.stats, d, self.sparse_opt, self.gen, self.cfg.seed, self.step)
             prune_anchors(self.model, self.stats, d, self.sparse_opt)
         self.model.refresh_reach()  # the new anchors' reach, before a decode counts them as in view
-
-    def _grow_time_partitioned(self) -> None:
-        """Partitioned by time: the shared anchors grow alike on every worker (summed statistics,
-        a generator seeded by the step), each worker's own from its own; then shared first again."""
-        m, d, n = self.model, self.cfg.densify, self.part.num_shared(self.model)
-        same = torch.Generator(device="cpu").manual_seed(self.cfg.seed * 1_000_003 + self.step)
-        grow_anchors(m, self.stats, d, self.sparse_opt, same, growing=range(0, n), room=d.max_anchors - n)
-        grow_anchors(m, self.stats, d, self.sparse_opt, self.gen, growing=range(n, m.num_anchors))
-        self.part.reorder(m, self.stats, self.sparse_opt)
 
     def _final_prune(self, stop: int) -> None:
         d = self.cfg.densify
@@ -564,22 +463,8 @@ class Trainer:
 
     def _stats_of_all_views(self) -> AbstractContextManager:
         """Inside: the densification statistics of every view so far (several workers: summed
-        over them, atgs.train.distributed; one process: as they are)."""
-        if self.workers is None:
-            return nullcontext()
-        if self.part is None:
-            return self.workers.stats_reduced(self.stats)
-        both = ExitStack()  # (time partition: the shared anchors' among all; by both also the own ones' in the crew)
-        both.enter_context(self.workers.stats_reduced(self.stats, self._shared_anchors))
-        if self.crew is not None:
-            both.enter_context(self.crew.stats_reduced(self.stats, self._own_anchors))
-        return both
-
-    def _shared_anchors(self) -> range:
-        return range(self.part.num_shared(self.model))
-
-    def _own_anchors(self) -> range:
-        return range(self.part.num_shared(self.model), self.model.num_anchors)
+        over them as the partition says)."""
+        return self.partition.all_views_statistics(self.stats, self.model)
 
     # --- evaluation ---------------------------------------------------------------------------
     def eval_frames(self) -> list[int]:
@@ -589,16 +474,9 @@ class Trainer:
         return list(evenly_spaced(n, max(1, self.cfg.eval_max_frames)))
 
     def own_eval_frames(self, frames: Sequence[int] | None = None) -> list[int]:
-        """This worker's share of ``frames`` (default :meth:`eval_frames`): the frames its model
-        decodes when the workers are partitioned by time (each frame is one worker's), every
-        world-th otherwise."""
-        frames = self.eval_frames() if frames is None else list(frames)
-        if self.workers is None:
-            return frames
-        if self.part is not None:
-            own = [f for f in frames if f in self.model.decodable_frames]
-            return own if self.crew is None else own[self.crew.rank::self.crew.world]  # (by both: the crew splits them)
-        return frames[self.workers.rank::self.workers.world]
+        """This process's share of ``frames`` (default :meth:`eval_frames`; atgs.train.partition:
+        partitioned by time, the frames its model decodes)."""
+        return self.partition.own_frames(self.eval_frames() if frames is None else list(frames), self.model)
 
     @_in_run_threads
     def evaluate(self, out: Path | None = None, frames: Sequence[int] | None = None,
@@ -611,7 +489,7 @@ class Trainer:
         images per camera, default one per evaluated frame). ``spread`` (several workers, all
         call it): each scores its share of the frames (:meth:`own_eval_frames`), rank 0 writes
         and returns the whole evaluation, the others None."""
-        from atgs.eval.evaluate import EvalConfig, Share, evaluate
+        from atgs.eval.evaluate import EvalConfig, evaluate
 
         cams = self.test_idx or self.train_idx[:1]
         frames = tuple(self.eval_frames() if frames is None else frames)
@@ -629,7 +507,7 @@ class Trainer:
         def as_exposed(ci: int, img: torch.Tensor) -> torch.Tensor:
             return exposure.apply(img, self.train_slot[ci])
 
-        share = Share(self.own_eval_frames(frames), self.workers.gather_to_leader) if spread else None
+        share = self.partition.evaluation_share(frames, self.model) if spread else None
         res = evaluate(self.model, self.scene, cfg, out, background=self.model.environment or self.cfg.background,
                        camera_transform=as_exposed if exposure is not None else None, share=share)
         if res is None:  # (spread: another worker's result)
@@ -651,7 +529,7 @@ class Trainer:
         by time: its segments' frames; no worker loads the whole model), rank 0 writes ``out`` and
         returns the figures, the others None."""
         return self.evaluate(out, frames=range(self.model.num_frames), resolution_scale=1.0, images_per_camera=3,
-                             spread=self.workers is not None)
+                             spread=True)
 
     # --- checkpoints ----------------------------------------------------------------------------
     def checkpoint_payload(self) -> dict:
@@ -679,18 +557,13 @@ class Trainer:
     def save(self, path: Path | None = None) -> Path:
         """Write the resumable checkpoint: by default the run's ``ckpt.pt`` (the first one also
         commits config.json and the log, see RunDir), or a copy at ``path``. Several workers: all
-        call it (the statistics are summed over them), rank 0 writes."""
+        call it (the statistics are summed over them; the partition gathers the payload), rank 0
+        writes."""
         with self._stats_of_all_views():
-            parts = None
-            if self.part is not None:  # partitioned by time: rank 0 writes every worker's part
-                parts = self.workers.rows_to_leader(time_partition.local_part(
-                    self.model, self.sparse_opt, self.stats, self.grid_visits, self.part,
-                    replica=self.crew is not None and self.crew.rank > 0))
-            if not self.leads:
+            payload = self.partition.payload(self.checkpoint_payload, self.model, self.sparse_opt, self.stats,
+                                             self.grid_visits)
+            if payload is None:  # (a worker that does not write)
                 return self.run.ckpt_path if path is None else Path(path)
-            payload = self.checkpoint_payload()
-            if parts is not None:
-                payload = time_partition.fill_payload(payload, parts)  # received as the file is written
             if path is None:
                 return self.run.save_checkpoint(payload)
             save_checkpoint(path, payload)
@@ -706,64 +579,44 @@ class Trainer:
         ``workers``. ``iterations``: a new total step count (and no time budget; the schedule
         sized to it as ``--iterations`` sizes it); ``minutes``: a new total time budget (the
         time already used counts); ``partition`` and ``time_groups``: how several workers split
-        the run from here (default: as it was saved; a checkpoint of any partition resumes with any)."""
-        # several workers: memory-mapped, so that a worker reads only the rows it keeps
-        data = read_checkpoint(path, mmap=workers is not None)
-        if data.get("trainer") is None:
+        the run from here (default: as it was saved; a checkpoint of any partition resumes with
+        any). The partition reads its share of the checkpoint; the trainer loads what it read."""
+        mapped = read_checkpoint(path, mmap=True)  # (its configuration; a worker's rows when it keeps a share)
+        if mapped.get("trainer") is None:
             raise CheckpointError(f"{path}: checkpoint has no optimizer state and cannot be resumed")
-        model_cfg = from_dict(ModelConfig, data["model_config"])
-        cfg = from_dict(TrainConfig, data["train_config"])
-        # the saved background is the colour the run trained over (resolved at its start); older
-        # checkpoints lack the flag and would otherwise switch to the mean colour mid-run
-        cfg.background_from_images = False
-        if iterations is not None:
-            cfg = schedule_for(replace(cfg, minutes=0.0), iterations)
-        if minutes is not None:
-            cfg = replace(cfg, minutes=minutes)
-        if partition is not None:
-            cfg = replace(cfg, partition=partition)
-        if time_groups is not None:
-            cfg = replace(cfg, time_groups=time_groups)
-        if int(data["num_frames"]) != scene.num_frames:
-            raise CheckpointError(f"{path}: checkpoint has {data['num_frames']} frames, the scene "
+        cfg = _resumed_config(mapped, iterations, minutes, partition, time_groups)
+        if int(mapped["num_frames"]) != scene.num_frames:
+            raise CheckpointError(f"{path}: checkpoint has {mapped['num_frames']} frames, the scene "
                                   f"{scene.num_frames}; resume with the same --data")
-        segments = None
-        groups = 1 if workers is None else time_groups_of(cfg.partition, workers.world, cfg.time_groups, workers.nodes)
-        if groups > 1:  # this worker's segments' rows, no others
-            segments = segment_block(int(data["model"]["num_segments"]),
-                                     time_group_of(workers.rank, workers.world, groups), groups)
-            time_partition.read_segment_rows(path, data, segments)
-        model = model_from_checkpoint(data, path, device, segments)
-        st = data["trainer"]
-        tr = cls(scene, model_cfg, cfg, out_dir, model=model, device=device, workers=workers,
-                 sparse_state=st["sparse_opt"])
-        tr.dense_opt.load_state_dict(st["dense_opt"])  # torch.optim moves the state to the parameters
-        if tr.exposure is not None and st.get("exposure") is not None:
-            tr.exposure.load_state_dict(st["exposure"])
-        tr.stats = DensifyStats.from_state(st["densify"], tr.device)
-        if tr.part is not None:  # partitioned by time: this worker's share of the whole state
-            tr.stats.keep(tr._taken, tr.model_cfg.gaussians_per_anchor)
-        if tr.workers is not None:  # the saved sums are all views': rank 0 carries them on
-            tr.workers.own_sums(tr.stats, None if tr.part is None else tr._shared_anchors())
-            if tr.part is not None and tr.crew is not None:  # (and a time group's first its own anchors')
-                tr.crew.own_sums(tr.stats, tr._own_anchors())
-        tr.sampler.load_state_dict(st["sampler"])
-        tr.grid_visits = st["grid_visits"].to(tr.device, copy=True)
-        if tr.part is None or tr.time_rank == 0:  # (the other time groups: their own)
-            tr.gen.set_state(st["generator"])
-        else:
-            tr.gen.manual_seed(cfg.seed + 7919 * tr.time_rank + int(data["step"]))
-        tr.skipped, tr.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
-        tr.step = int(data["step"])
-        tr.run = RunDir(tr.out, resume_step=tr.step, run_id=data.get("run_id"))  # (the run it continues)
-        saved = st.get("budget")
-        if tr.budget is not None and saved is not None:  # the time used so far counts
-            tr.budget = TimeBudget.resumed(saved, 60.0 * cfg.minutes)
-            tr.budget.reserve_views = tr.final_views()
-            left = tr.budget.steps_left()
-            if left is not None:  # provisional plan at the last pace; re-planned after calibration
-                tr.cfg = schedule_for(tr.cfg, max(1, tr.step + left))
+        split = partition_of(workers, cfg)
+        data, segments = split.checkpoint_share(path, mapped)
+        tr = cls(scene, from_dict(ModelConfig, data["model_config"]), cfg, out_dir,
+                 model=model_from_checkpoint(data, path, device, segments), device=device, workers=workers,
+                 sparse_state=data["trainer"]["sparse_opt"], partition=split)
+        tr._load_state(data)
         return tr
+
+    def _load_state(self, data: dict) -> None:
+        """A resumed run's trainer state (besides the model and the sparse optimizer), as its
+        partition carries it on."""
+        st = data["trainer"]
+        self.dense_opt.load_state_dict(st["dense_opt"])  # torch.optim moves the state to the parameters
+        if self.exposure is not None and st.get("exposure") is not None:
+            self.exposure.load_state_dict(st["exposure"])
+        self.stats = self.partition.resumed_statistics(st["densify"], self.model, self.device)
+        self.sampler.load_state_dict(st["sampler"])
+        self.grid_visits = st["grid_visits"].to(self.device, copy=True)
+        self.partition.resume_generator(self.gen, st["generator"], self.cfg.seed, int(data["step"]))
+        self.skipped, self.bad_in_row = int(st["skipped"]), int(st["bad_in_row"])
+        self.step = int(data["step"])
+        self.run = RunDir(self.out, resume_step=self.step, run_id=data.get("run_id"))  # (the run it continues)
+        saved = st.get("budget")
+        if self.budget is not None and saved is not None:  # the time used so far counts
+            self.budget = TimeBudget.resumed(saved, 60.0 * self.cfg.minutes)
+            self.budget.reserve_views = self.final_views()
+            left = self.budget.steps_left()
+            if left is not None:  # provisional plan at the last pace; re-planned after calibration
+                self.cfg = schedule_for(self.cfg, max(1, self.step + left))
 
     # --- time budget -------------------------------------------------------------------------------
     def _time_used(self) -> float:
@@ -781,8 +634,7 @@ class Trainer:
         if self.budget is None:
             return
         used, overhead = self._time_used(), self._overhead_used()
-        if self.workers is not None:  # rank 0's clock: every worker sizes the same schedule
-            used, overhead = self.workers.broadcast_floats([used, overhead])
+        used, overhead = self.partition.agreed_floats([used, overhead])  # (rank 0's clock on several workers)
         n = self.budget.plan(self.step, used, self.cfg.iterations, overhead)
         if n is None:
             return
@@ -862,9 +714,7 @@ class Trainer:
     def _stop_requested(self) -> bool:
         """Ctrl-C: one process polls its request; several workers stop after the step at whose
         exchange any of them had one (so all stop after the same step)."""
-        if self.workers is not None:
-            return self._agreed_stop
-        return self._should_stop is not None and self._should_stop()
+        return self.partition.stop_requested(self._asked_to_stop, self._agreed_stop)
 
     def _due(self, every: int, last: int) -> bool:
         """An interval has passed since ``last``, and the run does not end at this step."""
@@ -876,7 +726,7 @@ class Trainer:
             return
         self._last_eval = self.step
         t_eval = self.clock()
-        ev = self.evaluate() if self.workers is None else self._evaluate_on_every_worker()
+        ev = self.periodic_evaluation()
         self._overhead += self.clock() - t_eval  # not step time: the budget's pace excludes it
         if not self.leads:  # rank 0 logs it
             return
@@ -886,15 +736,12 @@ class Trainer:
             self.warnings.append(warning)
             bar.write(warning)
 
-    def _evaluate_on_every_worker(self) -> dict:
-        """The periodic evaluation spread over the workers (:meth:`evaluate` with ``spread``: each
-        scores its share of the frames, a worker of the time partition those its model decodes, so
-        every frame of the capture is scored, not only rank 0's; rank 0 takes the mean over all
-        views, as one process does), its figures on every worker."""
-        ev = self.evaluate(spread=True)
-        mine = [0.0, 0.0, 0.0] if ev is None else [float(ev["psnr"]), float(ev["ssim"]), float(ev["views"])]
-        psnr, ssim, views = self.workers.broadcast_floats(mine)
-        return {"psnr": psnr, "ssim": ssim, "views": int(views), "on_test_cameras": bool(self.test_idx)}
+    def periodic_evaluation(self) -> dict:
+        """:meth:`evaluate` as the periodic evaluation runs it: spread over the workers (each
+        scores its share of the frames, a worker of the time partition those its model decodes,
+        so every frame is scored; rank 0 takes the mean over all views, as one process does),
+        its figures on every worker."""
+        return self.partition.on_every_worker(self.evaluate(spread=True), bool(self.test_idx))
 
     def _save_if_due(self) -> None:
         if not self._due(self.cfg.save_every, self._last_save):
@@ -921,11 +768,28 @@ class Trainer:
             result["scene_flow"] = dict(self.scene_flow_stats)
         if self.warnings:
             result["warnings"] = list(self.warnings)
-        if self.workers is not None:  # what the workers exchanged (atgs.train.distributed.Traffic)
-            result["workers"] = self.workers.traffic.summary(self.workers.world)
-            if self.crew is not None and self.crew is not self.workers:  # (by both: within the time group)
-                result["workers"]["time_group"] = self.crew.traffic.summary(self.crew.world)
+        traffic = self.partition.summary()  # what several workers exchanged (atgs.train.distributed.Traffic)
+        if traffic is not None:
+            result["workers"] = traffic
         return result
+
+
+def _resumed_config(data: dict, iterations: int | None, minutes: float | None, partition: str | None,
+                    time_groups: int | None) -> TrainConfig:
+    """The training configuration a checkpoint's run continues with (see :meth:`Trainer.resume`)."""
+    cfg = from_dict(TrainConfig, data["train_config"])
+    # the saved background is the colour the run trained over (resolved at its start); older
+    # checkpoints lack the flag and would otherwise switch to the mean colour mid-run
+    cfg.background_from_images = False
+    if iterations is not None:
+        cfg = schedule_for(replace(cfg, minutes=0.0), iterations)
+    if minutes is not None:
+        cfg = replace(cfg, minutes=minutes)
+    if partition is not None:
+        cfg = replace(cfg, partition=partition)
+    if time_groups is not None:
+        cfg = replace(cfg, time_groups=time_groups)
+    return cfg
 
 
 class _Ema:

@@ -1,46 +1,26 @@
-"""Several workers partitioned by time (``--train.partition time``): each worker owns a
-contiguous block of the model's time segments.
+"""A worker's share of the model partitioned by time (``--train.partition time``, or a time
+group's by both; the strategies: atgs.train.partition.time and .both): a contiguous block of the
+model's time segments.
 
 A worker holds, of the model (docs/training.md, "Several workers"):
 
 - its segments' rows of the per-segment tables (the 4D hash grids and the temporal MLPs,
-  :data:`SEGMENT_TABLES`), queried by local index (``ATGSModel.first_segment``);
+  ``SEGMENT_TABLES``), queried by local index (``ATGSModel.first_segment``);
 - the anchors whose keyframe windows touch its segments' frames: *own* anchors, whose keyframe
   only its frames reach, and *shared* ones: static anchors, and those of keyframes that the
   frames of two or more workers reach (boundary keyframes). Shared anchors are replicated on
   every worker, in the same order, before the own ones (the anchor tables' first rows);
 - the parameters every frame uses: the spatial grid, the decoder, the camera exposure.
 
-Each worker draws its views from its own frames; after the backward pass the workers reduce
-only what is shared (:data:`EXCHANGED`: the spatial grid's touched rows and the shared anchors'
-rows through atgs.train.distributed's sparse exchange, the decoder's and the exposure's dense
-gradients through its all-reduce) and average it; the owned tables never leave their worker.
-
-Densification: each worker grows and prunes its own anchors from its own statistics and
-generator; the shared anchors' statistics are summed over the workers and every worker grows
-them with the same generator (seeded by the step) and prunes them alike, so they stay replicas.
-A new anchor takes its parent's keyframe, so it is shared or own as its parent.
-
-Both at once (``--train.partition both``): the workers form time groups of consecutive ranks
-(``--train.time-groups``, by default one per node), and each group holds one block as one worker
-of the time partition does: its workers (its *crew*, ``Workers.crew``) hold the same share and
-draw the same views from the group's generator, each renders its share of them (as the views
-partition shares a step), and they sum their owned gradients and own anchors' reach and
-statistics among themselves (:func:`reduce_owned`), while the shared ones are reduced among all
-workers and averaged over the groups. So the run equals the time partition with one worker per
-group (tests/test_distributed_both.py), and only the shared rows cross between groups (between
-nodes, with one group per node).
-
 Checkpoints: rank 0 writes every worker's part (:func:`local_part`: its own anchors, segment
 rows, their optimizer state and statistics), received piece by piece as it writes, into one
 ``ckpt.pt`` in the usual format (the anchors shared first, then each worker's own ones in rank
 order; the segments in order; a time group's other workers send nothing); any number of workers,
-and any partition, resume from it (the trainer slices what it loaded).
+and any partition, resume from it (:func:`read_segment_rows`, :meth:`TimeSlice.take_model`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -50,13 +30,8 @@ from atgs.io.torch_zip import Streamed, read_rows
 from atgs.model.anchors import STATIC
 from atgs.model.atgs_model import ANCHOR_TABLES, SEGMENT_TABLES, ATGSModel, segment_rows
 from atgs.timeline import Timeline
-from atgs.train.distributed import StepViews, Workers
-
-# the sparse tables whose gradients the workers reduce: every row, or the shared anchors' rows
-EXCHANGED = {"spatial": "all", **{name: "shared" for name in ANCHOR_TABLES}}
-_STAT_SLOTS = ("grad_accum", "grad_count", "last_pos")  # per Gaussian slot (anchor * q + slot)
-_STAT_ANCHORS = ("opacity_accum", "anchor_count")  # per anchor
-_OPT_STORES = ("exp_avg", "exp_avg_sq", "steps")
+from atgs.train.densify import DensifyStats
+from atgs.train.optim import SparseAdam
 
 
 def segment_block(num_segments: int, rank: int, world: int) -> range:
@@ -145,9 +120,7 @@ class TimeSlice:
 def held_anchors_of_state(sparse_opt: dict, ids: torch.Tensor) -> dict:
     """A whole model's sparse optimizer state with only the rows of the anchors ``ids`` (of
     :meth:`TimeSlice.take_model`) in the anchor tables."""
-    ids = ids.cpu()
-    return {key: {name: (rows[ids.to(rows.device)].contiguous() if name in ANCHOR_TABLES else rows)
-                  for name, rows in sparse_opt[key].items()} for key in _OPT_STORES}
+    return SparseAdam.rows_of_state(sparse_opt, ANCHOR_TABLES, ids)
 
 
 def read_segment_rows(path, data: dict, segments: range) -> None:
@@ -157,96 +130,38 @@ def read_segment_rows(path, data: dict, segments: range) -> None:
     num = int(data["model"]["num_segments"])
     per_grid = data["model"]["hash"].shape[0] // num
     wanted = {("model", name): segment_rows(name, segments, per_grid) for name in SEGMENT_TABLES}
-    wanted.update({("trainer", "sparse_opt", key, name): segment_rows(name, segments, per_grid)
-                   for key in _OPT_STORES for name in SEGMENT_TABLES})
+    wanted.update({("trainer", "sparse_opt", *where): segment_rows(name, segments, per_grid)
+                   for name in SEGMENT_TABLES for where in SparseAdam.state_paths(name)})
     read_rows(path, data, wanted)
 
 
-# --- the step's exchange -------------------------------------------------------------------------------
-def keep_owned(views: StepViews, num_shared: int) -> StepViews:
-    """Take the owned gradients (segment tables, own anchors' rows) and the reach of the own
-    anchors out of ``views`` before the exchange, which then carries only the shared ones;
-    returns the owned ones (what a time group's workers exchange among themselves, partitioned
-    by both: :func:`reduce_owned`)."""
-    exchanged, owned = {}, {}
-    for name, parts in views.grads.items():
-        kind = EXCHANGED.get(name)
-        if kind == "all":
-            exchanged[name] = parts
-        elif kind == "shared":
-            for rows, g in parts:
-                mask = rows < num_shared
-                exchanged.setdefault(name, []).append((rows[mask], g[mask]))
-                owned.setdefault(name, []).append((rows[~mask], g[~mask]))
-        else:
-            owned[name] = parts
-    views.grads = exchanged
-    own_decoded = [ids[ids >= num_shared] for ids in views.decoded]
-    views.decoded = [ids[ids < num_shared] for ids in views.decoded]  # the reach of the shared anchors
-    return StepViews(grads=owned, decoded=own_decoded, bad=views.bad)
-
-
-def reduce_owned(crew: Workers, owned: StepViews, tables: dict[str, torch.Tensor], reach) -> StepViews:
-    """Partitioned by both: the owned gradients and reach of a time group's workers, who render
-    shares of the same views, summed among them (the crew's sparse exchange; the shared ones
-    travel among all workers). ``tables``: the model's sparse tables by name."""
-    crew.reduce_step(owned, [], {n: t for n, t in tables.items() if EXCHANGED.get(n) != "all"}, reach, False)
-    return owned
-
-
-def with_owned(views: StepViews, owned: StepViews, groups: int, dense: Sequence[torch.Tensor]) -> None:
-    """After the exchange: the shared gradients (summed over the workers: over the ``groups``
-    time groups' views) become their mean over the groups, and the owned ones join them."""
-    if views.bad or owned.bad:
-        views.bad = True
-        return
-    for p in dense:
-        if p.grad is not None:
-            p.grad.div_(groups)
-    views.grads = {name: [(rows, g / groups) for rows, g in parts] for name, parts in views.grads.items()}
-    for name, parts in owned.grads.items():
-        views.grads.setdefault(name, []).extend(parts)
-
-
 # --- checkpoints -------------------------------------------------------------------------------------------
-def local_part(model: ATGSModel, opt, stats, grid_visits: torch.Tensor, part: TimeSlice,
-               replica: bool = False) -> dict[str, torch.Tensor]:
+def local_part(model: ATGSModel, opt: SparseAdam, stats: DensifyStats, grid_visits: torch.Tensor,
+               part: TimeSlice, replica: bool = False) -> dict[str, torch.Tensor]:
     """What this worker adds to the gathered checkpoint, each tensor to be concatenated in rank
-    order: its anchors (rank 0: the shared ones too), its segments' rows, their optimizer state,
-    statistics and visit counts. ``replica``: a time group's worker other than its first
-    (partitioned by both), which holds the same as that one: nothing (rows of none)."""
+    order, by its path in the checkpoint's payload: its anchors (rank 0: the shared ones too),
+    its segments' rows, their optimizer state, statistics and visit counts. ``replica``: a time
+    group's worker other than its first (partitioned by both), which holds the same as that one:
+    nothing (rows of none)."""
     a = 0 if part.rank == 0 else part.num_shared(model)
-    q = model.cfg.gaussians_per_anchor
     tables = model.sparse_tensors()
     out = {"model/anchor_mu": model.anchor_mu[a:], "model/anchor_keyframe": model.anchor_keyframe[a:]}
-    for name in ANCHOR_TABLES:
-        out[f"model/{name}"] = tables[name][a:]
-        for key in _OPT_STORES:
-            out[f"sparse_opt/{key}/{name}"] = getattr(opt, key)[name][a:]
-    for name in SEGMENT_TABLES:
-        out[f"model/{name}"] = tables[name]
-        for key in _OPT_STORES:
-            out[f"sparse_opt/{key}/{name}"] = getattr(opt, key)[name]
-    for name in _STAT_SLOTS:
-        out[f"densify/{name}"] = getattr(stats, name)[a * q:]
-    for name in _STAT_ANCHORS:
-        out[f"densify/{name}"] = getattr(stats, name)[a:]
-    out["grid_visits"] = grid_visits[part.segments.start:part.segments.stop]
+    for name in (*ANCHOR_TABLES, *SEGMENT_TABLES):
+        first = a if name in ANCHOR_TABLES else 0
+        out[f"model/{name}"] = tables[name][first:]
+        out.update({f"trainer/sparse_opt/{key}/{name}": rows for key, rows in opt.rows_from(name, first).items()})
+    out.update({f"trainer/densify/{name}": rows for name, rows in stats.rows_from(a).items()})
+    out["trainer/grid_visits"] = grid_visits[part.segments.start:part.segments.stop]
     return {k: (v[:0] if replica else v).detach().cpu() for k, v in out.items()}
 
 
 def fill_payload(payload: dict, gathered: dict[str, Streamed]) -> dict:
     """Rank 0's checkpoint payload with the workers' parts (:func:`local_part`, concatenated in
     rank order as ``Workers.rows_to_leader`` streams them into the file) in place of its own."""
-    st = payload["trainer"]
-    for key, whole in gathered.items():
-        where, _, name = key.rpartition("/")
-        if where == "model":
-            payload["model"][name] = whole
-        elif where.startswith("sparse_opt/"):
-            st["sparse_opt"][where.split("/")[1]][name] = whole
-        elif where == "densify":
-            st["densify"][name] = whole
-        else:
-            st[name] = whole
+    for path, whole in gathered.items():
+        *where, name = path.split("/")
+        node = payload
+        for key in where:
+            node = node[key]
+        node[name] = whole
     return payload
