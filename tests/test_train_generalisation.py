@@ -22,7 +22,8 @@ def test_a_run_whose_evaluation_lags_says_so_once_and_keeps_it_in_the_result(tmp
     t.iterations, t.eval_every, t.save_every = 12, 3, 0
     tr = Trainer(scene, m, t, tmp_path)
     # an evaluation far below anything the training views give: the warning, printed once
-    monkeypatch.setattr(tr, "evaluate", lambda *a, **k: {"psnr": -50.0, "ssim": 0.0, "views": 1, "on_test_cameras": True})
+    monkeypatch.setattr(tr, "evaluate", lambda *a, **k: {"psnr": -60.0, "psnr_matched": -50.0, "ssim": 0.0, "views": 1,
+                                                          "on_test_cameras": True})
     result = tr.run_steps(progress=False)
     err = capsys.readouterr()
     said = (err.out + err.err).count("the periodic evaluation gives -50.0 dB")
@@ -35,3 +36,14 @@ def test_an_ordinary_run_warns_nothing(tmp_path):
     t.iterations, t.eval_every, t.save_every = 12, 4, 0
     result = Trainer(scene, m, t, tmp_path).run_steps(progress=False)
     assert "warnings" not in result
+
+
+def test_a_held_out_cameras_own_exposure_is_not_a_lag(tmp_path, capsys, monkeypatch):
+    """Plain PSNR far below the training views, the exposure-matched one close: no warning."""
+    scene = make_toy_scene(num_frames=4, num_cameras=4, width=32, height=24, keyframes=2)
+    m, t = preset("tiny")
+    t.iterations, t.eval_every, t.save_every = 12, 3, 0
+    tr = Trainer(scene, m, t, tmp_path)
+    monkeypatch.setattr(tr, "evaluate", lambda *a, **k: {"psnr": -50.0, "psnr_matched": 60.0, "ssim": 0.0, "views": 1,
+                                                          "on_test_cameras": True})
+    assert "warnings" not in tr.run_steps(progress=False)

@@ -4,6 +4,10 @@ Training reports the PSNR of the views it trains on; the periodic evaluation ren
 cameras (or, without any, the first training camera) from every anchor, as atgs-eval and the
 player do. A gap of many dB means the model fits what training shows and nothing else, and the
 user should hear it during the run, not after 20 minutes of it.
+
+The evaluation's figure is the exposure-matched one (docs/evaluation.md): the training views are
+scored with their learned exposure, and a held-out camera's own exposure, which no training can
+learn, is not the model's gap.
 """
 
 from __future__ import annotations
@@ -12,10 +16,11 @@ GAP_DB = 10.0  # a held-out view this far below the training views is not ordina
 
 
 def evaluation_gap_warning(step: int, eval_psnr: float, train_psnr: float | None, on_test_cameras: bool) -> str | None:
-    """The one-line warning for an evaluation ``GAP_DB`` or more below the training views, else None."""
+    """The one-line warning for an evaluation (exposure-matched PSNR) ``GAP_DB`` or more below the
+    training views, else None."""
     if train_psnr is None or not (train_psnr - eval_psnr >= GAP_DB):
         return None
-    head = (f"warning: step {step}: the periodic evaluation gives {eval_psnr:.1f} dB, "
+    head = (f"warning: step {step}: the periodic evaluation gives {eval_psnr:.1f} dB (exposure-matched), "
             f"{train_psnr - eval_psnr:.1f} dB below the training views' {train_psnr:.1f} dB; ")
     if not on_test_cameras:  # the same camera: only a difference between the two decodes explains it
         return head + ("training and evaluation render this training camera differently (Gaussians that the "

@@ -731,7 +731,7 @@ class Trainer:
         if not self.leads:  # rank 0 logs it
             return
         row["eval_psnr"], row["eval_ssim"] = f"{ev['psnr']:.3f}", f"{ev['ssim']:.4f}"
-        warning = evaluation_gap_warning(self.step, ev["psnr"], ema_psnr, ev["on_test_cameras"])
+        warning = evaluation_gap_warning(self.step, ev["psnr_matched"], ema_psnr, ev["on_test_cameras"])
         if warning is not None and not self.warnings:  # once a run: the log has every figure
             self.warnings.append(warning)
             bar.write(warning)

@@ -41,9 +41,10 @@ class SeveralWorkers(Partition):
     def on_every_worker(self, ev: dict | None, on_test_cameras: bool) -> dict:
         """Each worker scored its share of the frames; rank 0 took the mean over all views, as one
         process does."""
-        mine = [0.0, 0.0, 0.0] if ev is None else [float(ev["psnr"]), float(ev["ssim"]), float(ev["views"])]
-        psnr, ssim, views = self.workers.broadcast_floats(mine)
-        return {"psnr": psnr, "ssim": ssim, "views": int(views), "on_test_cameras": on_test_cameras}
+        keys = ("psnr", "psnr_matched", "ssim", "views")
+        mine = [0.0] * len(keys) if ev is None else [float(ev[k]) for k in keys]
+        got = dict(zip(keys, self.workers.broadcast_floats(mine)))
+        return {**got, "views": int(got["views"]), "on_test_cameras": on_test_cameras}
 
     def summary(self) -> dict | None:
         return self.workers.traffic.summary(self.workers.world)
