@@ -1,4 +1,4 @@
-"""Space the measured points prove empty (atgs.free_space): against a slow per-point reference and
+"""Space the measured points prove empty (atgs.geometry.free_space): against a slow per-point reference and
 an analytic plane; its users: the fill of atgs-prepare, the measured-point mask of a prepared
 scene, and the free-space loss of training."""
 
@@ -11,9 +11,9 @@ import torch
 from builders import ring_cameras
 from atgs.data.keyframe_points import _fill
 from atgs.data.mvs import FillConfig, StereoConfig
-from atgs.point_cloud import ArrayPointCloud
 from atgs.data.scene import PreparedScene
-from atgs.free_space import GRID_CELLS, MARGIN, FreeSpace, carve
+from atgs.geometry.free_space import GRID_CELLS, MARGIN, FreeSpace, carve
+from atgs.keyframe_cloud import ArrayPointCloud
 from atgs.train.losses import free_space_loss
 
 
