@@ -36,11 +36,16 @@ def _points(cam: Camera, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndar
     return (pc - cam.t) @ cam.R
 
 
-@pytest.mark.parametrize("near", [0.0, 1e-9, 0.7])
-def test_in_front_and_inside_one_point_at_a_time(near: float) -> None:
+def _case() -> tuple[Camera, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The camera, the chosen pixels and depths, and the world points seen there."""
     cam = _camera()
     u, v, z = _pixels_and_depths()
-    X = _points(cam, u, v, z)
+    return cam, u, v, z, _points(cam, u, v, z)
+
+
+@pytest.mark.parametrize("near", [0.0, 1e-9, 0.7])
+def test_in_front_and_inside_one_point_at_a_time(near: float) -> None:
+    cam, u, v, z, X = _case()
     pu, pv, pz, inside = project(cam, X, near)
     np.testing.assert_allclose(pz, z, rtol=1e-9, atol=1e-12)
     front = z > 1e-3  # far enough in front that the pixel is well conditioned
@@ -53,9 +58,7 @@ def test_in_front_and_inside_one_point_at_a_time(near: float) -> None:
 
 @pytest.mark.parametrize("near", [0.0, 0.7])
 def test_tensors_project_as_arrays(near: float) -> None:
-    cam = _camera()
-    u, v, z = _pixels_and_depths()
-    X = _points(cam, u, v, z)
+    cam, u, v, z, X = _case()
     nu, nv, nz, n_inside = project(cam, X, near)
     tu, tv, tz, t_inside = project(cam, torch.as_tensor(X), near)
     assert isinstance(t_inside, torch.Tensor) and t_inside.dtype == torch.bool
