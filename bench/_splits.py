@@ -18,6 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from atgs.geometry.projection import project
+from atgs.geometry.rays import pixel_rays, to_world
+
 VIEW_BINS = 7  # the per-view-count split: 0, 1, ..., 5 and 6 or more training cameras
 
 
@@ -37,17 +40,14 @@ def _visible_count(gt, scene, ci: int, frame: int, renderers: dict) -> np.ndarra
     d0 = depth(cam)
     v, u = np.nonzero(d0 > 0)
     z = d0[v, u].astype(np.float64)
-    pc = np.stack([(u + 0.5 - cam.cx) / cam.fx * z, (v + 0.5 - cam.cy) / cam.fy * z, z], 1)
-    world = (pc - cam.t) @ cam.R
+    world = to_world(cam, pixel_rays(cam, u + 0.5, v + 0.5) * z[:, None])
     count = np.zeros(d0.shape, np.int32)
     for j in scene.train_indices:
         tc = scene.cameras[j]
         dj = depth(tc)
-        uv, zj = tc.project(world)
-        with np.errstate(invalid="ignore"):
-            inside = (zj > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < tc.width) & (uv[:, 1] >= 0) & (uv[:, 1] < tc.height)
+        pu, pv, zj, inside = project(tc, world, near=1e-6)
         ok = np.zeros(len(world), bool)
-        iu, iv = uv[inside, 0].astype(np.int64), uv[inside, 1].astype(np.int64)
+        iu, iv = pu[inside].astype(np.int64), pv[inside].astype(np.int64)
         near = dj[iv, iu]
         ok[inside] = (near > 0) & (np.abs(near - zj[inside]) < 0.03 * zj[inside])  # not occluded
         count[v[ok], u[ok]] += 1

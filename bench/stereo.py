@@ -35,9 +35,9 @@ from atgs.data.mvs import FillConfig, StereoConfig, stereo_points  # noqa: E402
 from atgs.data.oracle import oracle_points  # noqa: E402
 from atgs.data.prepare import PrepareConfig, prepare  # noqa: E402
 from atgs.data.scene import PreparedScene  # noqa: E402
-from atgs.data.synth.videos import synthesize  # noqa: E402
 from atgs.data.synth.scene import LAYOUTS, SynthConfig, SynthScene, distance_to_surfaces  # noqa: E402
-from atgs.data.coverage import scene_coverage  # noqa: E402
+from atgs.data.synth.videos import synthesize  # noqa: E402
+from atgs.geometry.coverage import scene_coverage  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 N3DV = ROOT.parent / "shared" / "data" / "n3dv_flame_steak_frame0"

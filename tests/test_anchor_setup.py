@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from builders import ring_cameras, tiny_config
-from atgs.point_cloud import ArrayPointCloud
+from atgs.keyframe_cloud import ArrayPointCloud
 from atgs.model.anchor_setup import anchors_from_clouds
 from atgs.model.anchors import STATIC, init_anchors, split_static
 from atgs.model.atgs_model import ATGSModel, num_segments_for

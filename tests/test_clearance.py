@@ -1,4 +1,4 @@
-"""No Gaussian inside a training camera's own housing (atgs.model.clearance): the ball test
+"""No Gaussian inside a training camera's own housing (atgs.geometry.clearance): the ball test
 against a per-point loop, the radius rule on a ring, both decodes cutting the same Gaussians, a
 held-out camera's pose used for nothing (its housing, which the training cameras see, stays in
 front of its lens), and checkpoints."""
@@ -7,8 +7,8 @@ import numpy as np
 import torch
 
 from builders import randomize_features, ring_cameras, tiny_config
+from atgs.geometry.clearance import CameraClearance, clearance_radius
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.clearance import CameraClearance, clearance_radius
 from atgs.render import rasterize_gaussians
 
 

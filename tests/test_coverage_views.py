@@ -1,4 +1,4 @@
-"""Training cameras per measured pixel (atgs.data.coverage.views_per_pixel, scene_coverage): the
+"""Training cameras per measured pixel (atgs.geometry.coverage.views_per_pixel, scene_coverage): the
 fast path against the pixel-by-point reference, exact counts on an analytic plane and occluder,
 a sparse rig against a dense ring of the same scene, and what atgs-prepare prints."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from atgs.cameras import Camera, look_at
-from atgs.data.coverage import front_points, scene_coverage, seen_by, views_per_pixel, views_per_pixel_reference
 from atgs.data.keyframe_points import _report
+from atgs.geometry.coverage import front_points, scene_coverage, seen_by, views_per_pixel, views_per_pixel_reference
 from test_data_mvs import BOX, GROUND, ring
 
 

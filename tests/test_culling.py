@@ -1,5 +1,5 @@
 """Training's culled decode shows every camera what evaluation's full decode shows it
-(atgs.model.culling): checked against the full decode's render, on rigs whose cameras see each
+(atgs.geometry.reach): checked against the full decode's render, on rigs whose cameras see each
 other, and the sphere-frustum test against points sampled on the spheres."""
 
 import numpy as np
@@ -8,7 +8,7 @@ import torch
 
 from builders import randomize_features, ring_cameras, tiny_config, random_point_model
 from atgs.cameras import Camera, look_at
-from atgs.model.culling import spheres_in_frustum
+from atgs.geometry.reach import spheres_in_frustum
 from atgs.render import rasterize_gaussians
 from atgs.render.constants import NEAR
 

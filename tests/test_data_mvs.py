@@ -10,7 +10,6 @@ import torch
 
 from atgs.cameras import Camera, look_at
 from atgs.data.colmap_ops import ColmapOptions
-from atgs.data.coverage import coverage_mask, coverage_mask_reference, point_spacing, scene_coverage
 from atgs.data.keyframe_points import keyframe_points
 from atgs.data.mvs import FillConfig, StereoConfig, stereo_points
 from atgs.data.mvs.fill import frustum_fill
@@ -18,7 +17,8 @@ from atgs.data.mvs.fusion import fuse_depth_maps, fuse_reference
 from atgs.data.mvs.patchmatch import DepthMap, PlaneCost, patchmatch, patchmatch_cost_reference, random_normals
 from atgs.data.mvs.views import depth_ranges, make_view
 from atgs.data.scene import MemoryScene, write_prepared_scene
-from atgs.seen_space import fallback_points
+from atgs.geometry.coverage import coverage_mask, coverage_mask_reference, point_spacing, scene_coverage
+from atgs.geometry.seen_space import fallback_points
 
 W, H = 96, 72
 BOX = (np.array([-0.45, -0.35, 0.0]), np.array([0.45, 0.35, 0.7]))

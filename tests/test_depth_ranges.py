@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from atgs.cameras import Camera
-from atgs.data.coverage import camera_coverage
 from atgs.data.mvs import StereoConfig, stereo_points
 from atgs.data.mvs.views import depth_ranges, select_sources, view_scores
 from atgs.data.synth.scene import LAYOUTS, SynthConfig, SynthScene, sample_surface
+from atgs.geometry.coverage import camera_coverage
 
 RIGS = ("ring10", "dome12-low", "dome24", "front6")
 

@@ -1,4 +1,4 @@
-"""Space the measured points prove empty (atgs.free_space): against a slow per-point reference and
+"""Space the measured points prove empty (atgs.geometry.free_space): against a slow per-point reference and
 an analytic plane; its users: the fill of atgs-prepare, the measured-point mask of a prepared
 scene, and the free-space loss of training."""
 
@@ -11,9 +11,9 @@ import torch
 from builders import ring_cameras
 from atgs.data.keyframe_points import _fill
 from atgs.data.mvs import FillConfig, StereoConfig
-from atgs.point_cloud import ArrayPointCloud
 from atgs.data.scene import PreparedScene
-from atgs.free_space import GRID_CELLS, MARGIN, FreeSpace, carve
+from atgs.geometry.free_space import GRID_CELLS, MARGIN, FreeSpace, carve, depth_grids, merged_grids
+from atgs.keyframe_cloud import ArrayPointCloud
 from atgs.train.losses import free_space_loss
 
 
@@ -43,6 +43,24 @@ def test_empty_space_matches_a_per_point_loop():
     empty, seen = FreeSpace.of(cams, points, cells=8).test(torch.as_tensor(X))
     assert np.array_equal(empty.numpy(), _reference(X, points, cams, cells=8))
     assert 5 < int(empty.sum()) < 395 and bool(seen.any())
+
+
+def test_points_read_in_parts_give_the_grids_of_all_of_them():
+    """The trainer (of_parts, a keyframe at a time) and the random anchors' set-up (merged_grids
+    over workers, in any order) fold parts: exactly the grids of all the points at once."""
+    cams = ring_cameras(3, (40, 30), radius=3.0)
+    points = np.random.default_rng(2).uniform(-0.7, 0.7, (500, 3))
+    whole = FreeSpace.of(cams, points)
+    parts = [points[:7], points[7:7], points[7:260], points[260:]]  # one part empty
+    by_parts = FreeSpace.of_parts(cams, iter(parts))
+    grids = [depth_grids(cams, p) for p in parts[::-1]]  # another order, as workers gather them
+    folded = merged_grids(merged_grids(grids[0], grids[1]), merged_grids(grids[2], grids[3]))
+    at_once = depth_grids(cams, points)
+    for i in range(len(cams)):
+        assert np.isfinite(at_once[i]).any() and not np.isfinite(at_once[i]).all()
+        assert np.array_equal(folded[i], at_once[i])
+        assert torch.equal(by_parts.grids[i], whole.grids[i])
+    assert by_parts.cells == whole.cells
 
 
 def test_a_plane_proves_the_space_in_front_of_it_empty_and_nothing_else():

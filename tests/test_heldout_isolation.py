@@ -1,7 +1,7 @@
 """Nothing about a held-out camera enters training (issue 49): two runs whose scenes differ only in
 the held-out camera's pose and images end in the same checkpoint, tensor for tensor, but for that
 camera's own stored pose (metadata for evaluation). The held-out camera is moved into the content,
-onto a decoded Gaussian, so a clearance around it (its housing, atgs.model.clearance) would cut
+onto a decoded Gaussian, so a clearance around it (its housing, atgs.geometry.clearance) would cut
 Gaussians that training sees; the run has every set-up step that reads cameras or images on
 (random anchors carved by free space, the free-space loss, 3D smoothing, background and exposure
 from the images, velocities from flow, densification, a periodic evaluation on the held-out camera)."""

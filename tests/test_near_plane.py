@@ -9,8 +9,8 @@ import torch
 
 from atgs.cameras import Camera
 from atgs.config_checks import ConfigError
+from atgs.geometry.reach import spheres_in_frustum
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.culling import spheres_in_frustum
 from atgs.model.near_plane import near_of, near_plane
 from atgs.render.constants import NEAR
 from atgs.timeline import evenly_spaced

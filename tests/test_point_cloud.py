@@ -9,8 +9,8 @@ from plyfile import PlyData, PlyElement
 import atgs.data.point_cloud as point_cloud
 from atgs.data.errors import DataError
 from atgs.data.point_cloud import PlyPointCloud, read_points_ply
-from atgs.point_cloud import ArrayPointCloud
 from atgs.data.scene import write_points_ply
+from atgs.keyframe_cloud import ArrayPointCloud
 
 
 def _points(n=200, K=4, seed=0):

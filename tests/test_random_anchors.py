@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from atgs.cameras import Camera
-from atgs.free_space import FreeSpace, carve, nearest_depth_grid
+from atgs.geometry.free_space import FreeSpace, carve, nearest_depth_grid
 from atgs.model.random_anchors import random_anchor_points
 
 

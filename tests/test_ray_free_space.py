@@ -1,4 +1,4 @@
-"""The per-ray free-space term (atgs.ray_free_space, atgs.train.losses.ray_free_space_loss):
+"""The per-ray free-space term (atgs.geometry.ray_free_space, atgs.train.losses.ray_free_space_loss):
 measured depths per camera cell from the points a camera itself sees, and the opacity its rays
 accumulate in front of them, against an independent render of the Gaussians chosen by hand."""
 
@@ -10,7 +10,7 @@ import torch
 
 from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
-from atgs.ray_free_space import MeasuredDepths, measured_depth_grid, median_depth_grid, visible_points
+from atgs.geometry.ray_free_space import MeasuredDepths, measured_depth_grid, median_depth_grid, visible_points
 from atgs.render import rasterize
 from atgs.train.losses import ray_free_space_loss
 

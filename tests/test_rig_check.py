@@ -1,11 +1,11 @@
-"""The sparse-rig warning of atgs-prepare and atgs-train (atgs.data.rig_check)."""
+"""The sparse-rig warning of atgs-prepare and atgs-train (atgs.geometry.rig_check)."""
 
 import numpy as np
 import pytest
 
 from builders import ring_cameras
 from atgs.cameras import Camera, look_at
-from atgs.data.rig_check import neighbour_angle_deg, sparse_rig_warning
+from atgs.geometry.rig_check import neighbour_angle_deg, sparse_rig_warning
 
 
 @pytest.mark.parametrize("n, angle", [(3, 120.0), (4, 90.0), (10, 36.0), (12, 30.0)])

@@ -148,7 +148,7 @@ def test_geometry_extremes_forward_backward_finite(case: str, backend: str) -> N
         _small_scale(model, slice(0, None, 2))  # ... and huge Gaussians at their anchors
     elif case == "camera inside":  # a large Gaussian around the camera centre
         # a free viewpoint (the player's), halfway between cam00 and the scene: the rig cameras'
-        # own centres are inside their clearance (atgs.model.clearance), which drops such Gaussians
+        # own centres are inside their clearance (atgs.geometry.clearance), which drops such Gaussians
         eye = 0.5 * cam.center + 0.5 * model.anchor_mu.median(0).values.double().numpy()
         w2c = cam.w2c.copy()
         w2c[:3, 3] = -cam.R @ eye

@@ -27,7 +27,7 @@ from atgs.config_checks import ConfigError, above, at_least, check_fields
 from atgs.device import DeviceName, auto_fallback_note, device_description, resolve_device
 from atgs.errors import OutputError
 from atgs.io.cache import cache_dir
-from atgs.data.rig_check import sparse_rig_warning
+from atgs.geometry.rig_check import sparse_rig_warning
 from atgs.io.cli import EXIT_INTERRUPTED, Interrupted, _exit_now, run_cli, stop_on_sigint
 from atgs.model.config import ModelConfig
 from atgs.train.config import PRESET_NAMES, PresetName, TrainConfig, preset

@@ -6,10 +6,10 @@ At each keyframe, from the training cameras (test cameras are held out):
 2. PatchMatch stereo + cross-view fusion (:mod:`atgs.data.mvs`), when enabled;
 3. where the points of 1 and 2 cover less than ``fill.below`` of a training camera's pixels, fill
    points in the space seen by at least two cameras through that camera's uncovered pixels, but
-   not in the space the measured points prove empty (:mod:`atgs.free_space`);
+   not in the space the measured points prove empty (:mod:`atgs.geometry.free_space`);
 4. the measured surfaces extended into the uncovered pixels near covered ones, at the depth of
    their neighbours (:mod:`atgs.data.mvs.extend`, ``fill.extend_reach``).
-Coverage (:mod:`atgs.data.coverage`) of every camera by the measured points (1 + 2) is returned
+Coverage (:mod:`atgs.geometry.coverage`) of every camera by the measured points (1 + 2) is returned
 for scene.json.
 """
 
@@ -24,16 +24,16 @@ import numpy as np
 
 from atgs.cameras import Camera
 from atgs.data.colmap_ops import ColmapOptions, triangulate_known_poses
-from atgs.data.coverage import coverage_mask, point_spacing, scene_coverage, working_camera
 from atgs.data.errors import DataError
 from atgs.data.mvs import FillConfig, StereoConfig, stereo_points
 from atgs.data.mvs.extend import extend_surfaces
 from atgs.data.mvs.fill import frustum_fill
 from atgs.data.mvs.stereo import stereo_steps
 from atgs.data.mvs.views import check_camera_layout, depth_ranges
-from atgs.data.rig_check import sparse_rig_warning
 from atgs.data.scene import read_rgb
-from atgs.free_space import carve
+from atgs.geometry.coverage import coverage_mask, point_spacing, scene_coverage, working_camera
+from atgs.geometry.free_space import carve
+from atgs.geometry.rig_check import sparse_rig_warning
 
 LOW_COVERAGE = 0.5  # warn below this mean coverage of the training cameras
 

@@ -24,12 +24,13 @@ import numpy as np
 import tyro
 from PIL import Image
 
-from atgs.io.atomic import atomic_dir, link_or_copy
-from atgs.data.coverage import scene_coverage, working_camera
 from atgs.data.errors import DataError
 from atgs.data.mvs import StereoConfig
 from atgs.data.mvs.fusion import capped_voxel_average
 from atgs.data.scene import MemoryScene, PreparedScene, write_scene_metadata
+from atgs.geometry.coverage import scene_coverage, working_camera
+from atgs.geometry.rays import pixel_rays, to_world
+from atgs.io.atomic import atomic_dir, link_or_copy
 
 
 def source_frame(scene: PreparedScene, frame: int) -> int:
@@ -67,8 +68,7 @@ def oracle_points(scene: PreparedScene, stereo: StereoConfig = StereoConfig(),
                     img = np.asarray(Image.fromarray(img).resize(key, Image.BOX))
                 v, u = np.nonzero(d > 0)
                 z = d[v, u].astype(np.float64)
-                pc = np.stack([(u + 0.5 - cam.cx) / cam.fx * z, (v + 0.5 - cam.cy) / cam.fy * z, z], 1)
-                pts.append((pc - cam.t) @ cam.R)
+                pts.append(to_world(cam, pixel_rays(cam, u + 0.5, v + 0.5) * z[:, None]))
                 cols.append(img[v, u].astype(np.float32) / 255.0)
                 depths.append(np.median(z) / np.sqrt(cam.fx * cam.fy) if len(z) else 0.0)
             voxel = stereo.voxel_px * float(np.median(depths))

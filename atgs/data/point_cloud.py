@@ -1,10 +1,10 @@
-"""points.ply read one keyframe at a time (atgs.point_cloud's interface).
+"""points.ply read one keyframe at a time (atgs.keyframe_cloud's interface).
 
 A long capture's points.ply grows with its keyframes (800k keyframe and 2.4M motion points at
 1,000 frames of the synthetic capture); holding them all is what made each worker's set-up grow
 with the frames (docs/training.md, "Memory per worker"). :class:`PlyPointCloud` keeps only where
 each keyframe's runs of rows lie in the file and reads them with ordinary reads when asked; a
-file laid out otherwise is held in memory (:class:`atgs.point_cloud.ArrayPointCloud`). Both give
+file laid out otherwise is held in memory (:class:`atgs.keyframe_cloud.ArrayPointCloud`). Both give
 every keyframe's points in the file's order.
 """
 
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from atgs.data.errors import DataError
-from atgs.point_cloud import ArrayPointCloud, PointCloud
+from atgs.keyframe_cloud import ArrayPointCloud, PointCloud
 
 # PLY scalar types -> numpy (little endian); atgs-prepare writes float x y z, uchar rgb, int keyframe
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",

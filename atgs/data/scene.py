@@ -30,12 +30,12 @@ import numpy as np
 from PIL import Image
 
 from atgs.cameras import Camera
-from atgs.io.atomic import atomic_dir
-from atgs.io.images import read_rgb8
-from atgs.progress import progress_bar
 from atgs.data.errors import DataError
 from atgs.data.point_cloud import PlyPointCloud
-from atgs.point_cloud import ArrayPointCloud, PointCloud
+from atgs.io.atomic import atomic_dir
+from atgs.io.images import read_rgb8
+from atgs.keyframe_cloud import ArrayPointCloud, PointCloud
+from atgs.progress import progress_bar
 
 SCENE_FORMAT = "atgs-scene"
 SCENE_VERSION = 1
@@ -159,7 +159,7 @@ class PreparedScene:
         (keyframe_points writes each keyframe's measured points first, then its fill and
         extension; ``point_counts`` says how many). None (all measured) where the counts are
         missing or disagree with points.ply: treating a fill point as measured only ever makes
-        less space look empty (atgs.free_space)."""
+        less space look empty (atgs.geometry.free_space)."""
         return _measured_counts(self.point_counts, self.point_cloud)
 
     @property
@@ -411,7 +411,7 @@ def compute_bounds(points: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
     else:
         c = np.array([cam.center for cam in cameras])
         if len(cameras) >= 2:
-            from atgs.seen_space import fallback_points
+            from atgs.geometry.seen_space import fallback_points
 
             c = np.concatenate([c, fallback_points(cameras, 2000)])
         lo, hi = np.percentile(c, 1, axis=0), np.percentile(c, 99, axis=0)

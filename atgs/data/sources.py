@@ -32,6 +32,7 @@ from atgs.data.camera_formats import (cameras_from_d3dgs, cameras_from_poses_bou
 from atgs.data.errors import DataError
 from atgs.data.scene import read_mask
 from atgs.data.video import VIDEO_EXTS, iter_frames, video_info
+from atgs.geometry.projection import project
 from atgs.io.images import read_rgb8
 
 SourceFormat = Literal["auto", "n3dv", "colmap-frames", "easyvolcap", "d3dgs", "videos", "images"]
@@ -359,9 +360,7 @@ def _read_init_points(path: Path) -> np.ndarray:
 
 def _visible_depths(cam: Camera, xyz: np.ndarray) -> np.ndarray:
     """Depths of the points in front of ``cam`` that fall inside its image."""
-    uv, z = cam.project(xyz)
-    with np.errstate(invalid="ignore"):
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    _, _, z, inside = project(cam, xyz)
     return z[inside]
 
 

@@ -32,11 +32,11 @@ from typing import TYPE_CHECKING, Protocol, TypeVar
 import numpy as np
 import torch
 
-from atgs.point_cloud import ArrayPointCloud, PointCloud
-from atgs.free_space import FreeSpace, depth_grids
+from atgs.geometry.free_space import FreeSpace, depth_grids, merged_grids
+from atgs.geometry.seen_space import fallback_points
+from atgs.keyframe_cloud import ArrayPointCloud, PointCloud
 from atgs.model.anchors import STATIC, AnchorInit, auto_voxel_size, knn_mean_sq_dist
 from atgs.model.random_anchors import random_anchor_points
-from atgs.seen_space import fallback_points
 from atgs.timeline import Timeline
 
 if TYPE_CHECKING:
@@ -272,8 +272,9 @@ def _random_points(cfg: "ModelConfig", groups: list[Group], cameras: "Sequence[C
                    lambda a, b: torch.stack([torch.minimum(a[0], b[0]), torch.maximum(a[1], b[1])]), spread)
     free = None
     if cameras:
-        grids = fold(len(groups), lambda i: depth_grids(cameras, groups[i].read().numpy()),
-                     lambda a, b: [np.minimum(x, y) for x, y in zip(a, b)], spread)
+        # (the free-space loss, atgs.train.scene_setup.free_space_of, folds the scene's measured
+        # points instead, not the fill: each selection kept as it was, for fixed-seed runs)
+        grids = fold(len(groups), lambda i: depth_grids(cameras, groups[i].read().numpy()), merged_grids, spread)
         free = FreeSpace.of_grids(cameras, grids)
     return random_anchor_points(cfg.random_anchors, box, free, generator(seed, RANDOM))
 

@@ -29,12 +29,12 @@ from atgs.cameras import Camera
 from atgs.gaussians import Gaussians
 from atgs.model.anchor_motion import (MIN_FADE, MOTION_TABLES, fade_weight, faded_and_moved, initial_fade,
                                       keyframe_distance, max_fade_width)
-from atgs.point_cloud import ArrayPointCloud, PointCloud
+from atgs.geometry.clearance import CameraClearance, clearance_radius
+from atgs.geometry.reach import AnchorReach, gaussian_reach, visible_anchors
+from atgs.keyframe_cloud import ArrayPointCloud, PointCloud
 from atgs.model.anchor_setup import Spread, anchors_from_clouds
 from atgs.model.anchors import STATIC, AnchorInit
-from atgs.model.clearance import CameraClearance, clearance_radius
 from atgs.model.config import ModelConfig
-from atgs.model.culling import AnchorReach, gaussian_reach, visible_anchors
 from atgs.model.decoder import DecodedGaussians, GaussianDecoder
 from atgs.model.fast_decode import DecodeTables, InferenceCache
 from atgs.model.grids import HashGrid4D, SpatialGrid
@@ -127,9 +127,9 @@ class ATGSModel:
         # anchor motion (atgs.model.anchor_motion): velocity per keyframe interval, log fade width
         self.anchor_velocity = torch.zeros(self.num_anchors, 3, device=self.anchor_mu.device)
         self.anchor_fade = torch.full((self.num_anchors, 1), self.initial_fade(), device=self.anchor_mu.device)
-        # how far each anchor's Gaussians reach (atgs.model.culling): measured by the decodes
+        # how far each anchor's Gaussians reach (atgs.geometry.reach): measured by the decodes
         self.reach = AnchorReach(self.num_anchors, self.anchor_mu.device)
-        # no Gaussian inside a training camera's own housing (atgs.model.clearance): the balls
+        # no Gaussian inside a training camera's own housing (atgs.geometry.clearance): the balls
         # are placed when read (:attr:`clearance`), once the held-out cameras are known
         self._clearance = CameraClearance.of_cameras([], clearance, self.anchor_mu.device)
         self._clearance_left_out: tuple[str, ...] | None = None  # the held-out names its balls leave out
@@ -362,7 +362,7 @@ class ATGSModel:
                         margin: float = 0.15) -> torch.Tensor:
         """(A,) mask: anchors (of the ``candidates`` mask, default all) whose Gaussians may reach
         one of ``cams`` at frame f (the sphere of their measured reach about their centre at f
-        against the frustum and the rasterizer's near plane; atgs.model.culling)."""
+        against the frustum and the rasterizer's near plane; atgs.geometry.reach)."""
         ids = torch.arange(self.num_anchors, device=self.device) if candidates is None else candidates.nonzero().squeeze(1)
         centres = self.anchor_mu.index_select(0, ids)
         if self.cfg.anchor_velocity:
@@ -375,7 +375,7 @@ class ATGSModel:
     def refresh_reach(self) -> int:
         """Measure the reach of every anchor no decode has measured since the last refresh (each
         at its keyframe's frame, static ones at the first keyframe's), then settle the bounds
-        (atgs.model.culling). Returns how many anchors were measured here."""
+        (atgs.geometry.reach). Returns how many anchors were measured here."""
         stale = torch.zeros(self.num_anchors, dtype=torch.bool, device=self.device)
         stale[self.reach.stale()] = True
         n = int(stale.sum())

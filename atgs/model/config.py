@@ -77,7 +77,7 @@ class ModelConfig:
     frustum_cull: bool = True  # decode only anchors that project near the image
     camera_clearance: float = 0.02
     """No Gaussian within this fraction of the median training-camera-to-scene distance of any
-    training camera (its own housing, which it never sees; atgs.model.clearance). Held-out cameras
+    training camera (its own housing, which it never sees; atgs.geometry.clearance). Held-out cameras
     get none: nothing about them enters training. 0: off."""
     near_fraction: float = 0.05
     """Near plane of every render of the model (training, evaluation, players): this fraction of the

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from atgs.cameras import Camera
-from atgs.model.clearance import clearance_radius
+from atgs.geometry.clearance import clearance_radius
 from atgs.render.constants import NEAR
 
 

@@ -5,7 +5,7 @@ surfaces the sparse points miss can still be learned. Sampled uniformly in the b
 between the cameras and the surfaces they see; a camera whose view they cross is then fitted
 with them, and a camera held out from training sees them as floaters (on the real N3DV frame
 dropping the Gaussians within 5 m of that camera raised its PSNR by 4.6 dB; docs/model.md).
-So samples in the space the points prove empty (atgs.free_space) are rejected, and so are
+So samples in the space the points prove empty (atgs.geometry.free_space) are rejected, and so are
 samples no training camera sees: no image would ever train them.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from atgs.free_space import FreeSpace
+from atgs.geometry.free_space import FreeSpace
 
 OVERSAMPLE = 8  # candidates drawn per wanted anchor, in rounds, before giving up
 

@@ -48,7 +48,7 @@ import torch.distributed as dist
 from atgs.config_checks import ConfigError
 from atgs.errors import UserError
 from atgs.io.torch_zip import Streamed
-from atgs.model.culling import AnchorReach
+from atgs.geometry.reach import AnchorReach
 from atgs.train.optim import merge_rows
 from atgs.train.step import StepViews
 

@@ -19,9 +19,9 @@ from atgs.train.losses import (depth_distortion, depth_smoothness, free_space_lo
 
 if TYPE_CHECKING:
     from atgs.cameras import Camera
-    from atgs.free_space import FreeSpace
+    from atgs.geometry.free_space import FreeSpace
     from atgs.gaussians import Gaussians
-    from atgs.ray_free_space import MeasuredDepths
+    from atgs.geometry.ray_free_space import MeasuredDepths
     from atgs.model.atgs_model import ATGSModel, Decoded
     from atgs.render.types import RasterOutput
     from atgs.train.config import TrainConfig

@@ -18,9 +18,9 @@ from atgs.train.config import VolumeReduction
 
 if TYPE_CHECKING:
     from atgs.cameras import Camera
-    from atgs.free_space import FreeSpace
+    from atgs.geometry.free_space import FreeSpace
     from atgs.gaussians import Gaussians
-    from atgs.ray_free_space import MeasuredDepths
+    from atgs.geometry.ray_free_space import MeasuredDepths
 
 VOLUME_REDUCTIONS = get_args(VolumeReduction)
 
@@ -106,7 +106,7 @@ def depth_smoothness(alpha: torch.Tensor, depth: torch.Tensor, image: torch.Tens
 
 def free_space_loss(opacities: torch.Tensor, means: torch.Tensor, free: "FreeSpace") -> torch.Tensor:
     """Mean over the Gaussians of the opacity of those standing in space the measured points prove
-    empty (atgs.free_space): pushes them transparent, and pruning then removes them. A Gaussian
+    empty (atgs.geometry.free_space): pushes them transparent, and pruning then removes them. A Gaussian
     there explains some training camera's pixels with something another camera sees through; a
     held-out camera sees it as a floater. Only the opacity is pushed (the test is on detached
     means): moving a Gaussian out of empty space is the image loss's job."""
@@ -119,7 +119,7 @@ def free_space_loss(opacities: torch.Tensor, means: torch.Tensor, free: "FreeSpa
 def ray_free_space_loss(gaussians: "Gaussians", moving: torch.Tensor, measured: "MeasuredDepths", slot: int,
                         frame: int, camera: "Camera", backend: str = "auto", **render) -> torch.Tensor | None:
     """The opacity that training camera ``slot``'s rays accumulate in front of their measured
-    depth (atgs.ray_free_space), per pixel of its image at ``frame``, averaged over the image.
+    depth (atgs.geometry.ray_free_space), per pixel of its image at ``frame``, averaged over the image.
 
     The Gaussians standing in front of the measured depth of the ray through their centre
     (``moving``: (N,) bool, those of per-keyframe anchors, judged only at measured frames) are

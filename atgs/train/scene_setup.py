@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from atgs.device import DeviceError
-from atgs.free_space import FreeSpace, depth_grids
+from atgs.geometry.free_space import FreeSpace
 from atgs.model.atgs_model import ATGSModel
 from atgs.progress import progress_bar
 from atgs.train.background import resolve_background
@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from atgs.cameras import Camera
-    from atgs.ray_free_space import MeasuredDepths
+    from atgs.geometry.ray_free_space import MeasuredDepths
     from atgs.model.anchor_setup import Spread
     from atgs.model.config import ModelConfig
     from atgs.render.environment import EnvironmentMap
@@ -82,24 +82,23 @@ def free_space_of(scene: "SceneData", cams: "list[Camera]", device: torch.device
     """The space ``cams`` prove empty: in front of the scene's measured keyframe points (not its
     fill; all keyframes at once, so anything a moving object occupies at one keyframe stays
     non-empty) and its motion points, read a keyframe at a time."""
+    # (the random anchors' carving, atgs.model.anchor_setup, folds the same grids over the model's
+    # point groups instead, fill included: each selection is kept as it was, since changing either
+    # changes what a fixed-seed run trains)
     cloud, motion, measured = scene.point_cloud, scene.motion_cloud, scene.measured_counts  # (each built once)
     parts = [(cloud, k, None if measured is None else measured[k]) for k in range(cloud.num_keyframes)]
     parts += [(motion, k, None) for k in range(motion.num_keyframes)]
-    grids = depth_grids(cams, np.zeros((0, 3)))  # inf: no point yet
-    for cloud, k, n in parts:
-        pts = cloud.read(k)[:n]
-        grids = [np.minimum(a, b) for a, b in zip(grids, depth_grids(cams, pts))]
-    return FreeSpace.of_grids(cams, grids, device=device)
+    return FreeSpace.of_parts(cams, (pc.read(k)[:n] for pc, k, n in parts), device=device)
 
 
 def measured_depths_of(scene: "SceneData", cams: "list[Camera]", image_of: "Callable[[int, int], np.ndarray]",
                        device: torch.device) -> "MeasuredDepths | None":
-    """Each training camera's measured depth per image cell (atgs.ray_free_space), from the
+    """Each training camera's measured depth per image cell (atgs.geometry.ray_free_space), from the
     scene's measured keyframe points (not its fill) and its motion points, each at the frame it
     was measured at, a keyframe at a time. ``cams``: the training cameras at the training
     resolution; ``image_of(slot, frame)`` reads ``cams[slot]``'s (H, W, 3) uint8 image. None
     when the scene has no measured point."""
-    from atgs.ray_free_space import MeasuredDepths
+    from atgs.geometry.ray_free_space import MeasuredDepths
 
     cloud, motion, measured = scene.point_cloud, scene.motion_cloud, scene.measured_counts
     sources = [(cloud, k, scene.keyframes[k], None if measured is None else measured[k])

@@ -32,12 +32,12 @@ import torch
 from atgs.cameras import Camera
 from atgs.checkpoint import CheckpointError, model_from_checkpoint, read_checkpoint, save_checkpoint
 from atgs.config_dict import from_dict, to_dict
-from atgs.point_cloud import PointCloud
+from atgs.keyframe_cloud import PointCloud
 from atgs.data.scene import resize_frame
 from atgs.errors import UserError
 from atgs.model.atgs_model import ATGSModel, Decoded, num_segments_for
 from atgs.model.config import ModelConfig
-from atgs.model.culling import REFRESH_STEPS as REACH_REFRESH_STEPS
+from atgs.geometry.reach import REFRESH_STEPS as REACH_REFRESH_STEPS
 from atgs.model.grids import grid_kernels
 from atgs.progress import progress_bar
 from atgs.render import RasterOutput, rasterize_gaussians, warm_up

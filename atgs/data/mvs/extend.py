@@ -17,16 +17,16 @@ from collections.abc import Sequence
 import numpy as np
 
 from atgs.cameras import Camera
-from atgs.data.coverage import coverage_mask, working_camera
+from atgs.geometry.coverage import NEAR, coverage_mask, working_camera
+from atgs.geometry.projection import project
+from atgs.geometry.rays import pixel_rays, to_world
 
 
 def depth_map(cam: Camera, points: np.ndarray) -> np.ndarray:
     """(H, W) nearest depth of the points projecting into each pixel of ``cam``; NaN elsewhere."""
-    uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
-    with np.errstate(invalid="ignore"):
-        ok = (z > 1e-9) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    u, v, z, ok = project(cam, points, near=NEAR)
     depth = np.full(cam.height * cam.width, np.inf)
-    idx = uv[ok, 1].astype(np.int64) * cam.width + uv[ok, 0].astype(np.int64)
+    idx = v[ok].astype(np.int64) * cam.width + u[ok].astype(np.int64)
     np.minimum.at(depth, idx, z[ok])
     depth[np.isinf(depth)] = np.nan
     return depth.reshape(cam.height, cam.width)
@@ -96,8 +96,7 @@ def extend_surfaces(cams: Sequence[Camera], images: Sequence[np.ndarray], points
             continue
         z = depth[ys, xs]
         u, v = xs + 0.5, ys + 0.5
-        pc = np.stack([(u - wc.cx) / wc.fx * z, (v - wc.cy) / wc.fy * z, z], 1)
-        out_p.append((pc - wc.t) @ wc.R)
+        out_p.append(to_world(wc, pixel_rays(wc, u, v) * z[:, None]))
         im = np.asarray(img)
         sx, sy = im.shape[1] / wc.width, im.shape[0] / wc.height
         out_c.append(im[np.minimum((v * sy).astype(np.int64), im.shape[0] - 1),
@@ -113,8 +112,8 @@ def extend_surfaces(cams: Sequence[Camera], images: Sequence[np.ndarray], points
 
 def _gap(cam: Camera, points: np.ndarray, spacing: float) -> int:
     """Rings needed to close the gaps between splatted points (their spacing in pixels)."""
-    uv, z = cam.project(points)
-    z = z[z > 1e-9]
+    _, z = cam.project(points)
+    z = z[z > NEAR]
     if len(z) == 0:
         return 0
     return int(np.ceil(np.sqrt(cam.fx * cam.fy) * spacing / float(np.median(z))))

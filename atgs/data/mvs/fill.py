@@ -1,6 +1,6 @@
 """The fill of atgs-prepare: points in the space seen by at least two cameras where stereo and
 SIFT leave a camera's pixels uncovered (textureless surfaces, very wide baselines, two to four
-cameras). The samples and their colours come from atgs.seen_space (rays through the uncovered
+cameras). The samples and their colours come from atgs.geometry.seen_space (rays through the uncovered
 pixels, kept where ``FillConfig.min_views`` cameras see them); training then starts from these
 points and densification grows and prunes from there.
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from atgs.cameras import Camera
 from atgs.data.mvs.config import FillConfig
-from atgs.seen_space import seen_space_samples
+from atgs.geometry.seen_space import seen_space_samples
 
 
 def frustum_fill(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]], cfg: FillConfig = FillConfig(),

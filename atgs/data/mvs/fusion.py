@@ -24,7 +24,9 @@ import torch
 from atgs.cameras import Camera, pinhole_pixels
 from atgs.data.mvs.config import StereoConfig
 from atgs.data.mvs.patchmatch import DepthMap
-from atgs.data.mvs.views import View, pixel_rays
+from atgs.data.mvs.views import View
+from atgs.geometry.projection import in_image
+from atgs.geometry.rays import pixel_centres, pixel_rays
 
 
 def _to_world(cam: Camera, pc: torch.Tensor) -> torch.Tensor:
@@ -89,7 +91,7 @@ def fuse_depth_maps(views: Sequence[View], maps: Sequence[DepthMap | None], chec
         if sel.numel() == 0:
             continue
         d = depth[sel]
-        X = _to_world(cam, pixel_rays(cam)[:, sel] * d)
+        X = _to_world(cam, pixel_rays(cam, *pixel_centres(cam), dim=0, inverse_intrinsics=True)[:, sel] * d)
         u0 = (sel % cam.width).double() + 0.5
         v0 = torch.div(sel, cam.width, rounding_mode="floor").double() + 0.5
         count = torch.zeros(sel.numel(), dtype=torch.int64)
@@ -101,13 +103,12 @@ def fuse_depth_maps(views: Sequence[View], maps: Sequence[DepthMap | None], chec
                 continue
             cj = views[j].cam
             u, v, z = _to_camera(cj, X)
-            inside = (z > 0) & (u >= 0) & (u < cj.width) & (v >= 0) & (v < cj.height)
+            inside = (z > 0) & in_image(cj, u, v)
             xi = u.floor().long().clamp(0, cj.width - 1)
             yi = v.floor().long().clamp(0, cj.height - 1)
             dj = sample_depth(maps[j].depth, u, v)
             ok = inside & (dj > 0)
-            rays = torch.stack([(u - cj.cx) / cj.fx, (v - cj.cy) / cj.fy, torch.ones_like(u)])
-            Xj = _to_world(cj, rays * dj)
+            Xj = _to_world(cj, pixel_rays(cj, u, v, dim=0) * dj)
             ur, vr, zr = _to_camera(cam, Xj)
             err = torch.hypot(ur - u0, vr - v0)
             agree = ok & (err < cfg.reproj_px) & ((zr - d).abs() < cfg.rel_depth * d)

@@ -11,9 +11,11 @@ import torch
 from PIL import Image
 
 from atgs.cameras import Camera
-from atgs.data.coverage import working_camera
 from atgs.data.errors import DataError
-from atgs.seen_space import layout_depth_range, median_baseline, meeting_depth
+from atgs.geometry.coverage import working_camera
+from atgs.geometry.projection import project
+from atgs.geometry.rays import grid_rays, to_world
+from atgs.geometry.seen_space import layout_depth_range, median_baseline, meeting_depth
 
 # Source-camera choice: triangulation angles near PEAK_DEG are best; smaller angles give poor
 # depth resolution, larger ones distort the matching windows (Goesele et al. 2007, MVSNet).
@@ -44,22 +46,6 @@ def make_view(image: np.ndarray, cam: Camera, long_side: int) -> View:
     rgb = torch.from_numpy(np.array(img[..., :3], dtype=np.float32)) / 255.0
     gray = rgb @ torch.tensor([0.299, 0.587, 0.114])
     return View(wc, gray.contiguous(), rgb)
-
-
-def pixel_rays(cam: Camera) -> torch.Tensor:
-    """(3, H*W) camera-space rays K^-1 [u, v, 1] through the pixel centers, row-major."""
-    v, u = torch.meshgrid(torch.arange(cam.height, dtype=torch.float64) + 0.5,
-                          torch.arange(cam.width, dtype=torch.float64) + 0.5, indexing="ij")
-    pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(u.numel(), dtype=torch.float64)])
-    return torch.linalg.inv(torch.from_numpy(cam.K)) @ pix
-
-
-def project(cam: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World points (N,3) -> pixel coordinates (N,2), depth (N,), and inside-the-image mask."""
-    uv, z = cam.project(X)
-    with np.errstate(invalid="ignore"):
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-    return uv, z, inside
 
 
 # --- depth ranges ----------------------------------------------------------------------------
@@ -95,17 +81,14 @@ def triangulable_depth_range(cam: Camera, cams: Sequence[Camera], n_side: int = 
     if not others:
         return None
     scale = median_baseline(cams)
-    u = (np.arange(n_side) + 0.5) / n_side * cam.width
-    v = (np.arange(n_side) + 0.5) / n_side * cam.height
-    U, V = np.meshgrid(u, v)
-    rays = np.stack([(U.ravel() - cam.cx) / cam.fx, (V.ravel() - cam.cy) / cam.fy, np.ones(U.size)], 1)
+    rays = grid_rays(cam, n_side)
     depths = np.geomspace(1e-3 * scale, 1e4 * scale, n_depth)
-    X = ((rays[None] * depths[:, None, None]).reshape(-1, 3) - cam.t) @ cam.R  # (depth, ray) world points
+    X = to_world(cam, (rays[None] * depths[:, None, None]).reshape(-1, 3))  # (depth, ray) world points
     ri = X - cam.center
     ri /= np.linalg.norm(ri, axis=1, keepdims=True)
     best = np.zeros(len(X))
     for o in others:
-        _, z, inside = project(o, X)
+        _, _, z, inside = project(o, X)
         rj = X - o.center
         rj /= np.linalg.norm(rj, axis=1, keepdims=True)
         deg = np.degrees(np.arccos(np.clip((ri * rj).sum(1), -1, 1)))
@@ -129,7 +112,7 @@ def depth_ranges(cams: Sequence[Camera], points: np.ndarray | None, min_points: 
     for i, cam in enumerate(cams):
         z = np.zeros(0)
         if len(pts):
-            _, z, inside = project(cam, pts)
+            _, _, z, inside = project(cam, pts)
             z = z[inside]
         if len(z) >= min_points:
             near, far = 0.6 * float(np.percentile(z, 1)), 1.6 * float(np.percentile(z, 99))
@@ -161,13 +144,9 @@ def _angle_weight(deg: np.ndarray) -> np.ndarray:
 
 def sample_view_points(cam: Camera, near: float, far: float, n_side: int = 12, depths: int = 3) -> np.ndarray:
     """World points on a grid of pixels at ``depths`` depths spread in inverse depth over [near, far]."""
-    u = (np.arange(n_side) + 0.5) / n_side * cam.width
-    v = (np.arange(n_side) + 0.5) / n_side * cam.height
-    U, V = np.meshgrid(u, v)
-    rays = np.stack([(U.ravel() - cam.cx) / cam.fx, (V.ravel() - cam.cy) / cam.fy, np.ones(U.size)], 1)
+    rays = grid_rays(cam, n_side)
     inv = np.linspace(1 / near, 1 / far, depths + 2)[1:-1]
-    pc = np.concatenate([rays / i for i in inv])
-    return (pc - cam.t) @ cam.R
+    return to_world(cam, np.concatenate([rays / i for i in inv]))
 
 
 def view_scores(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]],
@@ -185,7 +164,7 @@ def view_scores(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]],
     for i, ref in enumerate(cams):
         X = None
         if pts is not None and len(pts):
-            _, _, inside = project(ref, pts)
+            _, _, _, inside = project(ref, pts)
             if inside.sum() >= min_points:
                 X = pts[inside]
         if X is None:  # no seeds: around where a converging rig puts its subject, else the whole range
@@ -200,7 +179,7 @@ def view_scores(cams: Sequence[Camera], ranges: Sequence[tuple[float, float]],
         for j, src in enumerate(cams):
             if j == i:
                 continue
-            _, z, inside = project(src, X)
+            _, _, z, inside = project(src, X)
             rj = X - src.center
             rj /= np.linalg.norm(rj, axis=1, keepdims=True) + 1e-12
             deg = np.degrees(np.arccos(np.clip((ri * rj).sum(1), -1, 1)))

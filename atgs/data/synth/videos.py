@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from atgs.io.atomic import atomic_dir, interprocess_lock
 from atgs.data.camera_formats import cameras_to_poses_bounds
 from atgs.data.synth.scene import SynthConfig, SynthScene, sample_surface
+from atgs.geometry.projection import project
+from atgs.io.atomic import atomic_dir, interprocess_lock
 
 SIDECAR = "synth.json"
 SYNTH_VERSION = 2  # bump when the scene content changes, to invalidate caches
@@ -89,8 +90,7 @@ def _near_far(scene: SynthScene, cams) -> np.ndarray:
     pts = sample_surface(scene, 0, 20000)
     nf = []
     for c in cams:
-        uv, z = c.project(pts)
-        vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+        _, _, z, vis = project(c, pts)
         zz = z[vis] if vis.any() else z[z > 0]
         nf.append([0.9 * np.percentile(zz, 0.5), 1.1 * np.percentile(zz, 99.5)])
     return np.array(nf)

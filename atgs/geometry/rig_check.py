@@ -2,7 +2,7 @@
 
 Two measured signs, either one enough:
 - the measured pixels of the training cameras are seen by fewer than ``SPARSE_VIEWS`` training
-  cameras on average (atgs.data.coverage: most of what one camera sees, no other confirms);
+  cameras on average (atgs.geometry.coverage: most of what one camera sees, no other confirms);
 - at most ``FEW_CAMERAS`` training cameras whose nearest neighbours are more than
   ``WIDE_DEG`` apart as seen from where the rig's axes meet (optical axes, for parallel rigs).
 Such a rig fits its training views and little else: Gaussians can explain one camera's pixels
@@ -17,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from atgs.cameras import Camera
+from atgs.geometry.seen_space import meeting_depth
 
 SPARSE_VIEWS = 2.0
 FEW_CAMERAS = 6
@@ -29,8 +30,6 @@ EXPECTED = ("a synthetic 4-camera rig 90 degrees apart gave about 14 dB on its h
 def neighbour_angle_deg(cams: Sequence[Camera]) -> float:
     """Median over the cameras of the angle to the nearest other camera, seen from the point
     where the optical axes meet (the angle between optical axes for parallel rigs)."""
-    from atgs.seen_space import meeting_depth
-
     if len(cams) < 2:
         return 180.0
     c = np.array([x.center for x in cams])

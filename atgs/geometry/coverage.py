@@ -34,12 +34,14 @@ import numpy as np
 import torch
 
 from atgs.cameras import Camera
+from atgs.geometry.projection import project
 
 DEFAULT_LONG_SIDE = 400
 MAX_RADIUS_FRAC = 0.05
 ZBUFFER_LONG_SIDE = 80
 ZBUFFER_MIN_RADIUS = 0.75  # > sqrt(0.5): a disc always holds the center of the pixel its point falls in
 DEPTH_TOL = 0.05  # relative: a point this much beyond the z-buffer is hidden
+NEAR = 1e-9  # in front of a camera: the discs' radii divide by the depth
 
 
 def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> float:
@@ -60,7 +62,7 @@ def _splats(cam: Camera, points: np.ndarray, spacing: float,
             min_radius: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Indices, projected centers u, v, pixel radii and depths of the points in front of ``cam``."""
     uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
-    idx = np.nonzero(z > 1e-9)[0]
+    idx = np.nonzero(z > NEAR)[0]
     uv, z = uv[idx], z[idx]
     rmax = MAX_RADIUS_FRAC * max(cam.width, cam.height)
     rad = np.clip(np.sqrt(cam.fx * cam.fy) * spacing / z, min_radius, rmax)
@@ -119,11 +121,6 @@ def working_camera(cam: Camera, long_side: int = DEFAULT_LONG_SIDE) -> Camera:
     return cam if s == 1.0 else cam.scaled(s)
 
 
-def _in_image(cam: Camera, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Which projections (uv, z) fall inside ``cam``'s image, in front of it."""
-    return (z > 1e-9) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-
-
 def seen_by(cams: Sequence[Camera], points: np.ndarray, spacing: float) -> np.ndarray:
     """(C,P) bool: camera c sees point p (inside, in front, not behind the coarse z-buffer)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
@@ -131,9 +128,9 @@ def seen_by(cams: Sequence[Camera], points: np.ndarray, spacing: float) -> np.nd
     for ci, cam in enumerate(cams):
         c = working_camera(cam, ZBUFFER_LONG_SIDE)
         front = front_points(c, pts, spacing, ZBUFFER_MIN_RADIUS)
-        uv, z = c.project(pts)
-        i = np.nonzero(_in_image(c, uv, z))[0]
-        f = front[np.floor(uv[i, 1]).astype(np.int64), np.floor(uv[i, 0]).astype(np.int64)]
+        u, v, z, inside = project(c, pts, near=NEAR)
+        i = np.nonzero(inside)[0]
+        f = front[np.floor(v[i]).astype(np.int64), np.floor(u[i]).astype(np.int64)]
         seen[ci, i] = (f < 0) | (z[i] <= (1 + DEPTH_TOL) * z[f])
     return seen
 
@@ -177,9 +174,9 @@ def views_per_pixel_reference(cams: Sequence[Camera], points: np.ndarray, spacin
     for ci, cam in enumerate(train):
         c = working_camera(cam, ZBUFFER_LONG_SIDE)
         front = nearest_maps(c, ZBUFFER_MIN_RADIUS)
-        uv, z = c.project(pts)
-        for p in np.nonzero(_in_image(c, uv, z))[0]:
-            q = front[int(uv[p, 1]), int(uv[p, 0])]
+        u, v, z, inside = project(c, pts, near=NEAR)
+        for p in np.nonzero(inside)[0]:
+            q = front[int(v[p]), int(u[p])]
             seen[ci, p] = q < 0 or z[p] <= (1 + DEPTH_TOL) * z[q]
     maps = []
     for cam in cams:

@@ -20,6 +20,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from atgs.cameras import Camera
+from atgs.geometry.projection import in_image, project
+from atgs.geometry.rays import pixel_rays, to_world
 
 SAMPLES_PER_RAY = 16
 OVERSAMPLE = 8  # candidate samples per kept point: most samples lie outside the other frusta
@@ -82,15 +84,14 @@ def seen_space_samples(cams: Sequence[Camera], ranges: Sequence[tuple[float, flo
     count = np.zeros(len(X), np.int64)
     col_sum = np.zeros((len(X), 3))
     for j, cam in enumerate(cams):
-        uv, z = cam.project(X)
+        u, v, z, _ = project(cam, X)
         near, far = ranges[j]
-        with np.errstate(invalid="ignore"):
-            seen = (z >= near) & (z <= far) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        seen = (z >= near) & (z <= far) & in_image(cam, u, v)  # its own depth test: within its near/far range
         count += seen
         if images is not None:
             img = np.asarray(images[j])
-            xi = np.clip(uv[seen, 0].astype(np.int64), 0, cam.width - 1)
-            yi = np.clip(uv[seen, 1].astype(np.int64), 0, cam.height - 1)
+            xi = np.clip(u[seen].astype(np.int64), 0, cam.width - 1)
+            yi = np.clip(v[seen].astype(np.int64), 0, cam.height - 1)
             col_sum[seen] += img[yi, xi, :3] / 255.0
     keep = count >= min_views
     mean = col_sum / np.maximum(count, 1)[:, None]
@@ -114,9 +115,8 @@ def _ray_samples(cam: Camera, near_far: tuple[float, float], mask: np.ndarray, r
     near, far = near_far
     t = (np.arange(SAMPLES_PER_RAY)[None] + rng.random((rays, SAMPLES_PER_RAY))) / SAMPLES_PER_RAY
     depth = 1.0 / (1.0 / near + t * (1.0 / far - 1.0 / near))  # (rays, S)
-    dirs = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(rays)], 1)
-    pc = (dirs[:, None, :] * depth[..., None]).reshape(-1, 3)
-    return (pc - cam.t) @ cam.R
+    pc = (pixel_rays(cam, u, v)[:, None, :] * depth[..., None]).reshape(-1, 3)
+    return to_world(cam, pc)
 
 
 def fallback_points(cams: Sequence[Camera], num_points: int = FALLBACK_POINTS, seed: int = 0) -> np.ndarray:

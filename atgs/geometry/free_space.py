@@ -14,13 +14,14 @@ atgs-prepare (atgs.data.keyframe_points) are kept out of it, and training's free
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from atgs.cameras import Camera, pinhole_pixels, to_camera_frame
+from atgs.cameras import Camera
+from atgs.geometry.projection import project
 
 GRID_CELLS = 32  # cells along each image's long side
 MARGIN = 0.8  # a position at depth < MARGIN x the cell's nearest point depth is in empty space
@@ -34,10 +35,8 @@ def points_in_cells(cam: Camera, points: np.ndarray, cells: int) -> tuple[np.nda
     shape = int(np.ceil(cam.height / cell)), int(np.ceil(cam.width / cell))
     if not len(points):
         return np.zeros(0, np.int64), np.zeros(0), shape, cell
-    uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
-    with np.errstate(invalid="ignore"):
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-    idx = (uv[ok, 1] // cell).astype(np.int64) * shape[1] + (uv[ok, 0] // cell).astype(np.int64)
+    u, v, z, ok = project(cam, points)
+    idx = (v[ok] // cell).astype(np.int64) * shape[1] + (u[ok] // cell).astype(np.int64)
     return idx, z[ok], shape, cell
 
 
@@ -65,6 +64,16 @@ class FreeSpace:
         return cls.of_grids(cameras, depth_grids(cameras, points, cells), margin, cells, device)
 
     @classmethod
+    def of_parts(cls, cameras: Sequence[Camera], parts: Iterable[np.ndarray],
+                 device: torch.device | str = "cpu") -> "FreeSpace":
+        """From points given in parts (a keyframe's at a time): the :func:`merged_grids` of
+        each part's :func:`depth_grids`, so only one part's points are held at once."""
+        grids = depth_grids(cameras, np.zeros((0, 3)))  # inf: no point yet
+        for pts in parts:
+            grids = merged_grids(grids, depth_grids(cameras, pts))
+        return cls.of_grids(cameras, grids, device=device)
+
+    @classmethod
     def of_grids(cls, cameras: Sequence[Camera], grids: list[np.ndarray], margin: float = MARGIN,
                  cells: int = GRID_CELLS, device: torch.device | str = "cpu") -> "FreeSpace":
         """From :func:`depth_grids` (of all the points, or the elementwise minimum of those of
@@ -86,11 +95,7 @@ class FreeSpace:
         empty = torch.zeros(X.shape[0], dtype=torch.bool, device=X.device)
         seen = torch.zeros_like(empty)
         for cam, grid, cell in zip(self.cameras, self.grids, self.cells):
-            p = to_camera_frame(cam, X)
-            z = p[:, 2]
-            zs = z.clamp_min(1e-9)
-            u, v = pinhole_pixels(cam, p, zs)
-            inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+            u, v, z, inside = project(cam, X)
             r = (v / cell).long().clamp(0, grid.shape[0] - 1)
             c = (u / cell).long().clamp(0, grid.shape[1] - 1)
             nearest = grid[r, c].to(X.dtype)
@@ -102,6 +107,13 @@ class FreeSpace:
 def depth_grids(cameras: Sequence[Camera], points: np.ndarray, cells: int = GRID_CELLS) -> list[np.ndarray]:
     """Each camera's :func:`nearest_depth_grid` of ``points``."""
     return [nearest_depth_grid(c, points, cells)[0] for c in cameras]
+
+
+def merged_grids(a: list[np.ndarray], b: list[np.ndarray]) -> list[np.ndarray]:
+    """The nearest-depth grids of two sets of points from those of each (per camera, the
+    elementwise minimum: exact and commutative, so parts folded in any order, or by several
+    workers, give the grids of all the points at once)."""
+    return [np.minimum(x, y) for x, y in zip(a, b)]
 
 
 def carve(samples: np.ndarray, points: np.ndarray, cameras: Sequence[Camera], margin: float = MARGIN,

@@ -28,7 +28,7 @@ view, the Gaussians standing in front of their pixel's measured depth, and pushe
 opacity they accumulate on the rays whose measured depth lies behind them. That is what makes a
 semi-transparent fog in front of a uniform wall, cheap for the training views, go.
 
-Owner of the per-ray test; :mod:`atgs.free_space` is the coarse per-position test of the
+Owner of the per-ray test; :mod:`atgs.geometry.free_space` is the coarse per-position test of the
 set-up (random anchors, atgs-prepare's fill).
 """
 
@@ -41,8 +41,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from atgs.cameras import Camera, pinhole_pixels, to_camera_frame
-from atgs.free_space import MARGIN, points_in_cells
+from atgs.cameras import Camera
+from atgs.geometry.free_space import MARGIN, points_in_cells
+from atgs.geometry.projection import project
 
 CELL_PX = 4  # cell size in training pixels: a pixel's measured depth is its cell's
 VISIBLE_TOLERANCE = 0.2  # mean absolute RGB difference (0..1) under which a camera sees a point
@@ -52,15 +53,13 @@ def visible_points(cam: Camera, points: np.ndarray, colors: np.ndarray, image: n
                    tolerance: float = VISIBLE_TOLERANCE) -> np.ndarray:
     """(P,) bool: the points in front of ``cam`` and inside its image whose colour (P, 3) in
     [0, 1] the image (H, W, 3) uint8 shows at their pixel or one of its 8 neighbours."""
-    uv, z = cam.project(np.asarray(points, np.float64).reshape(-1, 3))
-    with np.errstate(invalid="ignore"):
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    u, v, z, ok = project(cam, points)
     seen = np.zeros(len(z), bool)
     if not ok.any():
         return seen
     H, W = image.shape[:2]
-    px = np.clip((uv[ok, 0] * W / cam.width).astype(np.int64), 0, W - 1)
-    py = np.clip((uv[ok, 1] * H / cam.height).astype(np.int64), 0, H - 1)
+    px = np.clip((u[ok] * W / cam.width).astype(np.int64), 0, W - 1)
+    py = np.clip((v[ok] * H / cam.height).astype(np.int64), 0, H - 1)
     img = image.astype(np.float32) / 255.0
     col = np.asarray(colors, np.float32).reshape(-1, 3)[ok]
     best = np.full(len(px), np.inf, np.float32)
@@ -88,7 +87,7 @@ def cells_of(cam: Camera, cell_px: float) -> int:
 
 def median_depth_grid(cam: Camera, points: np.ndarray, cells: int) -> np.ndarray:
     """(rows, cols) grid of the median depth of the points in each image cell of ``cam`` (the
-    lower median; inf: no point), on the cells of :func:`atgs.free_space.nearest_depth_grid`."""
+    lower median; inf: no point), on the cells of :func:`atgs.geometry.free_space.nearest_depth_grid`."""
     idx, z, shape, _ = points_in_cells(cam, points, cells)
     grid = np.full(shape[0] * shape[1], np.inf)
     order = np.lexsort((z, idx))  # by cell, then by depth
@@ -147,10 +146,7 @@ class MeasuredDepths:
         static Gaussians and nothing (inf) for ``moving`` ones; inf outside the image, behind the
         camera or unmeasured."""
         cam, cell = self.cameras[slot], self.cell[slot]
-        pc = to_camera_frame(cam, means)
-        z = pc[:, 2]
-        u, v = pinhole_pixels(cam, pc, z.clamp_min(1e-9))
-        inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        u, v, z, inside = project(cam, means)
         static = self.static[slot]
         r = (v / cell).long().clamp(0, static.shape[0] - 1)
         c = (u / cell).long().clamp(0, static.shape[1] - 1)
