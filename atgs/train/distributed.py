@@ -18,7 +18,7 @@ What a step does on N workers (docs/training.md, "Several workers"):
   (a non-finite view skips the step on every worker; Ctrl-C stops all after the same step), the
   losses for the log and the row counts of the sparse part;
 - one all-gather carries the sparse part: per table the rows this worker's views touched and their
-  gradients (merged over its views), and the reach (atgs.model.culling) its decodes measured;
+  gradients (merged over its views), and the reach (atgs.geometry.reach) its decodes measured;
   every worker merges them in rank order, so all apply the same update to the same rows;
 - densification statistics stay per worker between densifications (sums; the last position is the
   latest view's) and are reduced when densification, the final pruning or a checkpoint reads them;

@@ -183,7 +183,7 @@ class Trainer:
         self.scene_flow_stats: dict | None = None
         self._velocities_due = fresh and self.cfg.velocity_from_flow and self.model_cfg.anchor_velocity
         self.partition.take_share(self.model, functools.partial(self._measure_velocities, False))
-        # measured before the first culled decode (atgs.model.culling): unknown reach culls nothing
+        # measured before the first culled decode (atgs.geometry.reach): unknown reach culls nothing
         self.model.refresh_reach()
 
     def _set_up_optimizers(self, sparse_state: dict | None) -> None:

@@ -17,7 +17,7 @@ from contextlib import AbstractContextManager
 import torch
 
 from atgs.model.atgs_model import ATGSModel
-from atgs.model.culling import AnchorReach
+from atgs.geometry.reach import AnchorReach
 from atgs.train.densify import DensifyStats
 from atgs.train.distributed import Workers
 from atgs.train.partition.base import DrawView
