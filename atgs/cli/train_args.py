@@ -52,6 +52,12 @@ PresetChoice = Union[tuple(
     for name in PRESET_NAMES)]
 
 
+def _of_preset(name: str, kind: type) -> property:
+    """``args.model`` / ``args.train``: the configuration in ``args.preset`` (read and replaced)."""
+    return property(lambda self: getattr(self.preset, name), lambda self, value: setattr(self.preset, name, value),
+                    doc=f"The run's {kind.__name__} (the preset's, with the flags given).")
+
+
 @dataclass
 class TrainArgs:
     """Train ATGS on a prepared scene (or the built-in synthetic scene). Nothing in an existing --out
@@ -97,21 +103,8 @@ class TrainArgs:
     minutes: tyro.conf.Suppress[float | None] = None
     """(Set by parse) the time budget given (--train.minutes): a resume's new total."""
 
-    @property
-    def model(self) -> ModelConfig:
-        return self.preset.model
-
-    @model.setter
-    def model(self, value: ModelConfig) -> None:
-        self.preset.model = value
-
-    @property
-    def train(self) -> TrainConfig:
-        return self.preset.train
-
-    @train.setter
-    def train(self, value: TrainConfig) -> None:
-        self.preset.train = value
+    model = _of_preset("model", ModelConfig)
+    train = _of_preset("train", TrainConfig)
 
     def __post_init__(self) -> None:
         check_fields(self, "--", {"workers": at_least(1, "a number of processes"),
