@@ -121,7 +121,8 @@ def test_a_restart_after_the_new_runs_first_checkpoint_continues_it_and_resume_k
 
 def test_a_restart_without_a_start_identity_does_not_continue_a_checkpoint(old_run, tmp_path, monkeypatch,
                                                                             capsys) -> None:
-    from atgs.cli.train import parse, restarted_run
+    from atgs.cli.train import restarted_run
+    from atgs.cli.train_args import parse
 
     out = _over(old_run, tmp_path)
     _launch(monkeypatch, "none", restart=1)  # several machines, no --rdzv-id: every start is "none"
