@@ -1,6 +1,6 @@
 """The ranges a configuration field accepts, and the one-line error for a value outside them.
 
-The config dataclasses (``atgs.model.config``, ``atgs.train.config``, ``atgs.cli.train.TrainArgs``)
+The config dataclasses (``atgs.model.config``, ``atgs.train.config``, ``atgs.cli.train_args.TrainArgs``)
 check themselves in ``__post_init__`` with :func:`check_fields`, so a bad flag is refused while the
 command line is read, before anything touches ``--out``; the trainer asks them again because fields
 can be set after construction. :class:`ConfigError` is a :class:`~atgs.errors.UserError` and not a

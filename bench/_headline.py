@@ -59,7 +59,7 @@ def capture_rigs(r: dict) -> Cells:
 
 
 def cpu_training(r: dict) -> Cells:
-    return Cells(f"the built-in scene's run above, preset `cpu` (`--minutes` sets another budget), "
+    return Cells(f"the built-in scene's run above, preset `cpu` (`--train.minutes` sets another budget), "
                  f"{cores(r['machine']['cpus'])}", day(r["date"]),
                  f"{r['budget_seconds'] / 60:g}-minute budget: {r['steps']:,} steps at "
                  f"{r['train_seconds'] / r['steps']:.2f} s")

@@ -126,7 +126,7 @@ def markdown_table(results: list[dict]) -> str:
 def main(cfg: BenchConfig) -> None:
     if not cfg.checkpoint.is_file():
         raise SystemExit(f"bench/decode.py: --checkpoint {cfg.checkpoint} does not exist; train one with "
-                         "atgs-train (e.g. --preset cpu) and pass its ckpt.pt")
+                         "atgs-train (e.g. atgs-train cpu) and pass its ckpt.pt")
     if not cfg.threads or min(cfg.threads) < 1:
         raise SystemExit(f"bench/decode.py: --threads {cfg.threads}: give one or more counts >= 1")
     result = [run(cfg, n) for n in cfg.threads]

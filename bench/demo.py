@@ -2,7 +2,7 @@
 
     python bench/demo.py                      # fresh cache: synthesize + prepare + train (default preset)
     python bench/demo.py --reuse-cache        # keep the built-in scene from an earlier run
-    python bench/demo.py -- --preset cpu-fast # extra arguments go to atgs-train
+    python bench/demo.py -- cpu-fast          # extra arguments go to atgs-train
     python bench/demo.py -- --device cuda     # on a GPU (written to bench/results/demo_cuda.json)
 
 It runs `atgs-train --out WORK/demo` with the same defaults as the demo (the built-in

@@ -103,8 +103,8 @@ def run_case(name: str, args: Distributed, seed: int = 0, steps: int | None = No
     workers, threads, partition, batch = CASES[name]
     views = views_flag(workers, partition, batch)
     out = args.work_dir / name
-    length = ["--iterations", str(steps)] if steps else ["--minutes", str(args.minutes)]
-    cmd = [sys.executable, "-m", "atgs.cli.train", "--out", str(out), "--overwrite", "--preset", "cpu",
+    length = ["--train.iterations", str(steps)] if steps else ["--train.minutes", str(args.minutes)]
+    cmd = [sys.executable, "-m", "atgs.cli.train", "cpu", "--out", str(out), "--overwrite",
            "--train.seed", str(seed), *length, *extra,
            "--train.views-per-step", str(views), "--train.threads", str(threads),
            "--train.partition", partition, "--train.time-groups", str(TIME_GROUPS if partition == "both" else 0),

@@ -104,10 +104,10 @@ def main() -> None:
         if args.reuse_runs and (run / "result.json").exists():
             return {**summarize(run, seed), "points": rows[case]["points"]}
         shutil.rmtree(run, ignore_errors=True)
-        cmd = [*_cli("train"), "--data", rows[case]["scene"], "--out", str(run), "--preset", args.preset,
+        cmd = [*_cli("train"), args.preset, "--data", rows[case]["scene"], "--out", str(run),
                "--train.threads", "1", "--train.seed", str(seed), "--no-progress"]
         if args.minutes is not None:
-            cmd += ["--minutes", str(args.minutes)]
+            cmd += ["--train.minutes", str(args.minutes)]
         proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
         print(proc.stdout)
         if proc.returncode != 0:

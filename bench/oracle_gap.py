@@ -93,8 +93,8 @@ def train_side_by_side(runs: dict[str, tuple[Path, Path]], a: GapBench) -> dict[
     procs, logs, ends = {}, {}, {}
     t0 = time.perf_counter()
     for name, (data, out) in runs.items():
-        cmd = [sys.executable, "-m", "atgs.cli.train", "--data", str(data), "--out", str(out), "--overwrite",
-               "--preset", a.preset, "--iterations", str(a.iterations), "--train.threads", str(a.threads),
+        cmd = [sys.executable, "-m", "atgs.cli.train", a.preset, "--data", str(data), "--out", str(out),
+               "--overwrite", "--train.iterations", str(a.iterations), "--train.threads", str(a.threads),
                "--no-progress"]
         logs[name] = open(out.parent / f"train-{name}.log", "w")
         procs[name] = subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=logs[name], stderr=subprocess.STDOUT)

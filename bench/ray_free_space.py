@@ -78,8 +78,8 @@ def training_psnr(run: Path) -> float | None:
 
 def train_one(name: str, scene: str, weight: float, args: RayFreeSpaceBench) -> dict:
     run = args.work_dir / f"{name}-w{weight:g}"
-    cmd = [str(BIN / "atgs-train"), "--data", scene, "--out", str(run), "--overwrite", "--preset", args.preset,
-           "--minutes", str(args.minutes), "--train.threads", "1", "--train.seed", str(args.seed),
+    cmd = [str(BIN / "atgs-train"), args.preset, "--data", scene, "--out", str(run), "--overwrite",
+           "--train.minutes", str(args.minutes), "--train.threads", "1", "--train.seed", str(args.seed),
            "--train.lambda-ray-free-space", str(weight), "--no-progress", *args.extra]
     t0 = time.time()
     proc = subprocess.run(cmd, capture_output=True, text=True)

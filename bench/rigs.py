@@ -8,7 +8,7 @@ and its 20-minute budget, score the held-out cameras.
     python bench/rigs.py --cases --scenes "sleap4=/tmp/realrigs/sleap-minimal-prep"   # real captures, prepared
     python bench/rigs.py --cases dome27-stage --extra-train-args="--flag value" --tag=-flag   # an A/B row
 
-Each case runs the commands a user would (`atgs-synth`, `atgs-prepare`, `atgs-train --minutes M`)
+Each case runs the commands a user would (`atgs-synth`, `atgs-prepare`, `atgs-train --train.minutes M`)
 as subprocesses, alone on the machine (a time budget measures the machine), and keeps what
 atgs-prepare reported (keyframe points, coverage, cameras per measured pixel, its warnings) and
 what atgs-train reported (steps, held-out PSNR/SSIM: its final evaluation, atgs-eval's default;
@@ -146,8 +146,8 @@ def prepared(case: Case, cfg: RigsBench) -> tuple[Path, list[str]]:
 
 def train_command(scene_dir: Path, out: Path, cfg: RigsBench) -> list[str]:
     """atgs-train with the bench's budget and preset, then the extra flags (last: they win)."""
-    cmd = [str(BIN / "atgs-train"), "--data", str(scene_dir), "--out", str(out), "--preset", cfg.preset,
-           "--minutes", str(cfg.minutes)] + (["--train.threads", str(cfg.threads)] if cfg.threads else [])
+    cmd = [str(BIN / "atgs-train"), cfg.preset, "--data", str(scene_dir), "--out", str(out),
+           "--train.minutes", str(cfg.minutes)] + (["--train.threads", str(cfg.threads)] if cfg.threads else [])
     return cmd + shlex.split(cfg.extra_train_args)
 
 

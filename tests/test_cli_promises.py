@@ -110,7 +110,7 @@ def test_a_diverging_run_stops_with_one_line(toy_scene_dir, tmp_path, capsys, mo
         return out
 
     monkeypatch.setattr(trainer_mod, "rasterize_gaussians", nan_render)
-    code = train_main(["--data", str(toy_scene_dir), "--out", str(tmp_path / "run"), "--preset", "tiny",
+    code = train_main(["--data", str(toy_scene_dir), "--out", str(tmp_path / "run"), "tiny",
                        "--train.max-bad-steps", "3", "--no-progress"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.count("\n") == 0 and "consecutive steps had a non-finite loss" in err, err
@@ -123,7 +123,7 @@ def test_a_diverging_run_stops_with_one_line(toy_scene_dir, tmp_path, capsys, mo
 def interrupted_run(toy_scene_dir, tmp_path_factory) -> tuple[Path, int, str, int]:
     """atgs-train stopped with SIGINT in the middle of training: (run dir, exit code, stderr, step)."""
     out = tmp_path_factory.mktemp("interrupted") / "run"
-    proc = _train("--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--iterations", "100000",
+    proc = _train("--data", str(toy_scene_dir), "--out", str(out), "tiny", "--train.iterations", "100000",
                   "--train.eval-every", "0", "--train.save-every", "0")
     head = _read_until(proc.stderr, r"\b([1-9]\d*)/100000\b")  # tqdm shows steps: the loop is running
     proc.send_signal(signal.SIGINT)
@@ -145,7 +145,7 @@ def test_ctrl_c_saves_a_checkpoint_that_resume_continues(interrupted_run) -> Non
     from atgs.cli.train import main as train_main
 
     scene = json.loads((out / "config.json").read_text())["data"]
-    assert train_main(["--out", str(out), "--data", scene, "--resume", "--iterations", str(step + 3),
+    assert train_main(["--out", str(out), "--data", scene, "--resume", "--train.iterations", str(step + 3),
                        "--no-progress"]) == 0
     assert int(torch.load(out / "ckpt.pt", weights_only=True)["step"]) == step + 3
     assert json.loads((out / "result.json").read_text())["steps"] == 3
@@ -161,13 +161,13 @@ def test_refused_and_interrupted_starts_leave_an_existing_run_byte_identical(int
     before = _snapshot(out)
     scene = json.loads((out / "config.json").read_text())["data"]
     # refused: the directory holds a run, and neither --resume nor --overwrite was given
-    assert train_main(["--data", scene, "--out", str(out), "--preset", "tiny", "--no-progress"]) == 2
+    assert train_main(["--data", scene, "--out", str(out), "tiny", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("atgs-train: error: ") and "--overwrite" in err and "\n" not in err, err
     assert _snapshot(out) == before
     # interrupted before its first checkpoint: --overwrite, stopped while the built-in scene is built
     cache = tmp_path / "cache"
-    proc = _train("--out", str(out), "--overwrite", "--preset", "tiny", "--cache-dir", str(cache))
+    proc = _train("--out", str(out), "--overwrite", "tiny", "--cache-dir", str(cache))
     head = _read_until(proc.stdout, "using the built-in synthetic scene")
     proc.send_signal(signal.SIGINT)
     code, err = _finish(proc)

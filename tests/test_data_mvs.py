@@ -346,8 +346,8 @@ def test_a_two_camera_capture_holds_out_none_by_default(tmp_path, capsys) -> Non
     # atgs-train's closing line says its figure is from a training view, not a held-out one
     from atgs.cli.train import main as train_main
 
-    assert train_main(["--data", str(tmp_path / "out"), "--out", str(tmp_path / "run"), "--preset", "tiny",
-                       "--iterations", "2", "--no-progress"]) == 0
+    assert train_main(["--data", str(tmp_path / "out"), "--out", str(tmp_path / "run"), "tiny",
+                       "--train.iterations", "2", "--no-progress"]) == 0
     done = [ln for ln in capsys.readouterr().out.splitlines() if "done," in ln]
     assert done and "training-view (no held-out camera) PSNR" in done[-1] and "test PSNR" not in done[-1]
     # atgs-eval has no held-out camera to default to: one line naming the scene and --cameras

@@ -147,7 +147,7 @@ def _start(*args: str) -> subprocess.Popen:
 
 def _two_workers_until_checkpoint(scene: Path, out: Path) -> subprocess.Popen:
     """atgs-train --workers 2 on the toy scene, endless, once it wrote its first checkpoint."""
-    proc = _start("--data", str(scene), "--out", str(out), "--preset", "tiny", "--iterations", "100000",
+    proc = _start("--data", str(scene), "--out", str(out), "tiny", "--train.iterations", "100000",
                   "--train.views-per-step", "2", "--train.save-every", "3", "--train.eval-every", "0", "--workers", "2")
     deadline = time.monotonic() + 120
     while not (out / "ckpt.pt").is_file():
@@ -182,10 +182,10 @@ def test_ctrl_c_on_two_workers_saves_a_checkpoint_that_one_and_two_workers_conti
     assert code == 130 and "Traceback" not in err, err
     assert _last_line(err) == (f"atgs-train: interrupted: checkpoint of step {step} saved to {out / 'ckpt.pt'}; "
                                f"continue with atgs-train --out {out} --resume")
-    assert train_main(["--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", str(step + 3),
+    assert train_main(["--out", str(out), "--data", str(toy_scene_dir), "--resume", "--train.iterations", str(step + 3),
                        "--no-progress"]) == 0  # 2 -> 1
     assert _step(out / "ckpt.pt") == step + 3
-    proc = _start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", str(step + 6),
+    proc = _start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--train.iterations", str(step + 6),
                   "--workers", "2")  # 1 -> 2
     code, err = _finish(proc)
     assert code == 0 and "Traceback" not in err, err
@@ -222,7 +222,7 @@ def test_torchrun_restarts_a_killed_worker_and_the_run_continues_from_its_checkp
     out = tmp_path / "run"
     steps = 40
     proc = subprocess.Popen([sys.executable, "-m", "atgs.cli.train", "--data", str(toy_scene_dir), "--out", str(out),
-                             "--preset", "tiny", "--iterations", str(steps), "--train.views-per-step", "2",
+                             "tiny", "--train.iterations", str(steps), "--train.views-per-step", "2",
                              "--train.save-every", "3", "--train.eval-every", "0", "--workers", "2",
                              "--max-restarts", "1", "--no-progress"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=REPO)

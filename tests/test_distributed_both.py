@@ -184,7 +184,7 @@ def test_torchrun_on_two_nodes_gives_each_node_a_time_group_and_the_checkpoint_r
     from test_distributed import _start
 
     out = tmp_path / "run"
-    args = ("--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--iterations", "4",
+    args = ("--data", str(toy_scene_dir), "--out", str(out), "tiny", "--train.iterations", "4",
             "--train.partition", "both", "--train.views-per-step", "2", "--train.eval-every", "2")
     port = _free_port()
     nodes = [_node(port, *args) for _ in range(2)]
@@ -196,9 +196,9 @@ def test_torchrun_on_two_nodes_gives_each_node_a_time_group_and_the_checkpoint_r
     assert result["workers"]["time_group"]["workers"] == 2 and result["eval"]["views"] == 6, result
     data = torch.load(out / "ckpt.pt", weights_only=True)
     assert data["step"] == 4 and data["model"]["tmlp_w1"].shape[0] == 2, "both time groups' segments, once"
-    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "6"))
+    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--train.iterations", "6"))
     assert code == 0 and "Traceback" not in err, err
     assert torch.load(out / "ckpt.pt", weights_only=True)["step"] == 6
-    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "8",
+    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--train.iterations", "8",
                                "--workers", "4"))
     assert code == 2 and "--train.time-groups" in _last_line(err) and "Traceback" not in err, err

@@ -197,18 +197,18 @@ def test_atgs_train_partitioned_by_time_evaluates_the_gathered_model_and_resumes
     from test_cli_promises import _finish, _last_line
 
     out = tmp_path / "run"
-    code, err = _finish(_start("--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--iterations",
+    code, err = _finish(_start("--data", str(toy_scene_dir), "--out", str(out), "tiny", "--train.iterations",
                                "4", "--workers", "2", "--train.partition", "time", "--train.eval-every", "2"))
     assert code == 0 and "Traceback" not in err, err
     evaluated = [r.split(",") for r in (out / "train_log.csv").read_text().strip().splitlines()]
     assert evaluated[2][evaluated[0].index("eval_psnr")], "the periodic evaluation (spread over the workers) at step 2"
     result = json.loads((out / "result.json").read_text())
     assert result["eval"]["psnr"] > 5 and result["eval"]["views"] == 6, result["eval"]
-    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "6",
+    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--train.iterations", "6",
                                "--workers", "2", "--train.partition", "views"))
     # (the views partition shares the run's views per step, 1 here, between the workers: refused)
     assert code == 2 and "--train.views-per-step is 1" in _last_line(err), err
-    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--iterations", "6",
+    code, err = _finish(_start("--out", str(out), "--data", str(toy_scene_dir), "--resume", "--train.iterations", "6",
                                "--workers", "2"))
     assert code == 0 and "Traceback" not in err, err
     data = torch.load(out / "ckpt.pt", weights_only=True)

@@ -154,3 +154,9 @@ def test_no_active_anchor_gives_empty_gaussians():
     model.keep_anchors(torch.zeros(model.num_anchors, dtype=torch.bool))
     g = model.gaussians_at_frame(4)
     assert g.means.shape == (0, 3) and g.opacities.shape == (0,)
+    # the slice cache of 0-byte slices: one slot per (grid, level, time vertex) at most, where
+    # its byte budget asked for 256 Mi of them (an 11 GB list of free slots, 95 s)
+    hg = model.hash
+    slices = {(m, lv, v) for m in range(hg.num_grids) for lv in range(hg.levels) for v in range(hg.time_res[lv] + 1)}
+    pool = model.inference_cache._features.pool
+    assert 2 * hg.levels <= pool.shape[0] <= max(len(slices), 2 * hg.levels)

@@ -173,10 +173,10 @@ def test_the_cpu_kernels_build_in_set_up_not_in_the_budget(tmp_path, monkeypatch
 
 
 def test_iterations_and_minutes_together_are_refused(tmp_path, capsys) -> None:
-    code = train_main(["--out", str(tmp_path / "r"), "--preset", "tiny", "--iterations", "5", "--minutes", "1",
+    code = train_main(["--out", str(tmp_path / "r"), "tiny", "--train.iterations", "5", "--train.minutes", "1",
                        "--no-progress"])
     err = capsys.readouterr().err.strip()
-    assert code == 2 and err.startswith("atgs-train: error: ") and "--minutes" in err and "\n" not in err
+    assert code == 2 and err.startswith("atgs-train: error: ") and "--train.minutes" in err and "\n" not in err
     assert not (tmp_path / "r").exists()
 
 

@@ -109,7 +109,7 @@ def test_train_device_cuda_without_it_is_one_line_and_exit_2(missing, toy_scene_
     monkeypatch.setattr(torch.cuda, "is_available", lambda: missing != "cuda")
     monkeypatch.setattr(cuda, "gsplat_import_error", lambda: "ModuleNotFoundError: No module named 'gsplat'")
     out = tmp_path / "run"
-    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--device", "cuda",
+    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "tiny", "--device", "cuda",
                        "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     fix = "install a CUDA build of torch, or use --device cpu" if missing == "cuda" else "pip install gsplat"
@@ -124,8 +124,8 @@ def test_auto_on_a_gpu_machine_without_gsplat_says_why_it_trains_on_the_cpu(toy_
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(cuda, "gsplat_import_error", lambda: "gsplat found no CUDA compiler (nvcc) to build its kernels")
-    assert train_main(["--data", str(toy_scene_dir), "--out", str(tmp_path / "run"), "--preset", "tiny",
-                       "--iterations", "2", "--no-progress"]) == 0
+    assert train_main(["--data", str(toy_scene_dir), "--out", str(tmp_path / "run"), "tiny",
+                       "--train.iterations", "2", "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert ("atgs-train: a CUDA device is present, but this runs on the CPU: gsplat, the GPU rasterizer, is not "
             "usable (gsplat found no CUDA compiler (nvcc) to build its kernels); see docs/gpu.md") in out
@@ -148,7 +148,7 @@ def test_train_with_device_cpu_end_to_end(toy_scene_dir, tmp_path, capsys) -> No
     from atgs.cli.train import main as train_main
 
     out = tmp_path / "run"
-    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--iterations", "6",
+    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "tiny", "--train.iterations", "6",
                        "--device", "cpu", "--no-progress"]) == 0
     assert "on cpu" in capsys.readouterr().out
     assert json.loads((out / "config.json").read_text())["device"] == "cpu"
@@ -156,7 +156,7 @@ def test_train_with_device_cpu_end_to_end(toy_scene_dir, tmp_path, capsys) -> No
     model = atgs.load(out / "ckpt.pt", device="cpu")
     assert model.device.type == "cpu" and len(model.gaussians_at_frame(3)) > 0
     # --resume takes --device too (the run was started with another one on a GPU machine)
-    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "--resume", "--iterations", "8",
+    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "--resume", "--train.iterations", "8",
                        "--device", "cpu", "--no-progress"]) == 0
     assert json.loads((out / "result.json").read_text())["steps"] == 2
 

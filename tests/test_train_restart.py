@@ -52,7 +52,7 @@ def old_run(toy_scene_dir, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("old") / "run"
     with pytest.MonkeyPatch.context() as mp:
         _launch(mp, None)
-        assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "--preset", "tiny", "--iterations", "3",
+        assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "tiny", "--train.iterations", "3",
                            "--train.eval-every", "0", "--no-progress"]) == 0
     return out
 
@@ -64,7 +64,7 @@ def _over(old_run: Path, tmp_path: Path) -> Path:
 
 
 def _argv(scene: Path, out: Path, steps: int) -> list[str]:
-    return ["--data", str(scene), "--out", str(out), "--preset", "tiny", "--iterations", str(steps), "--overwrite",
+    return ["--data", str(scene), "--out", str(out), "tiny", "--train.iterations", str(steps), "--overwrite",
             "--max-restarts", "1", "--train.save-every", "2", "--train.eval-every", "0", "--no-progress"]
 
 
@@ -113,7 +113,7 @@ def test_a_restart_after_the_new_runs_first_checkpoint_continues_it_and_resume_k
     assert _logged(out) == list(range(1, steps + 1))
     # a user's --resume, in another start: the run keeps its identity
     _launch(monkeypatch, "start-d")
-    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "--resume", "--iterations", str(steps + 1),
+    assert train_main(["--data", str(toy_scene_dir), "--out", str(out), "--resume", "--train.iterations", str(steps + 1),
                        "--no-progress"]) == 0
     assert _ckpt(out)["run_id"] == "start-c" and _ckpt(out)["step"] == steps + 1
     assert json.loads((out / "config.json").read_text())["run_id"] == "start-c"
@@ -121,7 +121,8 @@ def test_a_restart_after_the_new_runs_first_checkpoint_continues_it_and_resume_k
 
 def test_a_restart_without_a_start_identity_does_not_continue_a_checkpoint(old_run, tmp_path, monkeypatch,
                                                                             capsys) -> None:
-    from atgs.cli.train import parse, restarted_run
+    from atgs.cli.train import restarted_run
+    from atgs.cli.train_args import parse
 
     out = _over(old_run, tmp_path)
     _launch(monkeypatch, "none", restart=1)  # several machines, no --rdzv-id: every start is "none"

@@ -1,10 +1,10 @@
 """``atgs-train``: train ATGS on a prepared scene (or the built-in synthetic scene).
 
-    atgs-train --data DIR --out DIR [--preset cpu-fast|cpu|cpu-accurate|paper] [--minutes M | --iterations N] [--resume]
-               [--device auto|cpu|cuda] [--workers N]
+    atgs-train [cpu-fast|cpu|cpu-accurate|paper] --data DIR --out DIR [--train.minutes M | --train.iterations N]
+               [--resume] [--device auto|cpu|cuda] [--workers N]
 
 Every model/trainer knob is a flag (``--model.*``, ``--train.*``; see ``atgs-train --help``);
-flag defaults come from the chosen preset. Nothing in an existing ``--out`` changes before the new
+their defaults come from the chosen preset, a subcommand (atgs.cli.train_args). Nothing in an existing ``--out`` changes before the new
 run's first checkpoint (atgs.train.run_dir); Ctrl-C saves a checkpoint that ``--resume`` continues.
 
 Several workers (atgs.train.distributed): ``torchrun --nproc-per-node N -m atgs.cli.train ...``
@@ -14,125 +14,19 @@ Rank 0 prints and writes the run's files; the others print only their errors.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
 import logging
 import os
 from pathlib import Path
 import signal
 import sys
 
-import tyro
-
-from atgs.config_checks import ConfigError, above, at_least, check_fields
-from atgs.device import DeviceName, auto_fallback_note, device_description, resolve_device
+from atgs.cli.train_args import PROG, TrainArgs, current_spelling, explicit_model_flags, given_flags, parse
+from atgs.config_checks import ConfigError
+from atgs.device import auto_fallback_note, device_description, resolve_device
 from atgs.errors import OutputError
-from atgs.io.cache import cache_dir
 from atgs.geometry.rig_check import sparse_rig_warning
 from atgs.io.cli import EXIT_INTERRUPTED, Interrupted, _exit_now, run_cli, stop_on_sigint
-from atgs.model.config import ModelConfig
-from atgs.train.config import PRESET_NAMES, PresetName, TrainConfig, preset
-from atgs.train.step_schedule import SCHEDULE_SETTINGS, schedule_for
-
-PROG = "atgs-train"
-
-
-@dataclass
-class TrainArgs:
-    out: Path = Path("runs/atgs")
-    """Output directory: ckpt.pt, train_log.csv, config.json, result.json, eval/."""
-    data: Path | None = None
-    """Prepared scene directory (atgs-prepare); default: the built-in synthetic scene."""
-    preset: PresetName = "cpu"
-    """Configuration preset (fast -> accurate: cpu-fast, cpu, cpu-accurate; paper = GPU sizes)."""
-    iterations: int | None = None
-    """Run exactly this many training steps (the schedule sized to them, atgs.train.step_schedule;
-    no time budget); with --resume: the new total. --train.iterations alone means the same."""
-    minutes: float | None = None
-    """Training time budget: the number of steps is sized from the measured step time and
-    re-sized as the model grows, so that training (with its final evaluation) ends on time.
-    Default: the preset's (cpu-fast 5, cpu 20, cpu-accurate 60 minutes; paper: 30,000 steps).
-    With --resume: the new total (time already used counts)."""
-    resume: bool = False
-    """Continue the run in --out from its ckpt.pt (configuration from the checkpoint)."""
-    overwrite: bool = False
-    """Start a new run even if --out already holds a checkpoint (it is replaced at the first save)."""
-    device: DeviceName = "auto"
-    """Where to train: cuda (the GPU; gsplat rasterizes), cpu (the compiled CPU rasterizer),
-    auto (cuda when torch sees a GPU and gsplat imports, else cpu). --resume may change it."""
-    progress: bool = True
-    cache_dir: Path = field(default_factory=cache_dir)
-    """Where the built-in synthetic scene is cached (default: $ATGS_CACHE_DIR, else ~/.cache/atgs)."""
-    synth_keyframes: int = 6
-    """Keyframes of the built-in synthetic scene (when --data is not given)."""
-    auto: bool = False
-    """Measure the scene's motion and choose K, M, hash table size and spatial grid resolution
-    from it (printed with the reasons); --model.* flags given explicitly still win."""
-    workers: int = 1
-    """Worker processes on this machine, each rendering its share of every step's views, their
-    gradients summed (torch.distributed: gloo on the CPU, NCCL on CUDA; docs/training.md, "Several
-    workers"). N > 1 runs torchrun's launcher here (as torchrun --nproc-per-node N -m
-    atgs.cli.train would); without --train.views-per-step, a new run takes at least N views per
-    step (one each; a value given must be at least N)."""
-    max_restarts: int = 0
-    """With --workers N: after a worker fails (killed, crashed, lost), torchrun restarts all of
-    them this many times; the restarted workers continue from the last checkpoint of this start's
-    run, as --resume does (steps after it are trained again), or start afresh when there is none
-    (a replaced run's is not continued). 0: a failure stops the run with one line."""
-    worker_timeout: float = 1800.0
-    """Seconds a worker waits for the others in an exchange before it stops (several workers;
-    rank 0's set-up of the velocities from optical flow must fit in it; a worker that dies is noticed at once)."""
-    model: ModelConfig = field(default_factory=ModelConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-
-    def __post_init__(self) -> None:
-        if self.iterations is not None and self.minutes is not None:
-            raise ConfigError("--iterations and --minutes were both given; pass one (--iterations N runs exactly "
-                              "N steps, --minutes M sizes the steps to M minutes)")
-        check_fields(self, "--", {"iterations": at_least(1, "a step count"),
-                                  "minutes": at_least(0, "a time budget", "0 runs the preset's fixed step count"),
-                                  "workers": at_least(1, "a number of processes"),
-                                  "max_restarts": at_least(0, "a number of restarts"),
-                                  "worker_timeout": above(0, "seconds")})
-
-
-def _scan(argv: list[str], flag: str) -> str | None:
-    """Value of ``--flag X`` / ``--flag=X`` (read before tyro so that presets set defaults)."""
-    for i, a in enumerate(argv):
-        if a == flag and i + 1 < len(argv):
-            return argv[i + 1]
-        if a.startswith(flag + "="):
-            return a.split("=", 1)[1]
-    return None
-
-
-def given_flags(argv: list[str], prefix: str) -> set[str]:
-    """Flags under ``prefix`` given on the command line, as they follow it with '-' for '_'
-    (``--train.lr.warmup_steps=9`` -> "lr.warmup-steps")."""
-    return {a[len(prefix):].split("=", 1)[0].replace("_", "-") for a in argv if a.startswith(prefix)}
-
-
-def parse(argv: list[str]) -> TrainArgs:
-    """The arguments, with the preset's values as defaults and the step count's schedule: a step
-    count (--iterations, or --train.iterations without a budget) sizes the schedule by the one
-    rule (atgs.train.step_schedule), except the schedule flags given, which are kept at any step
-    count (also when a --minutes budget re-sizes it)."""
-    name = _scan(argv, "--preset") or "cpu"
-    model, train = preset(name if name in PRESET_NAMES else "cpu")  # tyro reports an unknown name
-    args = tyro.cli(TrainArgs, default=TrainArgs(preset=name if name in PRESET_NAMES else "cpu",
-                                                 model=model, train=train), args=argv)
-    given = given_flags(argv, "--train.")
-    pinned = tuple(s for s in SCHEDULE_SETTINGS if s in given and s not in args.train.fixed_schedule)
-    args.train = replace(args.train, fixed_schedule=args.train.fixed_schedule + pinned)
-    budget = args.minutes if args.minutes is not None else args.train.minutes if "minutes" in given else 0.0
-    if args.iterations is not None and budget > 0:
-        raise ConfigError(f"--iterations and --train.minutes {budget:g} were both given; pass one")
-    if args.iterations is None and "iterations" in given and not budget > 0:
-        args.iterations = args.train.iterations  # without a budget, the raw field is a step count too
-    if args.iterations is not None:
-        args.train = schedule_for(replace(args.train, minutes=0.0), args.iterations)
-    if args.minutes is not None:
-        args.train = replace(args.train, minutes=args.minutes)
-    return args
+from atgs.train.config import TrainConfig
 
 
 def load_scene(args: TrainArgs):
@@ -146,11 +40,6 @@ def load_scene(args: TrainArgs):
     else:
         path = args.data
     return PreparedScene.load(path)
-
-
-def explicit_model_flags(argv: list[str]) -> set[str]:
-    """Model knobs given on the command line, as dotted field names ("hash.log2_table_size")."""
-    return {name.replace("-", "_") for name in given_flags(argv, "--model.")}
 
 
 def apply_auto(args: TrainArgs, scene, explicit: set[str]) -> None:
@@ -207,7 +96,7 @@ def make_trainer(args: TrainArgs, explicit: set[str] = frozenset(), workers=None
     chosen = _views_for_workers(args, explicit, workers)
     trainer = Trainer(scene, args.model, args.train, args.out, device=device, progress=args.progress, workers=workers)
     # config.json: these, and the configuration of each checkpoint (what ran; atgs.train.run_dir)
-    trainer.run.stage_config({"preset": args.preset, "data": str(args.data) if args.data else None,
+    trainer.run.stage_config({"preset": args.preset.name, "data": str(args.data) if args.data else None,
                               "device": str(device)})
     m = trainer.model
     print(f"{PROG}: {m.num_anchors} anchors, {m.num_keyframes} keyframes, {m.num_segments} temporal grids, "
@@ -320,8 +209,8 @@ def _train(args: TrainArgs, explicit: set[str], workers) -> dict:
     # a scene without held-out cameras is scored on a training camera: say so, not "test"
     which = "test" if ev.get("on_test_cameras", True) else "training-view (no held-out camera)"
     print(f"{PROG}: done, {result['steps']} steps in {result['seconds']:.0f} s; "
-          f"{which} PSNR {ev.get('psnr', float('nan')):.2f} dB, SSIM {ev.get('ssim', float('nan')):.4f}; "
-          f"checkpoint {ckpt}")
+          f"{which} PSNR {ev.get('psnr', float('nan')):.2f} dB ({ev.get('psnr_matched', float('nan')):.2f} dB "
+          f"exposure-matched), SSIM {ev.get('ssim', float('nan')):.4f}; checkpoint {ckpt}")
     if result.get("camera_exposure"):
         print(f"{PROG}: {exposure_summary(result['camera_exposure'])}")
     return result
@@ -428,14 +317,15 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
 
     def body() -> int | None:  # a bad flag is a one-line error too (atgs.config_checks)
-        args = parse(argv)
+        flags = current_spelling(argv)  # (the launcher's workers get the current spellings)
+        args = parse(flags)
         if args.workers > 1 and int(os.environ.get("WORLD_SIZE", "1")) <= 1:
-            return launch_workers(argv, args)
+            return launch_workers(flags, args)
         # (--train.partition / --train.time-groups on a resume: the workers split the run from here on so)
-        given = given_flags(argv, "--train.")
+        given = given_flags(flags, "--train.")
         partition = {f"train.{k.replace('-', '_')}" for k in ("partition", "time-groups", "views-per-step")
                      if k in given}
-        result = run(args, explicit_model_flags(argv) | partition)
+        result = run(args, explicit_model_flags(flags) | partition)
         return EXIT_INTERRUPTED if "stopped_early" in result else None  # (a worker other than rank 0)
 
     code = run_cli(PROG, body, process=process)

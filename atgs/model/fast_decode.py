@@ -128,6 +128,14 @@ class _Heads:
     second: list[tuple[torch.Tensor, torch.Tensor]]  # (W2.T contiguous, b2) per head
 
 
+def slice_slots(hg: HashGrid4D, slice_bytes: int, budget_bytes: int) -> int:
+    """Slots of the slice cache: what ``budget_bytes`` holds, but no more than the slices there
+    are (grid, level, time vertex) and at least 2 x levels. (Without the cap a model with no
+    anchor, its slices 0 bytes, asked for 256 Mi slots: an 11 GB list of free slots.)"""
+    slices = hg.num_grids * sum(r + 1 for r in hg.time_res)  # (a level of time resolution r: vertices 0..r)
+    return max(2 * hg.levels, min(slices, budget_bytes // max(slice_bytes, 1)))
+
+
 class InferenceCache:
     """Per-model cache of the time-invariant decode quantities. A decode holds ``lock`` from
     :meth:`window` to the end of its use of :meth:`gather`'s result (thread safe)."""
@@ -170,7 +178,8 @@ class InferenceCache:
         ``slice_cache_bytes``, least recently used slot reused): as separate tensors, a long
         playback left the slices scattered between the decode's passing allocations and the
         process's heap grew far past the cache (1.2 GB for 140 MB of slices, 300 frames);
-        at least 2 x levels slots, so that a decode's own slices are never reused under it."""
+        at least 2 x levels slots, so that a decode's own slices are never reused under it, and
+        no more than there are slices (:func:`slice_slots`)."""
         k = (m, lv, vertex)
         slot = c.slot_of.get(k)
         if slot is not None:
@@ -180,7 +189,7 @@ class InferenceCache:
         feats = hg.table.index_select(0, rows.reshape(-1)).view(*rows.shape, hg.features)
         s = torch.bmm(c.weights[lv][:, None, :], feats).squeeze(1) * c.inside
         if c.pool is None:
-            keep = max(2 * hg.levels, self.slice_cache_bytes // max(s.numel() * s.element_size(), 1))
+            keep = slice_slots(hg, s.numel() * s.element_size(), self.slice_cache_bytes)
             c.pool, c.free = s.new_empty((keep, *s.shape)), list(range(keep - 1, -1, -1))
         if not c.free:
             c.free.append(c.slot_of.popitem(last=False)[1])

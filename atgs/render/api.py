@@ -109,7 +109,7 @@ def warm_up(device: torch.device | str = "cpu", backend: str = "auto") -> str:
 
     The first call of a backend can take minutes: the CPU extension compiles on first use, and
     gsplat compiles its CUDA kernels on its first rasterization. A trainer calls this while it
-    sets up, so that a time budget (``atgs-train --minutes``) is not spent compiling."""
+    sets up, so that a time budget (``atgs-train --train.minutes``) is not spent compiling."""
     device = torch.device(device)
     means = torch.tensor([[0.0, 0.0, 2.0]], device=device, requires_grad=True)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=device)

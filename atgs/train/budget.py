@@ -1,4 +1,4 @@
-"""A training time budget (``atgs-train --minutes``).
+"""A training time budget (``atgs-train --train.minutes``).
 
 A fixed step count wastes a user's time either way: the same preset finished the built-in scene
 in 16 minutes and a smaller capture in 3. With a budget, the number of steps is sized from the
@@ -6,7 +6,7 @@ measured step time, and re-sized while training, since densification grows the m
 it the step time. The trainer sizes the whole schedule (warm-up, densification window and interval,
 learning-rate decay, periodic evaluation and checkpoints, final pruning) to the steps the budget
 affords by the rule every step count follows (atgs.train.step_schedule: a budget that lands on N
-steps trains as ``--iterations N`` would), so a run always ends with a complete schedule, on time. (If the pace drops sharply late
+steps trains as ``--train.iterations N`` would), so a run always ends with a complete schedule, on time. (If the pace drops sharply late
 in the run, the run ends when the time is up, with its final pruning.)
 
 What is measured: wall time of the training steps, periodic evaluations and checkpoints of this
@@ -19,7 +19,7 @@ the built-in scene, 0.85 on a 5-camera 160x120 one; half a step, the earlier fig
 end late). Scene loading and model set-up come on top (the
 trainer compiles its rasterizer while it sets up: ``atgs.render.warm_up``).
 Runs with a budget are not bit-reproducible (their length depends on the machine); a fixed
-``--iterations`` run is.
+``--train.iterations`` run is.
 """
 
 from __future__ import annotations

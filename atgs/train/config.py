@@ -19,6 +19,14 @@ from atgs.train.step_schedule import SCHEDULE_SETTINGS, ScheduleSetting, schedul
 
 PresetName = Literal["cpu-fast", "cpu", "cpu-accurate", "paper", "tiny"]
 PRESET_NAMES: tuple[str, ...] = get_args(PresetName)
+DEFAULT_PRESET: PresetName = "cpu"
+PRESET_HELP: dict[str, str] = {  # (atgs-train --help lists them)
+    "cpu-fast": "a 5-minute budget, the smallest CPU model",
+    "cpu": "a 20-minute budget on a CPU (the default)",
+    "cpu-accurate": "a 60-minute budget, the largest CPU model",
+    "paper": "the paper's sizes and 30,000 steps, for a GPU (--device cuda)",
+    "tiny": "for tests: a few seconds end to end",
+}
 VolumeReduction = Literal["sum", "mean", "mean-voxel"]
 CameraExposure = Literal["auto", "on", "off"]
 Partition = Literal["views", "time", "both"]  # what several workers split (atgs.train.distributed, atgs.train.time_partition)
@@ -160,7 +168,7 @@ class TrainConfig:
     random_background: bool = False  # a random colour per step; evaluation still renders over `background`
     # Not in the paper: start the per-keyframe anchors' velocities (--model.anchor-velocity) from
     # the training images' optical flow (atgs.train.scene_flow) instead of 0; the set-up time is
-    # paid from a --minutes budget. Measured in docs/training.md ("Velocities from optical flow").
+    # paid from a --train.minutes budget. Measured in docs/training.md ("Velocities from optical flow").
     velocity_from_flow: bool = True
     # Not in the paper: a learned gain and bias per colour channel for each training camera, for
     # rigs whose cameras are exposed differently (atgs.train.exposure). Held-out cameras and the
@@ -194,7 +202,7 @@ class TrainConfig:
     render_backend: str = "auto"  # one of atgs.render.BACKENDS
     fixed_schedule: tuple[ScheduleSetting, ...] = SCHEDULE_SETTINGS
     """Schedule settings kept as given at any step count; the others are sized from the step count
-    (--iterations, or the steps a --minutes budget affords) by atgs.train.step_schedule. paper: all
+    (--train.iterations, or the steps a --train.minutes budget affords) by atgs.train.step_schedule. paper: all
     of them; the CPU presets: none. atgs-train adds the ones given as flags."""
 
     def __post_init__(self) -> None:
@@ -311,4 +319,4 @@ def _preset(name: str) -> tuple[ModelConfig, TrainConfig]:
                            hidden_opacity=16, hidden_cov=16, hidden_color=16, hidden_offset=16,
                            random_anchors=0),
                 _cpu_train(40, eval_every=0, save_every=0, threads=1))
-    raise ConfigError(f"--preset {name!r}: use one of {', '.join(PRESET_NAMES)}")
+    raise ConfigError(f"preset {name!r}: use one of {', '.join(PRESET_NAMES)}")

@@ -3,8 +3,8 @@
 Five settings of a :class:`~atgs.train.config.TrainConfig` count steps: the densification start
 and interval, the learning-rate warm-up, and the evaluation and checkpoint intervals.
 :func:`schedule_for` sizes them for a run of N steps, and everything that chooses N goes through
-it: the presets (at their own step counts), ``atgs-train --iterations N`` (and
-``--train.iterations``), ``--resume --iterations N``, and a ``--minutes`` budget each time it
+it: the presets (at their own step counts), ``atgs-train --train.iterations N``,
+``--resume --train.iterations N``, and a ``--train.minutes`` budget each time it
 re-plans (atgs.train.budget). So a run of N steps has one schedule however N was chosen.
 
 The rule is the CPU presets' (tuned with them, docs/training.md): each setting is

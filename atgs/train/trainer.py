@@ -254,7 +254,7 @@ class Trainer:
         self._early_seconds += time.perf_counter() - t0
 
     def _set_up_budget(self) -> None:
-        """--minutes: the step count is sized from the measured pace (atgs.train.budget); the
+        """--train.minutes: the step count is sized from the measured pace (atgs.train.budget); the
         set-up it paid for so far counts as time used."""
         self.budget = (TimeBudget(60.0 * self.cfg.minutes, reserve_views=self.final_views())
                        if self.cfg.minutes > 0 else None)
@@ -577,7 +577,7 @@ class Trainer:
         """Continue the run of checkpoint ``path`` on ``device`` (any: checkpoints hold CPU tensors
         and the optimizer and densification state move with the model) and on any number of
         ``workers``. ``iterations``: a new total step count (and no time budget; the schedule
-        sized to it as ``--iterations`` sizes it); ``minutes``: a new total time budget (the
+        sized to it as ``--train.iterations`` sizes it); ``minutes``: a new total time budget (the
         time already used counts); ``partition`` and ``time_groups``: how several workers split
         the run from here (default: as it was saved; a checkpoint of any partition resumes with
         any). The partition reads its share of the checkpoint; the trainer loads what it read."""
@@ -630,7 +630,7 @@ class Trainer:
         return self._overhead + (self.budget.overhead if self.budget is not None else 0.0)
 
     def _follow_budget(self, bar) -> None:
-        """Re-size the schedule to the time left (no-op without --minutes)."""
+        """Re-size the schedule to the time left (no-op without --train.minutes)."""
         if self.budget is None:
             return
         used, overhead = self._time_used(), self._overhead_used()
@@ -639,7 +639,7 @@ class Trainer:
         if n is None:
             return
         first = self.budget.pace > 0 and self._planned_once is False
-        self.cfg = schedule_for(self.cfg, max(n, self.step))  # as --iterations would size it
+        self.cfg = schedule_for(self.cfg, max(n, self.step))  # as --train.iterations would size it
         if self.step >= n and self.cfg.densify.final_prune:  # out of time: the run ends at this step
             self._final_prune(int(self.cfg.densify.stop_fraction * self.cfg.iterations))
         bar.total = n
