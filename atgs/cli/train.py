@@ -14,6 +14,7 @@ Rank 0 prints and writes the run's files; the others print only their errors.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import logging
 import os
 from pathlib import Path
