@@ -4,7 +4,7 @@
 // behind the playhead are dropped, and a seek outside the window fetches again; decoded chunks
 // are kept only for the few most recently used. No DOM: Node tests it with a stand-in fetch.
 
-import { inflate, parseChunk } from './chunk.js';
+import { RECORD_BYTES, inflate, parseChunk } from './chunk.js';
 import { FETCH_DEFAULTS, fetchBytes } from './fetcher.js';
 import { DEFAULT_BUDGET_BYTES, FetchWindow } from './window.js';
 
@@ -42,6 +42,16 @@ export function checkManifest(m, where) {
 }
 
 /**
+ * Bytes a decoded chunk holds (chunk.js Chunk): its inflated file, the running state of its
+ * dynamic block and the four field arrays of a frame.
+ * @param {{frames: number, gaussians?: number, static?: number}} entry the manifest's chunk entry
+ */
+export function decodedBytes(entry) {
+  const G = entry.gaussians ?? 0, S = entry.static ?? 0, D = G - S;
+  return 48 + RECORD_BYTES * (S + entry.frames * D) + RECORD_BYTES * D + 16 * G;
+}
+
+/**
  * The loader of one exported stream.
  * Callbacks (all optional): onProgress(bufferedBytes, windowBytes): the window's bytes held of
  * those it wants; onChunkLoaded(index); onRetry(file, attempt, delayMs, error) before a retry;
@@ -54,11 +64,13 @@ export class Stream {
    * @param {string} base folder URL of manifest.json and the chunks ("stream/")
    * @param {object} [options]
    * @param {typeof fetch} [options.fetch] the fetch to use (tests pass a stand-in)
-   * @param {number} [options.budgetBytes] compressed chunk bytes held at most (window.js DEFAULT_BUDGET_BYTES)
+   * @param {number} [options.budgetBytes] bytes of chunks held at most (window.js DEFAULT_BUDGET_BYTES):
+   *   the decoded chunks' share (maxDecoded of the largest) first, the rest for the compressed window
    * @param {number} [options.maxChunks] chunks held at most (no limit)
    * @param {boolean} [options.wrap] the window continues at chunk 0 past the last (true: the page loops by default)
    * @param {number} [options.maxInFlight] concurrent chunk requests (2)
-   * @param {number} [options.maxDecoded] decoded chunks kept (3)
+   * @param {number} [options.maxDecoded] decoded chunks kept (2: the one playing and the next; a decoded
+   *   chunk holds about 17 bytes a Gaussian a frame, several times its compressed size)
    * @param {number} [options.timeoutMs], [options.retries], [options.backoffMs], [options.maxBackoffMs]
    *   fetcher.js FETCH_DEFAULTS; [options.random], [options.sleep]: its jitter and wait (tests)
    */
@@ -70,7 +82,7 @@ export class Stream {
       fetch, random: options.random, sleep: options.sleep,
       ...Object.fromEntries(Object.keys(FETCH_DEFAULTS).map((k) => [k, options[k] ?? FETCH_DEFAULTS[k]])),
     };
-    this.maxDecoded = options.maxDecoded ?? 3;
+    this.maxDecoded = options.maxDecoded ?? 2;
     this.onProgress = options.onProgress ?? (() => {});
     this.onError = options.onError ?? (() => {});
     this.onRetry = options.onRetry ?? (() => {});
@@ -112,10 +124,12 @@ export class Stream {
       checkManifest(manifest, where);
       this.manifest = manifest;
       this.totalBytes = manifest.chunks.reduce((sum, c) => sum + c.bytes, 0);
+      this.budgetBytes = this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES;
+      this.decodedReserve = this.maxDecoded * Math.max(...manifest.chunks.map(decodedBytes));
       this.window = new FetchWindow({
         sizes: manifest.chunks.map((c) => c.bytes),
         load: (i, signal) => this._download(i, signal),
-        budgetBytes: this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES,
+        budgetBytes: Math.max(0, this.budgetBytes - this.decodedReserve),
         maxItems: this.options.maxChunks,
         maxInFlight: this.options.maxInFlight ?? 2,
         wrap: this.options.wrap ?? true,
@@ -168,15 +182,17 @@ export class Stream {
   }
 
   /**
-   * What the stream holds now: compressed bytes and chunks (in flight included), the budget, the
-   * peaks since opening, bytes fetched, downloads started, and whether the window is complete.
+   * What the stream holds now: compressed bytes and chunks (in flight included), the peaks since
+   * opening, the budget and its part for the compressed window (the rest is the decoded chunks'
+   * reserve), bytes fetched, downloads started, and whether the window is complete.
    */
   memory() {
     const w = this.window;
     return {
       heldBytes: w ? w.heldBytes : 0, heldChunks: w ? w.heldItems : 0,
       peakHeldBytes: w ? w.peakBytes : 0, peakHeldChunks: w ? w.peakItems : 0,
-      budgetBytes: w ? w.budgetBytes : (this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES),
+      budgetBytes: this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES,
+      windowBudgetBytes: w ? w.budgetBytes : null, decodedReserveBytes: w ? this.decodedReserve : null,
       maxChunks: w ? w.maxItems : (this.options.maxChunks ?? Infinity),
       decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes, downloads: w ? w.loads : 0,
       windowFull: w ? w.full() : false,
