@@ -43,7 +43,8 @@ def _chunk_requests(page: PlayerPage) -> list[str]:
 
 def test_two_chunks_at_most_while_playing_through_and_a_seek_back_fetches_again(export, browser):
     with serving(export) as url:
-        page = PlayerPage(browser, url, {"camera": 0, "paused": 1, "size": "camera", "ahead": 2})
+        # ahead=2: two chunks at most; budget=0.001 (1 kB): below what any stream needs, raised with a note
+        page = PlayerPage(browser, url, {"camera": 0, "paused": 1, "size": "camera", "ahead": 2, "budget": 0.001})
         requests = _chunk_requests(page)
         page.first_frame()
         page.seek(9)  # chunk 2
@@ -56,6 +57,8 @@ def test_two_chunks_at_most_while_playing_through_and_a_seek_back_fetches_again(
         s = page.state()
         assert s["error"] is None, page.console
         assert s["maxChunks"] == 2 and s["peakHeldChunks"] <= 2 and s["heldChunks"] <= 2, s
+        assert s["budgetBytes"] == s["minimumBytes"] > 1000 and s["peakHeldBytes"] <= s["windowBudgetBytes"]
+        assert s["note"].startswith("URL parameter budget=0.001: this stream needs")
         assert s["downloads"] >= FRAMES // CHUNK_FRAMES
         assert len(requests) == s["downloads"]  # the page's count is the network's
         assert requests.count("chunk_000002.bin") == 1

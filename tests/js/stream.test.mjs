@@ -293,7 +293,7 @@ test('a seek outside the window aborts its downloads and fetches there; a seek b
   stream.close();
 });
 
-test('the window wraps past the last chunk only when the video loops; the playhead chunk is held over any budget', async () => {
+test('the window wraps past the last chunk only when the video loops; a budget below two chunks holds two', async () => {
   const { files, manifest } = folder(6);
   const sizes = manifest.chunks.map((c) => c.bytes);
   const stream = new Stream('stream/', { fetch: standIn(files).fetch, maxChunks: 3 });
@@ -306,11 +306,14 @@ test('the window wraps past the last chunk only when the video loops; the playhe
   assert.deepEqual(held(stream, 6), [5]);
   const tiny = new Stream('stream/', { fetch: standIn(files).fetch, budgetBytes: 1 });
   await tiny.open();
+  const [first, second] = [...sizes].sort((a, b) => b - a);
+  const minimum = 2 * decodedBytes(manifest.chunks[0]) + first + second;
+  assert.equal(tiny.memory().budgetBytes, minimum);
   tiny.setPlayhead(2);
   assert.equal((await tiny.chunk(2)).F, 3);
   await settled(tiny);
-  assert.deepEqual(held(tiny, 6), [2]);
-  assert.equal(tiny.memory().peakHeldBytes, Math.max(...sizes.slice(0, 3)));
+  assert.deepEqual(held(tiny, 6), [2, 3]);  // the playing chunk and the next: no stall at every chunk
+  assert.ok(tiny.memory().peakHeldBytes <= first + second);
 });
 
 test('a chunk that fails twice with 503 loads on the third try; one that never answers fails once, the others load', async () => {

@@ -118,6 +118,10 @@ export class Player {
       });
       const manifest = await this.stream.open();
       this.manifest = manifest;
+      if (this.options.budgetBytes !== null && this.stream.budgetBytes > this.options.budgetBytes) {
+        this.showNote(`URL parameter budget=${this.options.budgetBytes / 1e6}: this stream needs ${megabytes(this.stream.budgetBytes)} MB `
+          + 'to play without stalls (two chunks decoded, the playing one and the next downloaded): holding that');
+      }
       this.renderer.configure(manifest);
       this._setupControls(manifest);
       this._setupView(manifest);

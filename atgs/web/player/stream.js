@@ -65,7 +65,9 @@ export class Stream {
    * @param {object} [options]
    * @param {typeof fetch} [options.fetch] the fetch to use (tests pass a stand-in)
    * @param {number} [options.budgetBytes] bytes of chunks held at most (window.js DEFAULT_BUDGET_BYTES):
-   *   the decoded chunks' share (maxDecoded of the largest) first, the rest for the compressed window
+   *   the decoded chunks' share (maxDecoded of the largest) first, the rest for the compressed
+   *   window; raised to what playing without a stall at every chunk needs (minimumBytes: the
+   *   decoded share and two compressed chunks, the playing one and the next)
    * @param {number} [options.maxChunks] chunks held at most (no limit)
    * @param {boolean} [options.wrap] the window continues at chunk 0 past the last (true: the page loops by default)
    * @param {number} [options.maxInFlight] concurrent chunk requests (2)
@@ -95,6 +97,8 @@ export class Stream {
     this.decoded = new Map();  // chunk index -> Chunk, in least-recently-used order
     this.decoding = new Map(); // chunk index -> Promise<Chunk>
     this.playhead = 0;
+    this.budgetBytes = null;   // once open: the budget in force (options.budgetBytes, or raised to minimumBytes)
+    this.minimumBytes = null;
   }
 
   /** URL of a file of the stream folder. */
@@ -124,8 +128,10 @@ export class Stream {
       checkManifest(manifest, where);
       this.manifest = manifest;
       this.totalBytes = manifest.chunks.reduce((sum, c) => sum + c.bytes, 0);
-      this.budgetBytes = this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES;
       this.decodedReserve = this.maxDecoded * Math.max(...manifest.chunks.map(decodedBytes));
+      const largest = [...manifest.chunks.map((c) => c.bytes)].sort((a, b) => b - a);
+      this.minimumBytes = this.decodedReserve + largest[0] + (largest[1] ?? 0);
+      this.budgetBytes = Math.max(this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES, this.minimumBytes);
       this.window = new FetchWindow({
         sizes: manifest.chunks.map((c) => c.bytes),
         load: (i, signal) => this._download(i, signal),
@@ -183,15 +189,16 @@ export class Stream {
 
   /**
    * What the stream holds now: compressed bytes and chunks (in flight included), the peaks since
-   * opening, the budget and its part for the compressed window (the rest is the decoded chunks'
-   * reserve), bytes fetched, downloads started, and whether the window is complete.
+   * opening, the budget in force, the least it may be (minimumBytes), its part for the compressed
+   * window (the rest is the decoded chunks' reserve), bytes fetched, downloads started, and whether the window is complete.
    */
   memory() {
     const w = this.window;
     return {
       heldBytes: w ? w.heldBytes : 0, heldChunks: w ? w.heldItems : 0,
       peakHeldBytes: w ? w.peakBytes : 0, peakHeldChunks: w ? w.peakItems : 0,
-      budgetBytes: this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES,
+      budgetBytes: this.budgetBytes ?? (this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES),
+      minimumBytes: this.minimumBytes ?? null,
       windowBudgetBytes: w ? w.budgetBytes : null, decodedReserveBytes: w ? this.decodedReserve : null,
       maxChunks: w ? w.maxItems : (this.options.maxChunks ?? Infinity),
       decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes, downloads: w ? w.loads : 0,
