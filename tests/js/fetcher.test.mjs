@@ -116,3 +116,25 @@ test('the caller\'s abort ends the request and the back-off wait, with no retry'
   assert.ok(Date.now() - started < 5000, 'the minute of back-off was cut short');
   assert.equal(failing.calls.length, 1);
 });
+
+test('readAll: the expected size in one buffer; a shorter or a longer stream still comes out whole', async () => {
+  const { readAll } = await import('../../atgs/web/player/read.js');
+  const pieces = (...lengths) => {
+    let k = 0;
+    return new ReadableStream({
+      start(c) {
+        for (const n of lengths) c.enqueue(Uint8Array.from({ length: n }, () => k++ % 251));
+        c.close();
+      },
+    }).getReader();
+  };
+  const want = (n) => Array.from({ length: n }, (_, i) => i % 251);
+  const seen = [];
+  const exact = await readAll(pieces(3, 4, 5), { expected: 12, onPiece: (p) => seen.push(p.length) });
+  assert.deepEqual([...exact], want(12));
+  assert.equal(exact.buffer.byteLength, 12, 'one buffer of the expected size');
+  assert.deepEqual(seen, [3, 4, 5]);
+  assert.deepEqual([...await readAll(pieces(3, 4), { expected: 12 })], want(7));
+  assert.deepEqual([...await readAll(pieces(3, 4, 5, 6), { expected: 12 })], want(18));
+  assert.deepEqual([...await readAll(pieces(300, 2))], want(302));
+});

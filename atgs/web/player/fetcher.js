@@ -5,6 +5,8 @@
 // an eviction). Every stream kind fetches through here (docs/web.md, "Streaming"). No DOM:
 // Node tests it with a stand-in fetch and clock.
 
+import { readAll } from './read.js';
+
 /** The defaults (docs/web.md): 15 s without a byte is a stall; 4 retries after 0.5, 1, 2, 4 s (x 0.5..1 jitter). */
 export const FETCH_DEFAULTS = Object.freeze({ timeoutMs: 15000, retries: 4, backoffMs: 500, maxBackoffMs: 8000 });
 
@@ -47,6 +49,7 @@ function retryableStatus(status) {
  * @param {typeof fetch} [options.fetch] the fetch (fetch(url, {signal}))
  * @param {AbortSignal} [options.signal] aborts every attempt and the waits: rejects with an AbortError
  * @param {(n: number) => void} [options.onBytes] body bytes as they arrive (every attempt's: network bytes)
+ * @param {number} [options.expectedBytes] the body's size if known (read into one buffer of that size)
  * @param {(attempt: number, delayMs: number, error: FetchError) => void} [options.onRetry] before each retry's wait
  * @param {() => number} [options.random] for the jitter (tests)
  * @param {(ms: number, signal?: AbortSignal) => Promise<void>} [options.sleep] the back-off wait (tests)
@@ -100,7 +103,7 @@ async function attemptOnce(url, o) {
       throw new FetchError(`${url} could not be loaded (HTTP ${response.status})`, retryableStatus(response.status));
     }
     try {
-      return await readBody(response, () => arm(), o.onBytes, controller.signal);
+      return await readBody(response, () => arm(), o, controller.signal);
     } catch (e) {
       throw failure(e, url, stalled, o);
     }
@@ -117,39 +120,27 @@ function failure(e, url, stalled, o) {
   return new FetchError(`could not fetch ${url} (${e?.message ?? e})`, true);
 }
 
-// The body's bytes, calling progress() and onBytes(n) as they arrive.
-async function readBody(response, progress, onBytes, signal) {
+// The body's bytes, calling progress() and o.onBytes(n) as they arrive.
+async function readBody(response, progress, o, signal) {
   if (!response.body) {
     const bytes = new Uint8Array(await response.arrayBuffer());
-    onBytes?.(bytes.length);
+    o.onBytes?.(bytes.length);
     return bytes;
   }
-  const parts = [];
-  let got = 0;
   const reader = response.body.getReader();
   const cancel = () => reader.cancel().catch(() => {});
   signal.addEventListener('abort', cancel);  // a stand-in body may not watch the signal itself
   try {
-    for (;;) {
-      const { done, value } = await reader.read();
-      if (signal.aborted) throw abortError();
-      if (done) break;
-      parts.push(value);
-      got += value.length;
-      onBytes?.(value.length);
+    const onPiece = (piece) => {
+      o.onBytes?.(piece.length);
       progress();
-    }
+    };
+    const bytes = await readAll(reader, { expected: o.expectedBytes, onPiece });
+    if (signal.aborted) throw abortError();
+    return bytes;
   } finally {
     signal.removeEventListener('abort', cancel);
   }
-  if (parts.length === 1) return parts[0];
-  const bytes = new Uint8Array(got);
-  let offset = 0;
-  for (const p of parts) {
-    bytes.set(p, offset);
-    offset += p.length;
-  }
-  return bytes;
 }
 
 /** Resolves after ms, or rejects with an AbortError when `signal` aborts first. */

@@ -14,9 +14,9 @@ const ZOOM_PER_WHEEL_PIXEL = 0.001;
 /**
  * The page's options from its URL parameters (docs/web.md):
  * stream (folder, default "stream/"), frame (exported frame index, 0), camera (training camera
- * index; default the first held-out one, else 0), paused=1, size=camera, budget (MB of compressed
- * chunks held at most, default stream.js's), ahead (chunks held at most, the playing one
- * included). A malformed value is reported in `error` (the player shows it) rather than thrown,
+ * index; default the first held-out one, else 0), paused=1, size=camera, budget (MB of chunks
+ * held at most, decoded and compressed; default stream.js's), ahead (compressed chunks held at
+ * most, the playing one included). A malformed value is reported in `error` (the player shows it) rather than thrown,
  * so the page still comes up.
  * @param {URLSearchParams} params
  */

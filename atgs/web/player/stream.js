@@ -4,7 +4,7 @@
 // behind the playhead are dropped, and a seek outside the window fetches again; decoded chunks
 // are kept only for the few most recently used. No DOM: Node tests it with a stand-in fetch.
 
-import { RECORD_BYTES, inflate, parseChunk } from './chunk.js';
+import { HEADER_BYTES, RECORD_BYTES, inflate, parseChunk } from './chunk.js';
 import { FETCH_DEFAULTS, fetchBytes } from './fetcher.js';
 import { DEFAULT_BUDGET_BYTES, FetchWindow } from './window.js';
 
@@ -42,13 +42,23 @@ export function checkManifest(m, where) {
 }
 
 /**
- * Bytes a decoded chunk holds (chunk.js Chunk): its inflated file, the running state of its
- * dynamic block and the four field arrays of a frame.
+ * A chunk's inflated size from the manifest's entry (docs/web.md, "A chunk file"); 0 if the entry
+ * lacks the Gaussian counts.
  * @param {{frames: number, gaussians?: number, static?: number}} entry the manifest's chunk entry
  */
+export function inflatedBytes(entry) {
+  if (entry.gaussians === undefined) return 0;
+  const G = entry.gaussians, S = entry.static ?? 0;
+  return HEADER_BYTES + RECORD_BYTES * (S + entry.frames * (G - S));
+}
+
+/**
+ * Bytes a decoded chunk holds (chunk.js Chunk): its inflated file, the running state of its
+ * dynamic block and the four field arrays of a frame.
+ */
 export function decodedBytes(entry) {
-  const G = entry.gaussians ?? 0, S = entry.static ?? 0, D = G - S;
-  return 48 + RECORD_BYTES * (S + entry.frames * D) + RECORD_BYTES * D + 16 * G;
+  const G = entry.gaussians ?? 0, D = G - (entry.static ?? 0);
+  return inflatedBytes(entry) + RECORD_BYTES * D + 16 * G;
 }
 
 /**
@@ -65,7 +75,7 @@ export class Stream {
    * @param {object} [options]
    * @param {typeof fetch} [options.fetch] the fetch to use (tests pass a stand-in)
    * @param {number} [options.budgetBytes] bytes of chunks held at most (window.js DEFAULT_BUDGET_BYTES):
-   *   the decoded chunks' share (maxDecoded of the largest) first, the rest for the compressed
+   *   the decoded chunks' share (maxDecoded of the largest, and one being inflated) first, the rest for the compressed
    *   window; raised to what playing without a stall at every chunk needs (minimumBytes: the
    *   decoded share and two compressed chunks, the playing one and the next)
    * @param {number} [options.maxChunks] chunks held at most (no limit)
@@ -128,7 +138,7 @@ export class Stream {
       checkManifest(manifest, where);
       this.manifest = manifest;
       this.totalBytes = manifest.chunks.reduce((sum, c) => sum + c.bytes, 0);
-      this.decodedReserve = this.maxDecoded * Math.max(...manifest.chunks.map(decodedBytes));
+      this.decodedReserve = (this.maxDecoded + 1) * Math.max(...manifest.chunks.map(decodedBytes));
       const largest = [...manifest.chunks.map((c) => c.bytes)].sort((a, b) => b - a);
       this.minimumBytes = this.decodedReserve + largest[0] + (largest[1] ?? 0);
       this.budgetBytes = Math.max(this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES, this.minimumBytes);
@@ -238,7 +248,7 @@ export class Stream {
     const where = this.url(entry.file);
     let chunk;
     try {
-      chunk = parseChunk(await inflate(bytes));
+      chunk = parseChunk(await inflate(bytes, inflatedBytes(entry)));
     } catch (e) {
       throw this._failChunk(i, new Error(`${where} is corrupt: ${e.message}`));
     }
@@ -261,7 +271,9 @@ export class Stream {
   async _download(i, signal) {
     const entry = this.manifest.chunks[i];
     const where = this.url(entry.file);
-    const bytes = await this.fetchFile(entry.file, { signal, onBytes: (n) => { this.fetchedBytes += n; } });
+    const bytes = await this.fetchFile(entry.file, {
+      signal, expectedBytes: entry.bytes, onBytes: (n) => { this.fetchedBytes += n; },
+    });
     // the server sent the whole file: a size that differs is the file's, and no retry mends it
     if (bytes.length < entry.bytes) throw new Error(`${where} is truncated (got ${bytes.length} of ${entry.bytes} bytes)`);
     if (bytes.length > entry.bytes) throw new Error(`${where} is ${bytes.length} bytes, the manifest says ${entry.bytes}`);
