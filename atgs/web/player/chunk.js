@@ -17,7 +17,10 @@ export const RECORD_BYTES = 17;
  * @throws {Error} "not valid gzip data" when the bytes do not inflate
  */
 export async function inflate(buffer, expected) {
-  const stream = new Blob([buffer]).stream().pipeThrough(new DecompressionStream('gzip'));
+  // a stream of the bytes themselves (a Blob would copy them first)
+  const bytes = buffer instanceof Uint8Array ? buffer : new Uint8Array(buffer);
+  const source = new ReadableStream({ start(c) { c.enqueue(bytes); c.close(); } });
+  const stream = source.pipeThrough(new DecompressionStream('gzip'));
   try {
     return await readAll(stream.getReader(), { expected });
   } catch {
