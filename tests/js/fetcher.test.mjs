@@ -138,3 +138,9 @@ test('readAll: the expected size in one buffer; a shorter or a longer stream sti
   assert.deepEqual([...await readAll(pieces(3, 4, 5, 6), { expected: 12 })], want(18));
   assert.deepEqual([...await readAll(pieces(300, 2))], want(302));
 });
+
+test('readAll: an expected size no buffer can take still reads what comes', async () => {
+  const { readAll } = await import('../../atgs/web/player/read.js');
+  const reader = new ReadableStream({ start(c) { c.enqueue(new Uint8Array([7, 8])); c.close(); } }).getReader();
+  assert.deepEqual([...await readAll(reader, { expected: 2 ** 53 })], [7, 8]);
+});

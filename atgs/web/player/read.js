@@ -11,7 +11,12 @@
  * @returns {Promise<Uint8Array>} every byte read
  */
 export async function readAll(reader, { expected, onPiece } = {}) {
-  let target = expected > 0 ? new Uint8Array(expected) : null;
+  let target = null;
+  try {
+    if (expected > 0) target = new Uint8Array(expected);
+  } catch {
+    // a size no buffer can take (a wrong manifest): read the pieces, and let the caller compare sizes
+  }
   const parts = [];
   let got = 0;
   for (;;) {
