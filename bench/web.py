@@ -366,7 +366,8 @@ def memory_table(m: dict) -> str:
     """docs/web.md's table of the memory runs."""
     e = m["export"]
     head = [f"Synthetic export: {e['frames']} frames of {e['gaussians']:,} Gaussians, {e['chunks']} chunks of "
-            f"{e['chunk_frames']} frames, {e['stream_bytes'] / 2**20:.1f} MiB; canvas {e['canvas'][0]}x{e['canvas'][1]}, "
+            f"{e['chunk_frames']} frames, {e['stream_bytes'] / 2**20:.1f} MiB; "
+            f"canvas {e['canvas'][0]}x{e['canvas'][1]}, "
             f"speed {e['speed']}x; {m['machine']['cpus']} CPUs, Chromium with SwiftShader.", "",
             "| what | measured | target |", "|---|---|---|"]
     rows = []

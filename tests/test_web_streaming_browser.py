@@ -82,7 +82,8 @@ def test_a_lost_webgl_context_is_restored_and_the_frame_drawn_again(export, brow
         before, shot_before = page.pixels(), _canvas_shot(page)
         assert float(before.std()) > 0.02  # a picture, not a flat colour
         page.page.evaluate("() => { window.loseContext = document.getElementById('view')"
-                           ".getContext('webgl2').getExtension('WEBGL_lose_context'); window.loseContext.loseContext(); }")
+                           ".getContext('webgl2').getExtension('WEBGL_lose_context'); "
+                           "window.loseContext.loseContext(); }")
         page.page.wait_for_function("() => window.atgsPlayer.state().contextLost")
         drawn = page.state()["framesDrawn"]
         page.page.evaluate("() => window.loseContext.restoreContext()")

@@ -65,7 +65,8 @@ def synthetic_export(out: str | Path, *, frames: int, gaussians: int, chunk_fram
 
     def frame(t: int) -> StreamFrame:
         means = place + SWAY * np.sin(2 * np.pi * t / SWAY_PERIOD + phase) + rng.normal(0, POSITION_NOISE, (G, 3))
-        return StreamFrame(ids, means, scales, quats, opacities, np.clip(colors + rng.normal(0, COLOUR_NOISE, (G, 3)), 0, 1))
+        tint = np.clip(colors + rng.normal(0, COLOUR_NOISE, (G, 3)), 0, 1)
+        return StreamFrame(ids, means, scales, quats, opacities, tint)
 
     chunks: list[ChunkInfo] = []
     for start in range(0, frames, chunk_frames):
