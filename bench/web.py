@@ -4,6 +4,9 @@ headless Chromium (software WebGL2 on this machine's CPUs: a floor, not a GPU fi
 
     python bench/web.py --checkpoint runs/demo/ckpt.pt [--extra-checkpoint runs/n3dv/ckpt.pt]
     # writes bench/results/web.json and the table in README.md
+    python bench/web.py --part memory [--memory-baseline ad35ea5]
+    # the page's memory while a synthetic 1,200-frame export plays through twice (no checkpoint
+    # needed): merged into bench/results/web.json under "memory", its other keys kept
 
 Targets (issue 39): the web export at most 1/8 of the PLY export's bytes; the browser's frames at
 least 35 dB against atgs-render; the first frame within 2 s of opening the page on localhost.
@@ -23,9 +26,10 @@ import numpy as np
 import torch
 import tyro
 
-from _docs import publish, run_stamp  # bench/_docs.py (the script's own folder is on sys.path)
+from _docs import REPO, publish, run_stamp, update_docs_table  # bench/_docs.py (the script's own folder is on sys.path)
 from atgs.eval.metrics import psnr
 from atgs.web.browser import PlayerPage, chromium, serving
+from atgs.web.synthetic import synthetic_export
 
 SIZE_TARGET = 1 / 8
 PSNR_TARGET_DB = 35.0
@@ -34,6 +38,9 @@ FIRST_FRAME_TARGET_S = 2.0
 
 @dataclass
 class BenchConfig:
+    part: str = "all"
+    """"all": export size, pictures, first frame and playback of --checkpoint; "memory": the page's
+    memory over a long synthetic export (merged into --out, whose other keys stay)."""
     checkpoint: Path = Path("runs/demo/ckpt.pt")
     """The built-in scene's trained checkpoint (./scripts/demo.sh writes runs/demo/ckpt.pt)."""
     extra_checkpoints: list[Path] = field(default_factory=list)
@@ -51,6 +58,17 @@ class BenchConfig:
     """The page at 1280x720 while playing (the README's picture); None: none."""
     replot: bool = False
     """Only rewrite the table from --out's results (no measurement)."""
+    memory_frames: int = 1200
+    memory_gaussians: int = 12000
+    """The synthetic long export of --part memory: frames, and Gaussians a frame."""
+    memory_budget_mb: float | None = None
+    """The page's budget (URL parameter budget); None: the player's default."""
+    memory_baseline: str | None = None
+    """Also measure the player of this git commit (e.g. one before the budget) on the same export."""
+    memory_speed: str = "2"
+    """Playback speed (the page's speed menu) during the memory run."""
+    memory_docs: Path | None = Path("docs/web.md")
+    """The page with the bench:web-memory markers (the memory runs' table)."""
     out: Path = Path("bench/results/web.json")
     docs: Path | None = Path("README.md")
     """The page with the bench:web markers (issue 39 asks for the figures in the README)."""
@@ -158,8 +176,8 @@ def browser_rows(ckpt: Path, web: Path, cfg: BenchConfig, tmp: Path) -> dict:
             if size is None:
                 page.page.set_viewport_size({"width": 1280, "height": 720})
             page.first_frame()
-            page.page.wait_for_function("() => { const s = window.atgsPlayer.state(); "
-                                        "return s.loadedBytes >= s.totalBytes; }", timeout=120_000)
+            # the look-ahead window full (the whole video, when it fits the budget)
+            page.page.wait_for_function("() => window.atgsPlayer.state().windowFull", timeout=120_000)
             s0, t0 = page.state(), time.perf_counter()
             time.sleep(cfg.play_seconds)
             s1, t1 = page.state(), time.perf_counter()
@@ -172,6 +190,121 @@ def browser_rows(ckpt: Path, web: Path, cfg: BenchConfig, tmp: Path) -> dict:
                 "page_draw_fps": s1.get("drawFps"), "video_fps": man["fps"]})
             page.close()
     return out
+
+
+def _memory_sample(page: PlayerPage, cdp, t0: float, collect: bool = False) -> dict:
+    """One sample (with ``collect``, after a full garbage collection: what the page really holds):
+    the V8 heap (Performance.getMetrics' JSHeapUsedSize, which leaves out the
+    contents of ArrayBuffers), the ArrayBuffer contents (Runtime.getHeapUsage's
+    backingStorageSize: where fetched and decoded chunks live) and what the page says it holds."""
+    if collect:
+        cdp.send("HeapProfiler.collectGarbage")
+    metrics = {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
+    usage = cdp.send("Runtime.getHeapUsage")
+    s = page.state()
+    return {"t_s": round(time.perf_counter() - t0, 2), "frame": s["frame"], "js_heap_used": metrics["JSHeapUsedSize"],
+            "array_buffers": usage.get("backingStorageSize"), "held_bytes": s.get("heldBytes"),
+            "held_chunks": s.get("heldChunks"), "fetched_bytes": s["loadedBytes"], "after_gc": collect}
+
+
+def play_twice(browser, url: str, params: dict, speed: str, sample_s: float = 0.5, collect_every: int = 4,
+               limit_s: float = 900.0) -> dict:
+    """Play the page's video through twice from frame 0, sampling its memory every ``sample_s``,
+    every ``collect_every``-th sample after a garbage collection. V8 collects ArrayBuffers in
+    bursts, letting about 64 MiB of garbage pile up above what is live: the samples between
+    collections show that garbage, the collected ones what the page holds."""
+    page = PlayerPage(browser, url, params)
+    cdp = page.page.context.new_cdp_session(page.page)
+    cdp.send("Performance.enable")
+    page.first_frame()
+    page.page.select_option("#speed", speed)
+    t0 = time.perf_counter()
+    samples = [_memory_sample(page, cdp, t0)]
+    # the page counts the passes itself (each frame back to an earlier one: the loop wrapped), at
+    # every animation frame: samples far apart under load would miss a short video's wraps
+    page.page.evaluate("() => { window.benchPasses = 0; let last = -1; const watch = () => { "
+                       "const f = window.atgsPlayer.state().frame; if (f < last) window.benchPasses++; last = f; "
+                       "requestAnimationFrame(watch); }; requestAnimationFrame(watch); }")
+    page.call("p.play()")
+    passes = 0
+    while passes < 2 and time.perf_counter() - t0 < limit_s:
+        time.sleep(sample_s)
+        samples.append(_memory_sample(page, cdp, t0, collect=len(samples) % collect_every == 0))
+        passes = page.page.evaluate("() => window.benchPasses")
+        samples[-1]["pass"] = passes
+    page.call("p.pause()")
+    after_gc = _memory_sample(page, cdp, t0, collect=True)
+    s = page.state()
+    page.close()
+    return {"samples": samples, "after_gc": after_gc, "passes": passes, "error": s["error"],
+            "frames_drawn": s["framesDrawn"], "fetched_bytes": s["loadedBytes"], "downloads": s.get("downloads"),
+            "peak_held_bytes": s.get("peakHeldBytes"), "peak_held_chunks": s.get("peakHeldChunks"),
+            "budget_bytes": s.get("budgetBytes")}
+
+
+def _old_player(folder: Path, commit: str) -> None:
+    """Replace ``folder``'s player by atgs/web/player of git ``commit`` (a before/after comparison)."""
+    import subprocess
+
+    names = subprocess.run(["git", "ls-tree", "--name-only", commit, "atgs/web/player/"], capture_output=True,
+                           text=True, check=True, cwd=REPO).stdout.split()
+    assert names, f"no atgs/web/player at {commit}"
+    for name in names:
+        data = subprocess.run(["git", "show", f"{commit}:{name}"], capture_output=True, check=True, cwd=REPO).stdout
+        base = Path(name).name
+        (folder / (base if base == "index.html" else f"player/{base}")).write_bytes(data)
+
+
+def _memory_summary(run: dict, total: int) -> dict:
+    """Peaks per pass of the V8 heap, the ArrayBuffers and both, in bytes: over every sample
+    ("pass1"), and over the samples taken after a garbage collection ("pass1_live")."""
+    out = {}
+    for k in (1, 2):
+        for suffix, only_live in (("", False), ("_live", True)):
+            rows = [r for r in run["samples"] if r.get("pass", 0) == k - 1 and (r["after_gc"] or not only_live)]
+            if rows:
+                peak = {key: max(r[key] or 0 for r in rows) for key in ("js_heap_used", "array_buffers")}
+                peak["both"] = max(r["js_heap_used"] + (r["array_buffers"] or 0) for r in rows)
+                out[f"pass{k}{suffix}"] = peak
+    out["fetched_over_total"] = run["fetched_bytes"] / total
+    live = [r["array_buffers"] or 0 for r in run["samples"] if r["after_gc"]]
+    out["live_array_buffers_median"] = statistics.median(live) if live else None
+    if "pass1_live" in out and "pass2_live" in out:
+        # flat: what the page holds peaks no higher in the second pass than in the first (but 10%)
+        out["flat"] = out["pass2_live"]["both"] <= 1.1 * out["pass1_live"]["both"]
+        budget = run.get("budget_bytes")
+        peak = max(out[p]["array_buffers"] for p in ("pass1_live", "pass2_live"))
+        out["under_budget"] = None if budget is None else peak <= budget
+        out["under_budget_median"] = None if budget is None else out["live_array_buffers_median"] <= budget
+    return out
+
+
+def memory_run(cfg: BenchConfig) -> dict:
+    """The page's memory while a long synthetic export plays through twice (issue 50)."""
+    with tempfile.TemporaryDirectory() as d:
+        web = Path(d) / "long"
+        t = time.perf_counter()
+        man = synthetic_export(web, frames=cfg.memory_frames, gaussians=cfg.memory_gaussians,
+                               chunk_frames=cfg.chunk_frames)
+        export_s = time.perf_counter() - t
+        total = sum(c["bytes"] for c in man["chunks"])
+        params = {"camera": 0, "size": "camera", "paused": 1}
+        if cfg.memory_budget_mb is not None:
+            params["budget"] = cfg.memory_budget_mb
+        runs = {}
+        with chromium() as browser:
+            with serving(web) as url:
+                runs["this commit"] = play_twice(browser, url, params, cfg.memory_speed)
+            if cfg.memory_baseline:
+                _old_player(web, cfg.memory_baseline)
+                with serving(web) as url:
+                    runs[cfg.memory_baseline] = play_twice(browser, url, params, cfg.memory_speed)
+    for r in runs.values():
+        r["summary"] = _memory_summary(r, total)
+    return {"export": {"frames": cfg.memory_frames, "gaussians": cfg.memory_gaussians, "chunk_frames": cfg.chunk_frames,
+                       "chunks": len(man["chunks"]), "stream_bytes": total, "canvas": [man["cameras"][0]["width"],
+                       man["cameras"][0]["height"]], "written_s": export_s, "speed": cfg.memory_speed},
+            "runs": runs, "machine": {"cpus": os.cpu_count()}, **run_stamp()}
 
 
 def run(cfg: BenchConfig) -> dict:
@@ -225,10 +358,77 @@ def markdown_table(r: dict) -> str:
                     f"{e['bytes_per_gaussian_frame']:.2f} B per Gaussian a frame, {e['gaussians_per_frame_mean']:,.0f} "
                     f"Gaussians, {e['frames']} frame(s); browser against atgs-view {min(db):.1f}-{max(db):.1f} dB "
                     f"({len(db)} views at {e['psnr'][0]['size'][0]}x{e['psnr'][0]['size'][1]}) | |")
+    rows += memory_rows(r.get("memory"))
     return "\n".join(rows)
 
 
+def memory_table(m: dict) -> str:
+    """docs/web.md's table of the memory runs."""
+    e = m["export"]
+    head = [f"Synthetic export: {e['frames']} frames of {e['gaussians']:,} Gaussians, {e['chunks']} chunks of "
+            f"{e['chunk_frames']} frames, {e['stream_bytes'] / 2**20:.1f} MiB; "
+            f"canvas {e['canvas'][0]}x{e['canvas'][1]}, "
+            f"speed {e['speed']}x; {m['machine']['cpus']} CPUs, Chromium with SwiftShader.", "",
+            "| what | measured | target |", "|---|---|---|"]
+    rows = []
+    for name, r in m["runs"].items():
+        if r.get("peak_held_bytes") is not None:
+            rows.append(f"| the player of {name}: compressed chunks held (the page's count) | peak "
+                        f"{r['peak_held_bytes'] / 2**20:.1f} MiB, {r['peak_held_chunks']} chunks; "
+                        f"{r['downloads']} downloads for {e['chunks']} chunks over two passes | at most the budget |")
+        rows.append(f"| the player of {name}: after the second pass and a garbage collection | JS heap "
+                    f"{r['after_gc']['js_heap_used'] / 2**20:.1f} MiB, ArrayBuffers "
+                    f"{(r['after_gc']['array_buffers'] or 0) / 2**20:.1f} MiB | |")
+    return "\n".join(head + memory_rows(m) + rows)
+
+
+def memory_rows(m: dict | None) -> list[str]:
+    """The --part memory rows of the table (none before it ran)."""
+    if not m:
+        return []
+    e = m["export"]
+    mib = lambda b: f"{b / 2**20:.1f} MiB"  # noqa: E731
+    rows = []
+    for name, r in m["runs"].items():
+        p1, p2 = r["summary"].get("pass1_live"), r["summary"].get("pass2_live")
+        if not (p1 and p2):
+            continue
+        raw = max(r["summary"]["pass1"]["array_buffers"], r["summary"]["pass2"]["array_buffers"])
+        summary = r["summary"]
+        budget = f"budget {mib(r['budget_bytes'])}" if r.get("budget_bytes") else "no budget"
+        ok = lambda good: "reached" if good else "not reached"  # noqa: E731
+        verdict = f"flat: {ok(summary['flat'])}" + (
+            "" if summary["under_budget"] is None else
+            f"; under the budget: {ok(summary['under_budget_median'])} at the median, "
+            f"{ok(summary['under_budget'])} at the peak")
+        rows.append(
+            f"| memory: the player of {name} ({budget}), a synthetic {e['frames']}-frame export "
+            f"({mib(e['stream_bytes'])}) played through twice ({m['date']} at {m['commit']}) | held after garbage "
+            f"collections, peaks of passes 1 / 2: JS heap {mib(p1['js_heap_used'])} / {mib(p2['js_heap_used'])}, "
+            f"ArrayBuffers {mib(p1['array_buffers'])} / {mib(p2['array_buffers'])} (median "
+            f"{mib(summary['live_array_buffers_median'])}; with the garbage between collections up to {mib(raw)}); "
+            f"fetched {mib(r['fetched_bytes'])} | {verdict} |")
+    return rows
+
+
 def main(cfg: BenchConfig) -> None:
+    previous = json.loads(cfg.out.read_text()) if cfg.out.is_file() else {}
+    if cfg.part == "memory":
+        if cfg.replot:  # the summaries again from the stored samples
+            memory = previous["memory"]
+            for r in memory["runs"].values():
+                r["summary"] = _memory_summary(r, memory["export"]["stream_bytes"])
+        else:
+            memory = memory_run(cfg)
+        result = {**previous, "memory": memory}
+        whole = "size" in result  # the rest of the table measured before: the README's table again
+        publish(result, cfg.out, markdown_table(result) if whole else memory_table(result["memory"]),
+                cfg.docs if whole else None, "web")
+        if cfg.memory_docs is not None:
+            update_docs_table(cfg.memory_docs, "web-memory", memory_table(result["memory"]))
+        return
+    if cfg.part != "all":
+        raise SystemExit(f"bench/web.py: --part {cfg.part}: one of all, memory")
     if cfg.replot:
         result = json.loads(cfg.out.read_text())
         publish(result, cfg.out, markdown_table(result), cfg.docs, "web")
@@ -237,6 +437,8 @@ def main(cfg: BenchConfig) -> None:
         if not c.is_file():
             raise SystemExit(f"bench/web.py: {c} does not exist; train one with atgs-train and pass its ckpt.pt")
     result = run(cfg)
+    if "memory" in previous:  # measured by --part memory: kept
+        result["memory"] = previous["memory"]
     publish(result, cfg.out, markdown_table(result), cfg.docs, "web")
 
 

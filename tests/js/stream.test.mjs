@@ -2,7 +2,7 @@
 import assert from 'node:assert/strict';
 import { test } from 'node:test';
 
-import { Stream } from '../../atgs/web/player/stream.js';
+import { decodedBytes, Stream } from '../../atgs/web/player/stream.js';
 import { encodeStream, random, randomRecord } from './encode.mjs';
 
 // n chunks of F frames of G Gaussians (S static).
@@ -18,22 +18,37 @@ function folder(n, { F = 3, G = 12, S = 4, seed = 1 } = {}) {
 }
 
 // A fetch over `files` whose responses wait until release(name) (or at once with auto = true);
-// it records the order of requests and the most requests open at once.
+// it records the order of requests, the most requests open at once, and the requests aborted
+// (through the fetch's signal) before their response.
 function standIn(files, { auto = true, override = {} } = {}) {
-  const log = { requested: [], open: 0, maxOpen: 0 };
+  const log = { requested: [], aborted: [], open: 0, maxOpen: 0, live: new Set() };
   const pending = new Map();
-  const fetch = (url) => {
+  const fetch = (url, init = {}) => {
     const name = url.replace(/^stream\//, '');
     log.requested.push(name);
+    log.live.add(name);
     log.open++;
     log.maxOpen = Math.max(log.maxOpen, log.open);
-    return new Promise((resolve) => {
+    return new Promise((resolve, reject) => {
+      let done = false;
       const respond = () => {
+        if (done) return;
+        done = true;
         log.open--;
+        log.live.delete(name);
         if (override[name]) return resolve(override[name]());
         const body = files.get(name);
         resolve(body ? new Response(body, { status: 200 }) : new Response('not found', { status: 404 }));
       };
+      init.signal?.addEventListener('abort', () => {
+        if (done) return;
+        done = true;
+        log.open--;
+        log.live.delete(name);
+        log.aborted.push(name);
+        pending.delete(name);
+        reject(new DOMException('aborted', 'AbortError'));
+      });
       if (auto || name === 'manifest.json') respond(); else pending.set(name, respond);
     });
   };
@@ -44,6 +59,9 @@ function standIn(files, { auto = true, override = {} } = {}) {
   };
   return { fetch, log, release, pending };
 }
+
+// No real waits between retries in these tests.
+const noWait = { sleep: () => Promise.resolve() };
 
 const tick = () => new Promise((r) => setTimeout(r, 5));
 
@@ -59,7 +77,7 @@ test('loads the manifest, then every chunk in order, two at a time, counting the
   assert.ok(log.maxOpen <= 2);
   const total = manifest.chunks.reduce((n, c) => n + c.bytes, 0);
   assert.equal(stream.totalBytes, total);
-  assert.equal(stream.loadedBytes, total);
+  assert.equal(stream.fetchedBytes, total);
   assert.deepEqual(progress[progress.length - 1], [total, total]);
   assert.deepEqual(loaded, [0, 1, 2, 3, 4]);
   assert.equal(chunks[2].F, 3);
@@ -86,9 +104,11 @@ test('at most two requests in flight; the playhead chunk goes next', async () =>
   assert.equal(log.requested[5], 'chunk_000002.bin');
   assert.equal(log.maxOpen, 2);
   assert.ok(stream.isLoaded(6) && !stream.isLoaded(7));
+  stream.close();
+  assert.deepEqual(log.aborted.sort(), ['chunk_000002.bin', 'chunk_000007.bin']);
 });
 
-test('decoded chunks: at most maxDecoded kept, compressed bytes kept for all', async () => {
+test('decoded chunks: at most maxDecoded kept; compressed bytes kept for all the budget holds', async () => {
   const { files } = folder(5);
   const stream = new Stream('stream/', { fetch: standIn(files).fetch, maxDecoded: 2 });
   await stream.open();
@@ -104,7 +124,7 @@ async function failure(mutate, options = {}) {
   const { files, manifest } = folder(4);
   mutate(files, manifest);
   const errors = [];
-  const stream = new Stream('stream/', { fetch: standIn(files, options).fetch, onError: (e) => errors.push(e.message) });
+  const stream = new Stream('stream/', { fetch: standIn(files, options).fetch, onError: (e) => errors.push(e.message), ...noWait });
   let thrown = null;
   try {
     await stream.open();
@@ -136,7 +156,7 @@ test('a truncated chunk, a missing one, a corrupt one, one that does not match t
   assert.match(await failure((files) => files.set('chunk_000000.bin', new Uint8Array([...files.get('chunk_000000.bin'), 0]))),
     /^stream\/chunk_000000\.bin is \d+ bytes, the manifest says \d+$/);
   assert.equal(await failure(() => {}, { override: { 'chunk_000002.bin': () => new Response('', { status: 500 }) } }),
-    'stream/chunk_000002.bin could not be loaded (HTTP 500)');
+    'stream/chunk_000002.bin could not be loaded (HTTP 500, 5 tries)');
 });
 
 test('a failed chunk stays failed; the others load and decode', async () => {
@@ -166,6 +186,155 @@ test('manifest errors: missing, not JSON, wrong format, chunks that do not cover
   assert.equal(await failure(edit((m) => { m.chunks.pop(); })),
     'stream/manifest.json: 12 frames in chunks of 3 need 4 chunks, the manifest lists 3');
   assert.equal(await failure(edit((m) => { delete m.render.near; })), 'stream/manifest.json: render.near is missing');
-  const rejected = new Stream('stream/', { fetch: () => Promise.reject(new TypeError('Failed to fetch')) });
-  await assert.rejects(rejected.open(), { message: 'could not fetch stream/manifest.json (Failed to fetch)' });
+  const rejected = new Stream('stream/', { fetch: () => Promise.reject(new TypeError('Failed to fetch')), retries: 2, ...noWait });
+  await assert.rejects(rejected.open(), { message: 'could not fetch stream/manifest.json (Failed to fetch, 3 tries)' });
+});
+
+// --- the window: a byte budget ahead of the playhead ---------------------------------------------
+
+// The chunks a window from `playhead` holds under `budget` bytes: the playhead's, then the next
+// ones (wrapping) while their sizes add up to at most the budget (docs/web.md, "Streaming").
+function expectedWindow(sizes, playhead, budget, wrap = true) {
+  const out = [playhead];
+  let bytes = sizes[playhead];
+  for (let k = 1; k < sizes.length; k++) {
+    if (!wrap && playhead + k >= sizes.length) break;
+    const i = (playhead + k) % sizes.length;
+    if (bytes + sizes[i] > budget) break;
+    bytes += sizes[i];
+    out.push(i);
+  }
+  return out.sort((a, b) => a - b);
+}
+
+async function settled(stream) {
+  for (let k = 0; k < 200 && !stream.memory().windowFull; k++) await tick();
+  assert.ok(stream.memory().windowFull, 'the window filled');
+}
+
+const held = (stream, n) => Array.from({ length: n }, (_, i) => i).filter((i) => stream.isLoaded(i));
+
+test('playing through twice: the window ahead of the playhead, nothing behind it, the budget never exceeded', async () => {
+  const n = 12;
+  const { files, manifest } = folder(n, { G: 40, S: 0, seed: 3 });
+  const sizes = manifest.chunks.map((c) => c.bytes);
+  // the decoded chunks' reserve (two kept and one being inflated, the largest: 17 bytes a
+  // Gaussian a frame, their state and fields), then three and a half chunks' worth for the window
+  const reserve = 3 * (48 + 17 * 40 * 3 + 17 * 40 + 16 * 40);
+  assert.equal(decodedBytes(manifest.chunks[0]), reserve / 3);
+  const windowBudget = Math.round(3.5 * sizes.reduce((a, b) => a + b) / n);
+  const budget = reserve + windowBudget;
+  const { fetch: base, log } = standIn(files);
+  let stream = null;
+  let worst = 0;
+  // at every request: the chunks held plus those being downloaded (the stand-in's open requests)
+  const fetch = (url, init) => {
+    if (stream?.manifest) {
+      const name = url.replace(/^stream\//, '');
+      const downloading = new Set([...log.live, name].map((f) => manifest.chunks.findIndex((c) => c.file === f)));
+      const bytes = [...new Set([...held(stream, n), ...downloading])].reduce((s, i) => s + sizes[i], 0);
+      worst = Math.max(worst, bytes);
+    }
+    return base(url, init);
+  };
+  stream = new Stream('stream/', { fetch, budgetBytes: budget });
+  await stream.open();
+  for (let pass = 0; pass < 2; pass++) {
+    for (let i = 0; i < n; i++) {
+      stream.setPlayhead(i);
+      assert.equal((await stream.chunk(i)).F, 3);
+      await settled(stream);
+      assert.deepEqual(held(stream, n), expectedWindow(sizes, i, windowBudget), `playhead ${i}`);
+      const m = stream.memory();
+      assert.equal(m.heldBytes, expectedWindow(sizes, i, windowBudget).reduce((s, j) => s + sizes[j], 0));
+      assert.ok(m.heldBytes <= windowBudget);
+      assert.equal(m.windowBudgetBytes, windowBudget);
+    }
+  }
+  const m = stream.memory();
+  assert.ok(m.peakHeldBytes <= windowBudget, `peak ${m.peakHeldBytes} of ${windowBudget}`);
+  assert.ok(worst <= windowBudget && worst >= 2 * Math.min(...sizes), `${worst} bytes held at worst`);
+  assert.ok(m.peakHeldChunks < n);
+  // every chunk once a pass, and the w chunks the window wraps to at the last chunk once more
+  // (the end of the second pass fetches them again: they were dropped when the playhead left them)
+  const w = expectedWindow(sizes, n - 1, windowBudget).filter((i) => i < n - 1).length;
+  assert.ok(w >= 1);
+  assert.equal(log.requested.filter((f) => f !== 'manifest.json').length, 2 * n + w);
+  assert.equal(m.fetchedBytes, log.requested.filter((f) => f !== 'manifest.json')
+    .reduce((s, f) => s + files.get(f).length, 0));
+});
+
+test('a seek outside the window aborts its downloads and fetches there; a seek back fetches the dropped chunks again', async () => {
+  const { files } = folder(12);
+  const { fetch, log, release } = standIn(files, { auto: false });
+  const stream = new Stream('stream/', { fetch, maxChunks: 2 });
+  await stream.open();
+  assert.deepEqual(log.requested.slice(1), ['chunk_000000.bin', 'chunk_000001.bin']);
+  stream.setPlayhead(8);
+  assert.deepEqual(log.aborted, ['chunk_000000.bin', 'chunk_000001.bin']);
+  assert.deepEqual(log.requested.slice(3), ['chunk_000008.bin', 'chunk_000009.bin']);
+  release('chunk_000008.bin');
+  release('chunk_000009.bin');
+  assert.equal((await stream.chunk(8)).F, 3);
+  await tick();
+  assert.deepEqual(held(stream, 12), [8, 9]);
+  stream.setPlayhead(9);  // inside the window: 8 is dropped, 10 fetched, 9 kept
+  assert.deepEqual(held(stream, 12), [9]);
+  assert.deepEqual(log.requested.slice(5), ['chunk_000010.bin']);
+  release('chunk_000010.bin');
+  await tick();
+  stream.setPlayhead(0);
+  assert.deepEqual(held(stream, 12), []);
+  assert.deepEqual(log.requested.slice(6), ['chunk_000000.bin', 'chunk_000001.bin']);
+  release('chunk_000000.bin');
+  assert.equal((await stream.chunk(0)).F, 3);
+  assert.equal(log.requested.filter((f) => f === 'chunk_000000.bin').length, 2);
+  assert.ok(stream.memory().peakHeldChunks <= 2);
+  stream.close();
+});
+
+test('the window wraps past the last chunk only when the video loops; a budget below two chunks holds two', async () => {
+  const { files, manifest } = folder(6);
+  const sizes = manifest.chunks.map((c) => c.bytes);
+  const stream = new Stream('stream/', { fetch: standIn(files).fetch, maxChunks: 3 });
+  await stream.open();
+  stream.setPlayhead(5);
+  await settled(stream);
+  assert.deepEqual(held(stream, 6), [0, 1, 5]);
+  stream.setWrap(false);
+  await settled(stream);
+  assert.deepEqual(held(stream, 6), [5]);
+  const tiny = new Stream('stream/', { fetch: standIn(files).fetch, budgetBytes: 1 });
+  await tiny.open();
+  const [first, second] = [...sizes].sort((a, b) => b - a);
+  const minimum = 3 * decodedBytes(manifest.chunks[0]) + first + second;
+  assert.equal(tiny.memory().budgetBytes, minimum);
+  tiny.setPlayhead(2);
+  assert.equal((await tiny.chunk(2)).F, 3);
+  await settled(tiny);
+  assert.deepEqual(held(tiny, 6), [2, 3]);  // the playing chunk and the next: no stall at every chunk
+  assert.ok(tiny.memory().peakHeldBytes <= first + second);
+});
+
+test('a chunk that fails twice with 503 loads on the third try; one that never answers fails once, the others load', async () => {
+  const { files } = folder(4);
+  let calls = 0;
+  const flaky = () => (++calls <= 2 ? new Response('', { status: 503 }) : new Response(files.get('chunk_000002.bin')));
+  const { fetch, log } = standIn(files, { override: { 'chunk_000002.bin': flaky } });
+  const retries = [];
+  const stream = new Stream('stream/', { fetch, onRetry: (file, attempt) => retries.push([file, attempt]), ...noWait });
+  await stream.open();
+  assert.equal((await stream.chunk(2)).G, 12);
+  assert.deepEqual(retries, [['chunk_000002.bin', 1], ['chunk_000002.bin', 2]]);
+  assert.equal(log.requested.filter((f) => f === 'chunk_000002.bin').length, 3);
+
+  const errors = [];
+  const silent = (url, init) => (url.endsWith('chunk_000001.bin')
+    ? new Promise((_, reject) => init.signal.addEventListener('abort', () => reject(new DOMException('x', 'AbortError'))))
+    : standIn(files).fetch(url, init));
+  const dead = new Stream('stream/', { fetch: silent, timeoutMs: 10, retries: 1, onError: (e, i) => errors.push([i, e.message]), ...noWait });
+  await dead.open();
+  await assert.rejects(dead.chunk(1), { message: 'could not fetch stream/chunk_000001.bin (no data for 0.01 s, 2 tries)' });
+  for (const i of [0, 2, 3]) assert.equal((await dead.chunk(i)).G, 12);
+  assert.deepEqual(errors, [[1, 'could not fetch stream/chunk_000001.bin (no data for 0.01 s, 2 tries)']]);
 });

@@ -1,6 +1,8 @@
 // One chunk file of the web stream (docs/web.md, "A chunk file"): gzip inflate and the planar,
 // byte-plane-delta quantized layout. Pure logic (no DOM, no WebGL) so that Node tests it.
 
+import { readAll } from './read.js';
+
 export const MAGIC = 'ATGC';
 export const VERSION = 1;
 export const HEADER_BYTES = 48;
@@ -10,13 +12,17 @@ export const RECORD_BYTES = 17;
 /**
  * Inflate gzip bytes with the platform's DecompressionStream (browsers, Node 20).
  * @param {ArrayBuffer|Uint8Array} buffer gzip (RFC 1952) bytes
+ * @param {number} [expected] the inflated size if known (inflated into one buffer of that size)
  * @returns {Promise<Uint8Array>} the inflated bytes
  * @throws {Error} "not valid gzip data" when the bytes do not inflate
  */
-export async function inflate(buffer) {
-  const stream = new Blob([buffer]).stream().pipeThrough(new DecompressionStream('gzip'));
+export async function inflate(buffer, expected) {
+  // a stream of the bytes themselves (a Blob would copy them first)
+  const bytes = buffer instanceof Uint8Array ? buffer : new Uint8Array(buffer);
+  const source = new ReadableStream({ start(c) { c.enqueue(bytes); c.close(); } });
+  const stream = source.pipeThrough(new DecompressionStream('gzip'));
   try {
-    return new Uint8Array(await new Response(stream).arrayBuffer());
+    return await readAll(stream.getReader(), { expected });
   } catch {
     // the platforms' own messages say little (Chrome's reads "Failed to fetch")
     throw new Error('not valid gzip data');

@@ -7,12 +7,16 @@ import { Renderer } from './renderer.js';
 import { Stream } from './stream.js';
 
 const SPEEDS = [0.25, 0.5, 1, 1.5, 2];
+// How long a lost WebGL context may stay lost before the page says so (browsers restore within a second or two).
+const CONTEXT_RESTORE_WAIT_MS = 10000;
 
 /**
  * The page's options from its URL parameters (docs/web.md):
  * stream (folder, default "stream/"), frame (exported frame index, 0), camera (training camera
- * index; default the first held-out one, else 0), paused=1, size=camera. A malformed value is
- * reported in `error` (the player shows it) rather than thrown, so the page still comes up.
+ * index; default the first held-out one, else 0), paused=1, size=camera, budget (MB of chunks
+ * held at most, decoded and compressed; default stream.js's), ahead (compressed chunks held at
+ * most, the playing one included). A malformed value is reported in `error` (the player shows it) rather than thrown,
+ * so the page still comes up.
  * @param {URLSearchParams} params
  */
 export function pageOptions(params) {
@@ -24,12 +28,24 @@ export function pageOptions(params) {
     error ??= `URL parameter ${name}=${params.get(name)} is not a non-negative integer`;
     return null;
   };
+  const positive = (name) => {
+    if (!params.has(name)) return null;
+    const v = Number(params.get(name));
+    if (v > 0 && Number.isFinite(v)) return v;
+    error ??= `URL parameter ${name}=${params.get(name)} is not a positive number`;
+    return null;
+  };
+  const ahead = integer('ahead');
+  if (ahead === 0) error ??= 'URL parameter ahead=0: the player holds at least the chunk it plays (ahead=1)';
+  const budget = positive('budget');
   return {
     stream: params.get('stream') || 'stream/',
     frame: integer('frame') ?? 0,
     camera: integer('camera'),
     paused: params.get('paused') === '1',
     cameraSize: params.get('size') === 'camera',
+    budgetBytes: budget === null ? null : budget * 1e6,
+    maxChunks: ahead || null,
     error,
   };
 }
@@ -51,6 +67,7 @@ export class Player {
       canvas: $('view'), error: $('error'), status: $('status'), play: $('play'), scrub: $('scrub'),
       readout: $('readout'), loop: $('loop'), speed: $('speed'), camera: $('camera'),
       progress: $('progress'), progressText: $('progress-text'), help: $('help'), helpKeys: $('help-keys'),
+      note: $('note'),
     };
     this.stream = null;
     this.renderer = null;
@@ -58,6 +75,11 @@ export class Player {
     this.homeCamera = 0;            // the training camera last chosen: where resetView returns
     this.manifest = null;
     this.error = null;              // the first error shown
+    this.note = null;               // a one-line note of something the page works around (no environment map)
+    this.retrying = null;           // the status line while a download is retried
+    this.contextLost = false;
+    this.contextRestores = 0;
+    this.contextTimer = null;
     this.stopped = false;           // after a fatal error: nothing more is drawn
     this.playing = !options.paused;
     this.position = options.frame;  // playback position in exported frames (fractional while playing)
@@ -82,13 +104,25 @@ export class Player {
           + 'serve the folder (atgs-serve DIR, or python -m http.server in it) and open its http:// address');
       }
       this.renderer = new Renderer(this.el.canvas);
+      this.renderer.onContextLost = () => this._contextLost();
+      this.renderer.onContextRestored = () => this._contextRestored();
       this.stream = new Stream(this.options.stream, {
-        onProgress: (loaded, total) => this._showProgress(loaded, total),
+        budgetBytes: this.options.budgetBytes ?? undefined,
+        maxChunks: this.options.maxChunks ?? undefined,
+        onProgress: (buffered, wanted) => this._showProgress(buffered, wanted),
+        onRetry: (file, attempt, delay, e) => {
+          this.retrying = `connection trouble (${e.message}): trying ${file} again in ${(delay / 1000).toFixed(1)} s…`;
+        },
+        onChunkLoaded: () => { this.retrying = null; },
         // the manifest's failure also rejects open() below; a chunk's leaves the others playable
         onError: (e, chunk) => { if (chunk !== undefined) this.showError(e.message, false); },
       });
       const manifest = await this.stream.open();
       this.manifest = manifest;
+      if (this.options.budgetBytes !== null && this.stream.budgetBytes > this.options.budgetBytes) {
+        this.showNote(`URL parameter budget=${this.options.budgetBytes / 1e6}: this stream needs ${megabytes(this.stream.budgetBytes)} MB `
+          + 'to play without stalls (two chunks decoded, the playing one and the next downloaded): holding that');
+      }
       this.renderer.configure(manifest);
       this._setupControls(manifest);
       this._setupView(manifest);
@@ -117,6 +151,32 @@ export class Player {
     }
   }
 
+  /** Shows a one-line note (not an error: the page plays on); the first one stays. */
+  showNote(message) {
+    if (this.note) return;
+    this.note = String(message).split('\n')[0];
+    this.el.note.textContent = this.note;
+    this.el.note.hidden = false;
+  }
+
+  // A lost WebGL context: nothing is drawn until the browser restores it, then the frame is drawn again.
+  _contextLost() {
+    this.contextLost = true;
+    this.el.status.textContent = 'the graphics context was lost: waiting for the browser to restore it…';
+    clearTimeout(this.contextTimer);
+    this.contextTimer = setTimeout(() => {
+      if (this.contextLost) this.showError('the WebGL context was lost and the browser did not restore it: reload the page');
+    }, CONTEXT_RESTORE_WAIT_MS);
+  }
+
+  _contextRestored() {
+    clearTimeout(this.contextTimer);
+    this.contextLost = false;
+    this.contextRestores++;
+    this.el.status.textContent = '';
+    this.forceDraw = true;
+  }
+
   // Stops playing and fails the test API's waiters: what they wait for cannot be drawn.
   _halt(error) {
     this.playing = false;
@@ -137,6 +197,7 @@ export class Player {
     scrub.addEventListener('pointerdown', () => this._pauseWhileScrubbing());
     play.addEventListener('click', () => (this.playing ? this.pause() : this.play()));
     loop.checked = true;
+    loop.addEventListener('change', () => this.stream.setWrap(loop.checked));  // no look-ahead past the end without loop
     for (const s of SPEEDS) speed.add(new Option(`${s}x`, String(s), s === 1, s === 1));
     camera.add(new Option('free', 'free'));
     manifest.cameras.forEach((c, i) => camera.add(new Option(`${c.name}${c.held_out ? ' (held out)' : ''}`, String(i))));
@@ -201,7 +262,7 @@ export class Player {
         this._requestFrame(Math.min(n - 1, Math.max(0, Math.floor(this.position) + frames)));
       },
       seekFraction: (f) => this._requestFrame(Math.round(f * (n - 1))),
-      toggleLoop: () => { this.el.loop.checked = !this.el.loop.checked; },
+      toggleLoop: () => { this.el.loop.checked = !this.el.loop.checked; this.stream.setWrap(this.el.loop.checked); },
       changeSpeed: (d) => { speed.selectedIndex = Math.min(speed.length - 1, Math.max(0, speed.selectedIndex + d)); },
       resetView: () => this.setCamera(this.homeCamera),
       changeCamera: (d) => this.setCamera((((this.view.trainingIndex ?? this.homeCamera) + d) % cams + cams) % cams),
@@ -209,20 +270,21 @@ export class Player {
     };
   }
 
+  // The background by direction; without it (missing, unreadable) the trained background colour,
+  // with a note: a wrong background is better than no video.
   async _loadEnvironment(env) {
     const where = this.stream.url(env.file);
-    let response;
-    try {
-      response = await fetch(where);
-    } catch (e) {
-      throw new Error(`could not fetch ${where} (${e.message})`);
-    }
-    if (!response.ok) throw new Error(`${where} is missing (HTTP ${response.status})`);
     let image;
     try {
-      image = await createImageBitmap(await response.blob(), { colorSpaceConversion: 'none', premultiplyAlpha: 'none' });
+      const bytes = await this.stream.fetchFile(env.file);
+      try {
+        image = await createImageBitmap(new Blob([bytes]), { colorSpaceConversion: 'none', premultiplyAlpha: 'none' });
+      } catch (e) {
+        throw new Error(`${where} is not a readable image (${e.message})`);
+      }
     } catch (e) {
-      throw new Error(`${where} is not a readable image (${e.message})`);
+      this.showNote(`${e.message}: drawing over the background colour instead`);
+      return;
     }
     this.renderer.setEnvironment(image, env.basis);
   }
@@ -304,9 +366,9 @@ export class Player {
       this.buffering = true;
       this.position = want;
       this.stream.chunk(ci).then(() => { this.forceDraw = true; }, () => {});
-      this.el.status.textContent = this.framesDrawn ? 'buffering…' : 'loading…';
+      this.el.status.textContent = this.retrying ?? (this.framesDrawn ? 'buffering…' : 'loading…');
     } else {
-      if (this.el.status.textContent) this.el.status.textContent = '';
+      if (this.el.status.textContent && !this.contextLost) this.el.status.textContent = '';
       this.buffering = false;
       this._draw(want, chunk, local);
       const chunks = this.manifest.chunks.length;
@@ -322,7 +384,7 @@ export class Player {
     const key = `${i} ${this.view.version} ${canvas.width}x${canvas.height}`;
     if (key === this.drawnKey && !this.forceDraw) return;
     const view = { w2c: this.view.w2c, intr: this._intrinsics() };
-    this.renderer.draw(chunk, local, view);
+    if (!this.renderer.draw(chunk, local, view)) return;  // the context is lost: drawn once it is back
     this.last = { chunk, local, view: { w2c: Float64Array.from(view.w2c), intr: view.intr } };
     this.drawnKey = key;
     this.forceDraw = false;
@@ -350,11 +412,11 @@ export class Player {
     this.el.readout.textContent = `frame ${i} / ${m.frames.length - 1} (model frame ${m.frames[i]}) · ${(i / m.fps).toFixed(2)} s`;
   }
 
-  _showProgress(loaded, total) {
-    this.el.progress.max = Math.max(1, total);
-    this.el.progress.value = loaded;
-    this.el.progressText.textContent = loaded >= total ? `${megabytes(total)} MB loaded`
-      : `${megabytes(loaded)} / ${megabytes(total)} MB`;
+  // The look-ahead window's bytes held of those it wants (not the whole video: it never is in memory).
+  _showProgress(buffered, wanted) {
+    this.el.progress.max = Math.max(1, wanted);
+    this.el.progress.value = buffered;
+    this.el.progressText.textContent = `${megabytes(buffered)} MB buffered`;
   }
 
   _whenDrawn(test) {
@@ -373,9 +435,12 @@ export class Player {
    * - seek(i): Promise, resolved once exported frame i is drawn (waits for its chunk)
    * - setCamera(i): show training camera i; returns a Promise resolved once it is drawn
    * - play(), pause()
-   * - state(): {frame, frames, playing, loop, speed, buffering, camera (training index or null), loadedBytes,
-   *   totalBytes, framesDrawn, error, firstFrameMs (ms from navigation start to the first
-   *   drawn frame), drawFps (draws per second over the last 2 s)}
+   * - state(): {frame, frames, playing, loop, speed, buffering, camera (training index or null), loadedBytes
+   *   (chunk bytes fetched so far, refetches included), totalBytes (the chunk files' total),
+   *   framesDrawn, error, note, firstFrameMs (ms from navigation start to the first drawn frame),
+   *   drawFps (draws per second over the last 2 s), contextLost, contextRestores, and the
+   *   stream's memory (stream.js Stream.memory: heldBytes, heldChunks, peakHeldBytes,
+   *   peakHeldChunks, budgetBytes, maxChunks, decodedChunks, fetchedBytes, downloads, windowFull)}
    * - readPixels(): {width, height, encoding: 'base64', data}: the last drawn image (RGBA bytes,
    *   top row first), drawn again and read back at once
    */
@@ -405,10 +470,14 @@ export class Player {
         loop: this.el.loop.checked, speed: Number(this.el.speed.value),
         buffering: this.buffering,
         camera: this.view ? this.view.trainingIndex : null,
-        loadedBytes: this.stream ? this.stream.loadedBytes : 0,
+        ...(this.stream ? this.stream.memory() : {}),
+        loadedBytes: this.stream ? this.stream.fetchedBytes : 0,
         totalBytes: this.stream ? this.stream.totalBytes : 0,
         framesDrawn: this.framesDrawn,
         error: this.error,
+        note: this.note,
+        contextLost: this.contextLost,
+        contextRestores: this.contextRestores,
         firstFrameMs: this.firstFrameMs,
         drawFps: this._drawFps(),
       }),

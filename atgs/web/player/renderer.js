@@ -232,14 +232,37 @@ export class Renderer {
     if (!gl) throw new Error('this browser has no WebGL2: the player needs it (try a current Chrome, Firefox, Safari or Edge)');
     this.canvas = canvas;
     this.gl = gl;
+    this.render = null;
+    this.background = [0, 0, 0];
+    this.minOpacity = 0;
+    this.environment = null;    // {image, basis, texture}: the image is kept to upload it again after a context loss
+    this.lost = false;
+    this.onContextLost = () => {};
+    this.onContextRestored = () => {};
+    this._createResources();
+    // A lost context (the GPU reset, the tab was in the background on a phone, too many
+    // contexts) drops every GL object. preventDefault asks the browser to restore it; then
+    // everything is built again and the caller draws the frame again.
+    canvas.addEventListener('webglcontextlost', (e) => {
+      e.preventDefault();
+      this.lost = true;
+      this.onContextLost();
+    });
+    canvas.addEventListener('webglcontextrestored', () => {
+      this._createResources();
+      if (this.environment) this._uploadEnvironment();
+      this.lost = false;
+      this.onContextRestored();
+    });
+  }
+
+  // The programs, buffers and state of a new (or restored) context; textures come with the first draw.
+  _createResources() {
+    const gl = this.gl;
     this.splat = program(gl, SPLAT_VERT, SPLAT_FRAG);
     this.environmentProgram = program(gl, FULLSCREEN_VERT, ENVIRONMENT_FRAG);
     this.present = program(gl, FULLSCREEN_VERT, PRESENT_FRAG);
     this.sorter = new DepthSorter();
-    this.render = null;
-    this.background = [0, 0, 0];
-    this.minOpacity = 0;
-    this.environment = null;
     this.textures = null;       // {capacity, order, [field]: WebGLTexture}
     this.uploaded = { chunk: null, frame: -1 };
     this.target = null;         // {width, height, fbo, texture} or null: draw to the canvas
@@ -268,6 +291,11 @@ export class Renderer {
    * @param {number[]} basis 9 numbers, row-major world -> map frame
    */
   setEnvironment(image, basis) {
+    this.environment = { image, basis: Array.from(basis), texture: null };
+    if (!this.lost) this._uploadEnvironment();
+  }
+
+  _uploadEnvironment() {
     const gl = this.gl;
     const texture = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, texture);
@@ -275,12 +303,12 @@ export class Renderer {
     gl.pixelStorei(gl.UNPACK_COLORSPACE_CONVERSION_WEBGL, gl.NONE);
     gl.pixelStorei(gl.UNPACK_PREMULTIPLY_ALPHA_WEBGL, false);
     gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, false);
-    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, image);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, this.environment.image);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.REPEAT);         // around in azimuth
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);  // clamped at the poles
-    this.environment = { texture, basis: Array.from(basis) };
+    this.environment.texture = texture;
   }
 
   // (Re)allocates the Gaussian textures, the order texture and the quads' element buffer when a
@@ -401,10 +429,12 @@ export class Renderer {
    * @param {number} local frame index within the chunk
    * @param {{w2c: ArrayLike<number>, intr: {width: number, height: number, fx: number, fy: number, cx: number, cy: number}}} view
    *   intrinsics already fitted to the canvas size
-   * @returns {{drawn: number, sorted: boolean}} Gaussians drawn; whether the depth order was recomputed
+   * @returns {{drawn: number, sorted: boolean}|null} Gaussians drawn; whether the depth order was
+   *   recomputed; null while the context is lost (nothing drawn: draw again once it is restored)
    */
   draw(chunk, local, view) {
     const gl = this.gl;
+    if (this.lost) return null;
     const { width, height } = this.canvas;
     const fields = chunk.frame(local);
     const textures = this._ensureTextures(chunk.G);
@@ -477,6 +507,7 @@ export class Renderer {
    */
   readPixels() {
     const gl = this.gl;
+    if (this.lost) throw new Error('the WebGL context is lost: nothing to read until the browser restores it');
     const { width, height } = this.canvas;
     const raw = new Uint8Array(width * height * 4);
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);

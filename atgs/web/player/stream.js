@@ -1,9 +1,12 @@
-// The stream folder of a web export (docs/web.md): manifest.json, then the chunk files in
-// playing order, at most two requests at a time, the chunk a seek needs first. Compressed bytes
-// of every loaded chunk are kept (a seek back costs an inflate, not a download); decoded chunks
-// only for the few most recently used. No DOM: Node tests it with a stand-in fetch.
+// The stream folder of a web export (docs/web.md): manifest.json, then the chunk files through a
+// FetchWindow (window.js): a look-ahead window from the playhead's chunk on, within a byte budget,
+// at most two requests at a time, fetched with a stall timeout and retries (fetcher.js). Chunks
+// behind the playhead are dropped, and a seek outside the window fetches again; decoded chunks
+// are kept only for the few most recently used. No DOM: Node tests it with a stand-in fetch.
 
-import { inflate, parseChunk } from './chunk.js';
+import { HEADER_BYTES, RECORD_BYTES, inflate, parseChunk } from './chunk.js';
+import { FETCH_DEFAULTS, fetchBytes } from './fetcher.js';
+import { DEFAULT_BUDGET_BYTES, FetchWindow } from './window.js';
 
 export const FORMAT = 'atgs-web';
 export const VERSION = 1;
@@ -39,38 +42,73 @@ export function checkManifest(m, where) {
 }
 
 /**
+ * A chunk's inflated size from the manifest's entry (docs/web.md, "A chunk file"); 0 if the entry
+ * lacks the Gaussian counts.
+ * @param {{frames: number, gaussians?: number, static?: number}} entry the manifest's chunk entry
+ */
+export function inflatedBytes(entry) {
+  if (entry.gaussians === undefined) return 0;
+  const G = entry.gaussians, S = entry.static ?? 0;
+  return HEADER_BYTES + RECORD_BYTES * (S + entry.frames * (G - S));
+}
+
+/**
+ * Bytes a decoded chunk holds (chunk.js Chunk): its inflated file, the running state of its
+ * dynamic block and the four field arrays of a frame.
+ */
+export function decodedBytes(entry) {
+  const G = entry.gaussians ?? 0, D = G - (entry.static ?? 0);
+  return inflatedBytes(entry) + RECORD_BYTES * D + 16 * G;
+}
+
+/**
  * The loader of one exported stream.
- * Callbacks (all optional): onProgress(loadedBytes, totalBytes); onChunkLoaded(index);
+ * Callbacks (all optional): onProgress(bufferedBytes, windowBytes): the window's bytes held of
+ * those it wants; onChunkLoaded(index); onRetry(file, attempt, delayMs, error) before a retry;
  * onError(error, index) for each failure: the manifest's (index undefined: nothing loads after
- * it) or chunk index's (missing, truncated, corrupt: that chunk stays failed, every request for
- * it rejects with the same error, and the other chunks load on).
+ * it) or chunk index's once its retries are spent (missing, truncated, corrupt: that chunk stays
+ * failed, every request for it rejects with the same error, and the other chunks load on).
  */
 export class Stream {
   /**
    * @param {string} base folder URL of manifest.json and the chunks ("stream/")
    * @param {object} [options]
    * @param {typeof fetch} [options.fetch] the fetch to use (tests pass a stand-in)
+   * @param {number} [options.budgetBytes] bytes of chunks held at most (window.js DEFAULT_BUDGET_BYTES):
+   *   the decoded chunks' share (maxDecoded of the largest, and one being inflated) first, the rest for the compressed
+   *   window; raised to what playing without a stall at every chunk needs (minimumBytes: the
+   *   decoded share and two compressed chunks, the playing one and the next)
+   * @param {number} [options.maxChunks] chunks held at most (no limit)
+   * @param {boolean} [options.wrap] the window continues at chunk 0 past the last (true: the page loops by default)
    * @param {number} [options.maxInFlight] concurrent chunk requests (2)
-   * @param {number} [options.maxDecoded] decoded chunks kept (3)
+   * @param {number} [options.maxDecoded] decoded chunks kept (2: the one playing and the next; a decoded
+   *   chunk holds about 17 bytes a Gaussian a frame, several times its compressed size)
+   * @param {number} [options.timeoutMs], [options.retries], [options.backoffMs], [options.maxBackoffMs]
+   *   fetcher.js FETCH_DEFAULTS; [options.random], [options.sleep]: its jitter and wait (tests)
    */
   constructor(base = 'stream/', options = {}) {
     this.base = base.endsWith('/') ? base : `${base}/`;
-    this.fetch = options.fetch ?? ((url) => globalThis.fetch(url));
-    this.maxInFlight = options.maxInFlight ?? 2;
-    this.maxDecoded = options.maxDecoded ?? 3;
+    this.options = options;
+    const fetch = options.fetch ?? ((url, init) => globalThis.fetch(url, init));
+    this.fetchOptions = {
+      fetch, random: options.random, sleep: options.sleep,
+      ...Object.fromEntries(Object.keys(FETCH_DEFAULTS).map((k) => [k, options[k] ?? FETCH_DEFAULTS[k]])),
+    };
+    this.maxDecoded = options.maxDecoded ?? 2;
     this.onProgress = options.onProgress ?? (() => {});
     this.onError = options.onError ?? (() => {});
+    this.onRetry = options.onRetry ?? (() => {});
     this.onChunkLoaded = options.onChunkLoaded ?? (() => {});
     this.manifest = null;
-    this.failed = new Map();   // chunk index -> its Error
-    this.loadedBytes = 0;
-    this.totalBytes = 0;
-    this.compressed = [];      // chunk index -> Uint8Array of the file
-    this.inFlight = new Set();
-    this.waiters = new Map();  // chunk index -> [{resolve, reject}]
+    this.window = null;        // FetchWindow over the chunk files, once the manifest is in
+    this.failed = new Map();   // chunk index -> its Error (download or decode)
+    this.fetchedBytes = 0;     // chunk body bytes received, every attempt and every refetch counted
+    this.totalBytes = 0;       // the chunk files' total size
     this.decoded = new Map();  // chunk index -> Chunk, in least-recently-used order
     this.decoding = new Map(); // chunk index -> Promise<Chunk>
     this.playhead = 0;
+    this.budgetBytes = null;   // once open: the budget in force (options.budgetBytes, or raised to minimumBytes)
+    this.minimumBytes = null;
   }
 
   /** URL of a file of the stream folder. */
@@ -78,11 +116,19 @@ export class Stream {
     return this.base + file;
   }
 
+  /** Fetch a file of the stream folder with the stream's timeout and retries (the environment map too). */
+  fetchFile(file, extra = {}) {
+    return fetchBytes(this.url(file), {
+      ...this.fetchOptions, ...extra,
+      onRetry: (attempt, delay, error) => this.onRetry(file, attempt, delay, error),
+    });
+  }
+
   /** Loads and checks manifest.json, then starts loading chunks. @returns {Promise<object>} the manifest */
   async open() {
     const where = this.url('manifest.json');
     try {
-      const bytes = await this._get(where, null);
+      const bytes = await this.fetchFile('manifest.json');
       let manifest;
       try {
         manifest = JSON.parse(new TextDecoder().decode(bytes));
@@ -92,8 +138,22 @@ export class Stream {
       checkManifest(manifest, where);
       this.manifest = manifest;
       this.totalBytes = manifest.chunks.reduce((sum, c) => sum + c.bytes, 0);
-      this.onProgress(this.loadedBytes, this.totalBytes);
-      this._pump();
+      this.decodedReserve = (this.maxDecoded + 1) * Math.max(...manifest.chunks.map(decodedBytes));
+      const largest = [...manifest.chunks.map((c) => c.bytes)].sort((a, b) => b - a);
+      this.minimumBytes = this.decodedReserve + largest[0] + (largest[1] ?? 0);
+      this.budgetBytes = Math.max(this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES, this.minimumBytes);
+      this.window = new FetchWindow({
+        sizes: manifest.chunks.map((c) => c.bytes),
+        load: (i, signal) => this._download(i, signal),
+        budgetBytes: Math.max(0, this.budgetBytes - this.decodedReserve),
+        maxItems: this.options.maxChunks,
+        maxInFlight: this.options.maxInFlight ?? 2,
+        wrap: this.options.wrap ?? true,
+        onLoaded: (i) => { this.onChunkLoaded(i); this._progress(); },
+        onFailed: (i, e) => this._failChunk(i, e),
+      });
+      this.window.setPlayhead(this.playhead);
+      this._progress();
       return manifest;
     } catch (e) {
       this.onError(e, undefined);
@@ -108,17 +168,52 @@ export class Stream {
   }
 
   /**
-   * Load chunk i next (if it is not loaded), then the ones after it in order (wrapping around).
+   * Move the window to start at chunk i: chunks outside it are dropped and their downloads
+   * aborted, then chunk i is fetched first (if it is not held), and the ones after it in order.
    * The player calls it with the chunk it plays or seeks to.
    */
   setPlayhead(i) {
     this.playhead = i;
-    this._pump();
+    if (this.window) {
+      this.window.setPlayhead(i);
+      this._progress();
+    }
   }
 
-  /** True once chunk i's file is downloaded and checked. */
+  /** Whether the window continues at chunk 0 past the last one (the page's loop box). */
+  setWrap(wrap) {
+    this.options.wrap = wrap;
+    this.window?.setWrap(wrap);
+  }
+
+  /** Abort the downloads and drop the chunks (a page that stops playing for good). */
+  close() {
+    this.window?.close();
+    this.decoded.clear();
+  }
+
+  /** True while chunk i's file is held (downloaded, checked, not evicted). */
   isLoaded(i) {
-    return this.compressed[i] !== undefined;
+    return this.window?.peek(i) !== undefined;
+  }
+
+  /**
+   * What the stream holds now: compressed bytes and chunks (in flight included), the peaks since
+   * opening, the budget in force, the least it may be (minimumBytes), its part for the compressed
+   * window (the rest is the decoded chunks' reserve), bytes fetched, downloads started, and whether the window is complete.
+   */
+  memory() {
+    const w = this.window;
+    return {
+      heldBytes: w ? w.heldBytes : 0, heldChunks: w ? w.heldItems : 0,
+      peakHeldBytes: w ? w.peakBytes : 0, peakHeldChunks: w ? w.peakItems : 0,
+      budgetBytes: this.budgetBytes ?? (this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES),
+      minimumBytes: this.minimumBytes ?? null,
+      windowBudgetBytes: w ? w.budgetBytes : null, decodedReserveBytes: w ? this.decodedReserve : null,
+      maxChunks: w ? w.maxItems : (this.options.maxChunks ?? Infinity),
+      decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes, downloads: w ? w.loads : 0,
+      windowFull: w ? w.full() : false,
+    };
   }
 
   /** Chunk i decoded, if it is in the decoded cache now (no waiting), else null. */
@@ -131,8 +226,8 @@ export class Stream {
   }
 
   /**
-   * Chunk i inflated, parsed and checked against the manifest; waits for its download
-   * (without moving it ahead of others: call setPlayhead for that).
+   * Chunk i inflated, parsed and checked against the manifest; waits for its download (a chunk
+   * outside the window waits until setPlayhead brings it in).
    * @returns {Promise<import('./chunk.js').Chunk>}
    */
   chunk(i) {
@@ -148,12 +243,12 @@ export class Stream {
   }
 
   async _decode(i) {
-    await this._whenLoaded(i);
+    const bytes = await this._whenLoaded(i);
     const entry = this.manifest.chunks[i];
     const where = this.url(entry.file);
     let chunk;
     try {
-      chunk = parseChunk(await inflate(this.compressed[i]));
+      chunk = parseChunk(await inflate(bytes, inflatedBytes(entry)));
     } catch (e) {
       throw this._failChunk(i, new Error(`${where} is corrupt: ${e.message}`));
     }
@@ -169,104 +264,34 @@ export class Stream {
   }
 
   _whenLoaded(i) {
-    if (this.isLoaded(i)) return Promise.resolve();
-    if (this.failed.has(i)) return Promise.reject(this.failed.get(i));
-    return new Promise((resolve, reject) => {
-      if (!this.waiters.has(i)) this.waiters.set(i, []);
-      this.waiters.get(i).push({ resolve, reject });
-      this._pump();
-    });
+    if (!this.window) return Promise.reject(new Error('the stream is not open'));
+    return this.window.get(i);
   }
 
-  // The next chunk to request: the first not loaded, in flight nor failed from the playhead on, wrapping.
-  _next() {
-    const n = this.manifest.chunks.length;
-    for (let j = 0; j < n; j++) {
-      const i = (this.playhead + j) % n;
-      if (!this.isLoaded(i) && !this.inFlight.has(i) && !this.failed.has(i)) return i;
-    }
-    return -1;
-  }
-
-  _pump() {
-    if (!this.manifest) return;
-    while (this.inFlight.size < this.maxInFlight) {
-      const i = this._next();
-      if (i < 0) return;
-      this.inFlight.add(i);
-      this._download(i).then(
-        () => {
-          this.inFlight.delete(i);
-          this.onChunkLoaded(i);
-          for (const w of this.waiters.get(i) ?? []) w.resolve();
-          this.waiters.delete(i);
-          this._pump();
-        },
-        (e) => {
-          this.inFlight.delete(i);
-          this._failChunk(i, e);
-          this._pump();
-        },
-      );
-    }
-  }
-
-  async _download(i) {
+  async _download(i, signal) {
     const entry = this.manifest.chunks[i];
     const where = this.url(entry.file);
-    const bytes = await this._get(where, entry.bytes);
+    const bytes = await this.fetchFile(entry.file, {
+      signal, expectedBytes: entry.bytes, onBytes: (n) => { this.fetchedBytes += n; },
+    });
+    // the server sent the whole file: a size that differs is the file's, and no retry mends it
     if (bytes.length < entry.bytes) throw new Error(`${where} is truncated (got ${bytes.length} of ${entry.bytes} bytes)`);
     if (bytes.length > entry.bytes) throw new Error(`${where} is ${bytes.length} bytes, the manifest says ${entry.bytes}`);
-    this.compressed[i] = bytes;
-  }
-
-  // GET url and return its body; with `expected` (bytes), count the body into loadedBytes as it arrives.
-  async _get(where, expected) {
-    let response;
-    try {
-      response = await this.fetch(where);
-    } catch (e) {
-      throw new Error(`could not fetch ${where} (${e.message})`);
-    }
-    if (response.status === 404) throw new Error(`${where} is missing (HTTP 404)`);
-    if (!response.ok) throw new Error(`${where} could not be loaded (HTTP ${response.status})`);
-    if (expected === null || !response.body) {
-      const bytes = new Uint8Array(await response.arrayBuffer());
-      if (expected !== null) this._count(Math.min(bytes.length, expected));
-      return bytes;
-    }
-    const parts = [];
-    let got = 0;
-    const reader = response.body.getReader();
-    for (;;) {
-      const { done, value } = await reader.read();
-      if (done) break;
-      parts.push(value);
-      // progress never passes the manifest's size, whatever arrives
-      this._count(Math.max(0, Math.min(value.length, expected - got)));
-      got += value.length;
-    }
-    const bytes = new Uint8Array(got);
-    let offset = 0;
-    for (const p of parts) {
-      bytes.set(p, offset);
-      offset += p.length;
-    }
     return bytes;
   }
 
-  _count(n) {
-    if (n <= 0) return;
-    this.loadedBytes += n;
-    this.onProgress(this.loadedBytes, this.totalBytes);
+  _progress() {
+    const w = this.window;
+    const wanted = w.wanted();
+    const target = wanted.reduce((sum, i) => sum + w.sizes[i], 0);
+    const held = wanted.reduce((sum, i) => sum + (w.peek(i) ? w.sizes[i] : 0), 0);
+    this.onProgress(held, target);
   }
 
   // Marks chunk i failed (its first error stands), rejects its waiters, reports it once; returns the error.
   _failChunk(i, error) {
     if (this.failed.has(i)) return this.failed.get(i);
     this.failed.set(i, error);
-    for (const w of this.waiters.get(i) ?? []) w.reject(error);
-    this.waiters.delete(i);
     this.onError(error, i);
     return error;
   }

@@ -1,0 +1,170 @@
+// The look-ahead window of a stream in bounded memory (docs/web.md, "Streaming"): items 0..n-1
+// of known byte sizes (a stream's files, in playing order), of which only those from the playhead
+// on, up to a byte budget (and optionally a number of items), are fetched and kept. Moving the
+// playhead evicts what falls out of the window (behind it, or beyond the budget) and aborts its
+// downloads; a seek outside the window goes back to the network. Any stream kind keeps its files
+// through one of these; what an item is (a chunk, a model segment) is its `load`. No DOM: Node
+// tests it with a stand-in load.
+
+import { isAbort } from './fetcher.js';
+
+/** The default budget: 32 MiB of compressed bytes held (a phone's tab holds that easily). */
+export const DEFAULT_BUDGET_BYTES = 32 * 2 ** 20;
+
+export class FetchWindow {
+  /**
+   * @param {object} o
+   * @param {number[]} o.sizes bytes of each item (what it holds once loaded)
+   * @param {(i: number, signal: AbortSignal) => Promise<any>} o.load fetches item i (aborts with signal)
+   * @param {number} [o.budgetBytes] bytes held and in flight at most (DEFAULT_BUDGET_BYTES); the
+   *   playhead's item is held even when it alone is larger
+   * @param {number} [o.maxItems] items held and in flight at most (Infinity)
+   * @param {number} [o.maxInFlight] concurrent loads (2)
+   * @param {boolean} [o.wrap] the window continues at item 0 past the last (a looping video)
+   * @param {(i: number) => void} [o.onLoaded]
+   * @param {(i: number, error: Error) => void} [o.onFailed] once per item whose load failed (it stays failed)
+   */
+  constructor(o) {
+    this.sizes = o.sizes;
+    this.load = o.load;
+    this.budgetBytes = o.budgetBytes ?? DEFAULT_BUDGET_BYTES;
+    this.maxItems = o.maxItems ?? Infinity;
+    this.maxInFlight = o.maxInFlight ?? 2;
+    this.wrap = o.wrap ?? true;
+    this.onLoaded = o.onLoaded ?? (() => {});
+    this.onFailed = o.onFailed ?? (() => {});
+    this.playhead = 0;
+    this.items = new Map();     // i -> value, loaded and held
+    this.inFlight = new Map();  // i -> AbortController
+    this.failed = new Map();    // i -> Error
+    this.waiters = new Map();   // i -> [{resolve, reject}]
+    this.heldBytes = 0;         // of items and loads in flight (a load reserves its item's size)
+    this.peakBytes = 0;
+    this.peakItems = 0;
+    this.loads = 0;             // loads started (a reload after an eviction counts again)
+    this.closed = false;
+  }
+
+  /** The items of the window, in the order they are fetched: the playhead's first. */
+  wanted() {
+    const n = this.closed ? 0 : this.sizes.length;
+    const out = [];
+    let bytes = 0;
+    for (let k = 0; k < n && out.length < this.maxItems; k++) {
+      if (!this.wrap && this.playhead + k >= n) break;
+      const i = (this.playhead + k) % n;
+      if (out.length > 0 && bytes + this.sizes[i] > this.budgetBytes) break;
+      bytes += this.sizes[i];
+      out.push(i);
+    }
+    return out;
+  }
+
+  /** Item i if it is held now, else undefined. */
+  peek(i) {
+    return this.items.get(i);
+  }
+
+  /** True when every item of the window is held (or failed): nothing more to fetch until the playhead moves. */
+  full() {
+    return this.wanted().every((i) => this.items.has(i) || this.failed.has(i));
+  }
+
+  /** Items held and in flight. */
+  get heldItems() {
+    return this.items.size + this.inFlight.size;
+  }
+
+  /**
+   * Move the window to start at item i: drop the items and abort the loads outside it, then
+   * fetch what it lacks in order.
+   */
+  setPlayhead(i) {
+    this.playhead = i;
+    this._update();
+  }
+
+  setWrap(wrap) {
+    this.wrap = wrap;
+    this._update();
+  }
+
+  /**
+   * Item i once loaded (at once when held). An item outside the window is not fetched for this:
+   * the promise waits until the playhead brings it in (move the playhead first).
+   * @returns {Promise<any>} rejects with the item's error if its load failed
+   */
+  get(i) {
+    if (this.items.has(i)) return Promise.resolve(this.items.get(i));
+    if (this.failed.has(i)) return Promise.reject(this.failed.get(i));
+    return new Promise((resolve, reject) => {
+      if (!this.waiters.has(i)) this.waiters.set(i, []);
+      this.waiters.get(i).push({ resolve, reject });
+    });
+  }
+
+  /** Abort every load and drop every item: the window holds nothing after this. */
+  close() {
+    this.closed = true;
+    this._update();
+  }
+
+  _update() {
+    const wanted = this.wanted();
+    const keep = new Set(wanted);
+    for (const i of [...this.items.keys()]) {
+      if (!keep.has(i)) this._drop(i);
+    }
+    for (const [i, controller] of [...this.inFlight]) {
+      if (!keep.has(i)) {
+        this.inFlight.delete(i);
+        this.heldBytes -= this.sizes[i];
+        controller.abort();
+      }
+    }
+    for (const i of wanted) {
+      if (this.inFlight.size >= this.maxInFlight) break;
+      if (!this.items.has(i) && !this.inFlight.has(i) && !this.failed.has(i)) this._start(i);
+    }
+  }
+
+  _drop(i) {
+    this.items.delete(i);
+    this.heldBytes -= this.sizes[i];
+  }
+
+  _start(i) {
+    const controller = new AbortController();
+    this.inFlight.set(i, controller);
+    this.heldBytes += this.sizes[i];
+    this.loads++;
+    this.peakBytes = Math.max(this.peakBytes, this.heldBytes);
+    this.peakItems = Math.max(this.peakItems, this.heldItems);
+    this.load(i, controller.signal).then(
+      (value) => {
+        if (this.inFlight.get(i) !== controller) return;  // aborted: its reservation is already released
+        this.inFlight.delete(i);
+        this.items.set(i, value);
+        this.onLoaded(i);
+        this._settle(i, (w) => w.resolve(value));
+        this._update();
+      },
+      (error) => {
+        if (this.inFlight.get(i) !== controller) return;
+        this.inFlight.delete(i);
+        this.heldBytes -= this.sizes[i];
+        if (isAbort(error)) return;
+        this.failed.set(i, error);
+        this.onFailed(i, error);
+        this._settle(i, (w) => w.reject(error));
+        this._update();
+      },
+    );
+  }
+
+  _settle(i, how) {
+    const waiting = this.waiters.get(i) ?? [];
+    this.waiters.delete(i);
+    for (const w of waiting) how(w);
+  }
+}

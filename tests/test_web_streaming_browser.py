@@ -1,0 +1,144 @@
+"""Streaming and failures of the web player in a real browser (Chromium, software WebGL2), on a
+small synthetic export (atgs.web.synthetic: no training): the look-ahead window holds at most its
+budget while the video plays through and a seek back fetches dropped chunks again; a lost WebGL
+context is restored and the frame drawn again; a missing environment map falls back to the
+background colour with a note; a chunk that fails once is fetched again."""
+
+from __future__ import annotations
+
+import io
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from atgs.web.browser import PlayerPage, chromium, serving
+from atgs.web.synthetic import synthetic_export
+
+FRAMES, CHUNK_FRAMES = 48, 4  # 12 chunks
+BACKGROUND = (0.2, 0.4, 0.6)
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("stream") / "web"
+    synthetic_export(out, frames=FRAMES, gaussians=300, chunk_frames=CHUNK_FRAMES, environment=True,
+                     background=BACKGROUND)
+    return out
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with chromium() as b:
+        yield b
+
+
+def _chunk_requests(page: PlayerPage) -> list[str]:
+    log: list[str] = []
+    page.page.on("request", lambda r: log.append(r.url.rsplit("/", 1)[-1]) if r.url.endswith(".bin") else None)
+    return log
+
+
+def test_two_chunks_at_most_while_playing_through_and_a_seek_back_fetches_again(export, browser):
+    with serving(export) as url:
+        # ahead=2: two chunks at most; budget=0.001 (1 kB): below what any stream needs, raised with a note
+        page = PlayerPage(browser, url, {"camera": 0, "paused": 1, "size": "camera", "ahead": 2, "budget": 0.001})
+        requests = _chunk_requests(page)
+        page.first_frame()
+        page.seek(9)  # chunk 2
+        first_look = page.pixels()
+        page.call("p.play()")
+        # the last chunk's frames, then the first ones again (loop): the whole video went past
+        page.page.wait_for_function(f"() => window.atgsPlayer.state().frame >= {FRAMES - CHUNK_FRAMES}")
+        page.page.wait_for_function(f"() => window.atgsPlayer.state().frame < {CHUNK_FRAMES}")
+        page.call("p.pause()")
+        s = page.state()
+        assert s["error"] is None, page.console
+        assert s["maxChunks"] == 2 and s["peakHeldChunks"] <= 2 and s["heldChunks"] <= 2, s
+        assert s["budgetBytes"] == s["minimumBytes"] > 1000 and s["peakHeldBytes"] <= s["windowBudgetBytes"]
+        assert s["note"].startswith("URL parameter budget=0.001: this stream needs")
+        assert s["downloads"] >= FRAMES // CHUNK_FRAMES
+        assert len(requests) == s["downloads"]  # the page's count is the network's
+        assert requests.count("chunk_000002.bin") == 1
+        page.seek(9)  # chunk 2 was dropped long ago: from the network again, the same picture
+        assert requests.count("chunk_000002.bin") == 2
+        np.testing.assert_array_equal(page.pixels(), first_look)
+        assert page.state()["peakHeldChunks"] <= 2
+        page.close()
+
+
+def _canvas_shot(page: PlayerPage) -> np.ndarray:
+    png = page.page.locator("#view").screenshot()
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float32) / 255.0
+
+
+def test_a_lost_webgl_context_is_restored_and_the_frame_drawn_again(export, browser):
+    with serving(export) as url:
+        page = PlayerPage(browser, url, {"camera": 0, "paused": 1, "size": "camera"})
+        page.first_frame()
+        page.seek(6)
+        before, shot_before = page.pixels(), _canvas_shot(page)
+        assert float(before.std()) > 0.02  # a picture, not a flat colour
+        page.page.evaluate("() => { window.loseContext = document.getElementById('view')"
+                           ".getContext('webgl2').getExtension('WEBGL_lose_context'); "
+                           "window.loseContext.loseContext(); }")
+        page.page.wait_for_function("() => window.atgsPlayer.state().contextLost")
+        drawn = page.state()["framesDrawn"]
+        page.page.evaluate("() => window.loseContext.restoreContext()")
+        page.page.wait_for_function(f"() => {{ const s = window.atgsPlayer.state(); "
+                                    f"return !s.contextLost && s.contextRestores === 1 && s.framesDrawn > {drawn}; }}")
+        shot_after, after = _canvas_shot(page), page.pixels()
+        assert np.abs(after - before).max() <= 1 / 255
+        assert np.abs(shot_after - shot_before).max() <= 2 / 255  # drawn again by the player itself
+        assert page.state()["error"] is None
+        page.close()
+
+
+def test_a_missing_environment_map_falls_back_to_the_background_colour_with_a_note(export, browser, tmp_path):
+    corner = np.array(BACKGROUND)
+    with serving(export) as url:  # with the map: the corner shows it, not the background colour
+        page = PlayerPage(browser, url, {"camera": 0, "paused": 1, "size": "camera"})
+        page.first_frame()
+        assert np.abs(page.pixels()[0, 0] - corner).max() > 0.05
+        assert page.state()["note"] is None
+        page.close()
+    broken = tmp_path / "no-env"
+    shutil.copytree(export, broken)
+    (broken / "stream" / "environment.png").unlink()
+    with serving(broken) as url:
+        page = PlayerPage(browser, url, {"camera": 0, "paused": 1, "size": "camera"})
+        page.first_frame()
+        note = page.page.locator("#note")
+        assert note.is_visible()
+        assert "environment.png is missing (HTTP 404)" in note.inner_text()
+        assert "background colour" in note.inner_text()
+        got = page.pixels()
+        np.testing.assert_allclose(got[0, 0], corner, atol=1 / 255)
+        assert float(got.std()) > 0.02
+        s = page.state()
+        assert s["error"] is None and page.page.locator("#error").is_hidden()
+        page.seek(20)  # it plays on
+        page.close()
+
+
+def test_a_chunk_that_fails_once_is_fetched_again(export, browser):
+    with serving(export) as url:
+        page = PlayerPage(browser, url, {"camera": 0, "paused": 1, "size": "camera"})
+        failures = []
+
+        def once(route):
+            if not failures:
+                failures.append(route.request.url)
+                route.fulfill(status=503, body="busy")
+            else:
+                route.continue_()
+
+        page.page.route("**/chunk_000003.bin", once)
+        page.first_frame()
+        page.seek(13)  # chunk 3: 503, then after the back-off (0.25-0.5 s) the file
+        assert len(failures) == 1
+        s = page.state()
+        assert s["frame"] == 13 and s["error"] is None
+        page.close()
