@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -174,10 +175,18 @@ def test_play_pause_speed_loop_and_the_scrub_bar(browser, url):
     page, clock = s.page, s.page.clock
     clock.pause_at(page.evaluate("Date.now()") / 1000 + 1)  # from here the page's time moves only by run_for
 
-    def seek(frame):  # the player's seek waits for a draw, and draws need ticks
+    def seek(frame):
+        """The player's seek waits for a draw, and draws need ticks; a chunk the byte budget let go
+        is fetched and decoded again in real time (the fake clock does not move the network), and
+        the next chunk's decode, started on arrival, is given real time to finish too."""
         page.evaluate("f => { window.atgsPlayer.seek(f); }", frame)
-        clock.run_for(50)
+        for _ in range(200):
+            clock.run_for(50)
+            if s.state()["frame"] == frame and not s.state()["buffering"]:
+                break
+            time.sleep(0.02)
         assert s.state()["frame"] == frame
+        time.sleep(0.3)
 
     def played(speed: str, ms: int) -> int:
         """Frames advanced from frame 0 by playing `ms` at `speed` (loop off)."""
