@@ -3,7 +3,7 @@
 
 import { ViewCamera, fitIntrinsics, upDirection } from './camera.js';
 import { Renderer } from './renderer.js';
-import { Stream } from './stream.js';
+import { openStream } from './streams.js';
 
 const SPEEDS = [0.25, 0.5, 1, 1.5, 2];
 const ORBIT_RADIANS_PER_PIXEL = 0.005;
@@ -82,12 +82,13 @@ export class Player {
           + 'serve the folder (atgs-serve DIR, or python -m http.server in it) and open its http:// address');
       }
       this.renderer = new Renderer(this.el.canvas);
-      this.stream = new Stream(this.options.stream, {
+      // a Gaussian chunk stream or the model itself, as the manifest says (streams.js)
+      this.stream = await openStream(this.options.stream, this.renderer.gl, {
         onProgress: (loaded, total) => this._showProgress(loaded, total),
-        // the manifest's failure also rejects open() below; a chunk's leaves the others playable
+        // the manifest's failure also rejects openStream; a chunk's leaves the others playable
         onError: (e, chunk) => { if (chunk !== undefined) this.showError(e.message, false); },
       });
-      const manifest = await this.stream.open();
+      const manifest = this.stream.manifest;
       this.manifest = manifest;
       this.renderer.configure(manifest);
       this._setupControls(manifest);
@@ -305,7 +306,7 @@ export class Player {
       if (this.el.status.textContent) this.el.status.textContent = '';
       this.buffering = false;
       this._draw(want, chunk, local);
-      const chunks = this.manifest.chunks.length;
+      const chunks = this.stream.units;
       if (this.playing && chunks > 1 && (ci + 1 < chunks || this.el.loop.checked)) {
         this.stream.chunk((ci + 1) % chunks).catch(() => {});  // inflate the next chunk before it is needed
       }
@@ -374,6 +375,8 @@ export class Player {
    *   drawn frame), drawFps (draws per second over the last 2 s)}
    * - readPixels(): {width, height, encoding: 'base64', data}: the last drawn image (RGBA bytes,
    *   top row first), drawn again and read back at once
+   * - gaussians(i): Promise of exported frame i's Gaussians as the page decoded them (a model
+   *   stream only; model_stream.js ModelStream.gaussians)
    */
   api() {
     return {
@@ -407,6 +410,10 @@ export class Player {
         firstFrameMs: this.firstFrameMs,
         drawFps: this._drawFps(),
       }),
+      gaussians: (i) => {
+        if (!this.stream?.gaussians) return Promise.reject(new Error('gaussians(i): the stream is not a model stream'));
+        return this.stream.gaussians(i);
+      },
       readPixels: () => {
         if (!this.last) throw new Error('nothing drawn yet');
         const { chunk, local, view } = this.last;

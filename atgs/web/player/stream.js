@@ -73,6 +73,11 @@ export class Stream {
     this.playhead = 0;
   }
 
+  /** Units the player steps through (streams.js's interface): the chunks. */
+  get units() {
+    return this.manifest.chunks.length;
+  }
+
   /** URL of a file of the stream folder. */
   url(file) {
     return this.base + file;

@@ -1,0 +1,151 @@
+"""The model stream (``atgs-export --format web --web-stream model``): the part files read back
+to the model's tensors at each precision (the plain reference reader), and the page's own WebGL2
+decode (read back from its textures in headless Chromium) against the torch decode."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from atgs.web.export import export_web
+from atgs.web.model_format import PartFormatError, read_part
+from atgs.web.model_stream import anchor_groups, anchor_tensors, read_model_stream
+from builders import decode_case_model
+
+# a float16 value is within 2^-11 of the float32 (relative), plus the smallest normal's step
+F16_REL, F16_ABS = 2.0**-11, 2.0**-24
+
+
+@pytest.fixture(scope="module")
+def model():
+    """Every decode step at work: dense and hashed levels, 3 segments, fade, velocity, the 3D
+    filter, the clearance and the opacity cut, anchors outside the grid box."""
+    return decode_case_model("everything")
+
+
+def _export(model, folder: Path, precision: str) -> Path:
+    export_web(model, folder, list(range(model.num_frames)), stream="model", precision=precision, progress=False)
+    return folder / "stream"
+
+
+@pytest.fixture(scope="module")
+def streams(model, tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("model-stream")
+    return {p: _export(model, root / p, p) for p in ("float32", "float16", "int8")}
+
+
+def _parts_by_name(files) -> dict[str, dict]:
+    return {p["file"]: t for p, t in zip(files.manifest["model"]["parts"], files.parts)}
+
+
+@pytest.mark.parametrize("precision", ["float32", "float16", "int8"])
+def test_the_parts_read_back_to_the_models_tensors(model, streams, precision):
+    files = read_model_stream(streams[precision])
+    parts = _parts_by_name(files)
+    w = parts["weights.bin"]
+    for name in ("tmlp_w1", "tmlp_b1", "tmlp_w2", "tmlp_b2"):  # the MLPs are always float32
+        assert np.array_equal(w[name], getattr(model, name).numpy()), name
+    assert np.array_equal(w["offset.w1"], model.decoder.offset[0].weight.detach().numpy())
+    assert np.array_equal(w["centres"], model.clearance.centres.numpy())
+    box = (model.bbox_max - model.bbox_min).numpy()
+    for k, ids in anchor_groups(model):
+        got = parts["anchors_static.bin" if k < 0 else f"anchors_kf_{k:04d}.bin"]
+        want = anchor_tensors(model, ids)
+        assert set(got) == set(want)
+        for name, x in want.items():
+            y = got[name]
+            if precision == "float32":
+                assert np.array_equal(y, x), name
+            elif name == "mu":  # 16 bits over the anchors' own range, within the model's box
+                assert np.abs(y - x).max() <= box.max() / 65535, name
+            elif precision == "float16":
+                assert np.all(np.abs(y - x) <= F16_REL * np.abs(x) + F16_ABS), name
+            else:  # int8: half a step of the column's scale
+                step = np.abs(x.reshape(len(x), -1)).max(0) / 127
+                assert np.all(np.abs(y - x).reshape(len(x), -1) <= 0.5 * step + 1e-7), name
+    hg = model.hash
+    per = hg.levels * hg.table_size
+    for m in range(model.num_segments):
+        x = hg.table[m * per:(m + 1) * per].numpy().reshape(hg.levels, hg.table_size, -1)
+        y = parts[f"hash_seg_{m:04d}.bin"]["hash"].reshape(x.shape)
+        if precision == "float32":
+            tol = np.zeros_like(x)
+        elif precision == "float16":
+            tol = F16_REL * np.abs(x) + F16_ABS
+        else:  # int8: half a step of each level's and feature's scale
+            tol = np.broadcast_to(0.5 * np.abs(x).max(1, keepdims=True) / 127 + 1e-7, x.shape)
+        assert np.all(np.abs(y - x) <= tol), m
+
+
+def test_each_frame_lists_the_parts_of_its_keyframe_window(model, streams):
+    files = read_model_stream(streams["float16"])
+    man = files.manifest["model"]
+    parts = man["parts"]
+    for i, f in enumerate(files.manifest["frames"]):
+        entry = man["frames"][i]
+        ids = torch.cat([ids for k, ids in anchor_groups(model) if any(parts[p]["keyframe"] == k for p in entry["anchors"])])
+        assert torch.equal(ids.sort().values, model.active_anchors(f).nonzero().squeeze(1))
+        assert parts[entry["hash"]]["segment"] == model.timeline.segment_of_frame(f)
+
+
+def test_float16_takes_half_the_bytes_of_float32_and_int8_less(streams):
+    size = {p: sum(q["bytes"] for q in json.loads((s / "manifest.json").read_text())["model"]["parts"])
+            for p, s in streams.items()}
+    assert size["float16"] < 0.7 * size["float32"] and size["int8"] < size["float16"]
+
+
+def test_a_corrupt_part_is_one_clear_error(streams, tmp_path):
+    data = (streams["float16"] / "weights.bin").read_bytes()
+    with pytest.raises(PartFormatError, match="weights.bin: not a complete gzip stream"):
+        read_part(data[: len(data) // 2], "weights.bin")
+
+
+# --- the page's decode ---------------------------------------------------------------------------------
+
+
+def _torch_frame(model, f: int):
+    """Frame f by the training decode, with each Gaussian's (anchor, slot)."""
+    with torch.no_grad():
+        d = model.decode_frame(f, None, track=False)
+    g = d.gaussians
+    return d.anchor_ids.numpy(), d.slot_ids.numpy(), g
+
+
+def test_the_page_decodes_what_torch_decodes(model, streams):
+    from atgs.web.browser import PlayerPage, chromium, serving
+
+    folder = streams["float32"].parent
+    files = read_model_stream(streams["float32"])
+    man = files.manifest["model"]
+    ids_of_part = {i: ids for i, (k, ids) in zip(
+        (j for j, p in enumerate(man["parts"]) if p["kind"] == "anchors"), anchor_groups(model))}
+    q = model.cfg.gaussians_per_anchor
+    kf = model.timeline.keyframe_frames()
+    frames = [kf[1], kf[1] + 1, kf[2] - 1, kf[2]]  # across a keyframe and a window change
+    with chromium() as browser, serving(folder) as url:
+        page = PlayerPage(browser, url, {"paused": 1, "size": "camera"})
+        page.first_frame()
+        for f in frames:
+            got = page.call(f"await p.gaussians({f})")
+            order = torch.cat([ids_of_part[p] for p in got["anchors"]]).numpy()
+            n = got["count"]
+            assert n == order.size * q
+            field = {k: np.asarray(got[k], np.float32).reshape(n, 4) for k in ("mean", "quat", "scale", "color")}
+            kept = field["mean"][:, 3] > 0
+            slot_anchor, slot_j = np.repeat(order, q), np.tile(np.arange(q), order.size)
+            anchors, slots, g = _torch_frame(model, f)
+            want = {(int(a), int(j)): i for i, (a, j) in enumerate(zip(anchors, slots))}
+            page_keys = [(int(a), int(j)) for a, j in zip(slot_anchor[kept], slot_j[kept])]
+            assert sorted(page_keys) == sorted(want), f"frame {f}: the page keeps other Gaussians than torch"
+            at = np.array([want[k] for k in page_keys])
+            for name, got_x, want_x in (("means", field["mean"][kept, :3], g.means), ("opacities", field["mean"][kept, 3], g.opacities),
+                                        ("quats", field["quat"][kept], g.quats), ("scales", field["scale"][kept, :3], g.scales),
+                                        ("colors", field["color"][kept, :3], g.colors)):
+                ref = want_x.numpy()[at]
+                err = np.abs(got_x - ref).max()
+                assert err <= 1e-4 * max(1.0, float(np.abs(ref).max())), (f, name, err)
+        page.close()
