@@ -42,14 +42,25 @@ def checkpoint(tmp_path_factory) -> Path:
     return root / "run" / "ckpt.pt"
 
 
-@pytest.fixture(scope="module")
-def export(checkpoint, tmp_path_factory) -> Path:
+def _export(checkpoint: Path, out: Path, *args: str) -> Path:
     from atgs.cli.export import main as export_main
 
-    out = tmp_path_factory.mktemp("export") / "web"
-    assert export_main([str(checkpoint), "--out", str(out), "--format", "web", "--chunk-frames", "4",
-                        "--no-progress"]) == 0
+    assert export_main([str(checkpoint), "--out", str(out), "--format", "web", "--no-progress", *args]) == 0
     return out
+
+
+@pytest.fixture(scope="module")
+def export(checkpoint, tmp_path_factory) -> Path:
+    """The Gaussian chunk stream (4 frames a chunk)."""
+    return _export(checkpoint, tmp_path_factory.mktemp("export") / "web", "--web-stream", "gaussians",
+                   "--chunk-frames", "4")
+
+
+@pytest.fixture(scope="module")
+def model_export(checkpoint, tmp_path_factory) -> Path:
+    """The model stream at float16 (the page decodes the model on its GPU)."""
+    return _export(checkpoint, tmp_path_factory.mktemp("export") / "web", "--web-stream", "model",
+                   "--web-precision", "float16")
 
 
 @pytest.fixture(scope="module")
@@ -67,11 +78,13 @@ def _desktop_frame(checkpoint: Path, camera: int, frame: int, out: Path) -> np.n
     return read_rgb8(out).astype(np.float32) / 255.0
 
 
-def test_the_browser_draws_what_atgs_render_draws(checkpoint, export, browser, tmp_path):
-    with serving(export) as url:
+@pytest.mark.parametrize("kind", ["gaussians", "model"])
+def test_the_browser_draws_what_atgs_render_draws(kind, checkpoint, request, browser, tmp_path):
+    folder = request.getfixturevalue("export" if kind == "gaussians" else "model_export")
+    with serving(folder) as url:
         page = PlayerPage(browser, url, {"camera": 1, "paused": 1, "size": "camera"})
         page.first_frame()
-        for frame in (5, 10):  # two seeks, across chunks (4 frames each)
+        for frame in (5, 10):  # two seeks, across chunks (4 frames each) and keyframe windows
             page.seek(frame)
             got = page.pixels()
             want = _desktop_frame(checkpoint, 1, frame, tmp_path / f"f{frame}.png")

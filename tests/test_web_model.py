@@ -149,3 +149,40 @@ def test_the_page_decodes_what_torch_decodes(model, streams):
                 err = np.abs(got_x - ref).max()
                 assert err <= 1e-4 * max(1.0, float(np.abs(ref).max())), (f, name, err)
         page.close()
+
+
+NODE_READER = """
+import { readFileSync } from 'node:fs';
+import { gunzipSync } from 'node:zlib';
+import { parsePart } from './atgs/web/player/model_part.js';
+const out = {};
+for (const [name, t] of Object.entries(parsePart(new Uint8Array(gunzipSync(readFileSync(process.argv[2]))), 'x'))) {
+  out[name] = { shape: t.shape, data: Buffer.from(t.data.buffer).toString('base64') };
+}
+console.log(JSON.stringify(out));
+"""
+
+
+@pytest.mark.parametrize("precision", ["float16", "int8"])
+def test_the_pages_reader_reads_what_the_reference_reader_reads(streams, precision, tmp_path):
+    import base64
+    import shutil
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    script = root / f".model_part_reader_{precision}.mjs"  # next to atgs/ so that its import resolves
+    script.write_text(NODE_READER)
+    try:
+        for name in ("anchors_static.bin", "hash_seg_0001.bin"):
+            path = streams[precision] / name
+            run = subprocess.run([shutil.which("node"), str(script), str(path)], capture_output=True, text=True,
+                                 timeout=60, cwd=root)
+            assert run.returncode == 0, run.stderr
+            got = json.loads(run.stdout)
+            want = read_part(path.read_bytes())
+            assert set(got) == set(want)
+            for k, t in got.items():
+                x = np.frombuffer(base64.b64decode(t["data"]), np.float32).reshape(t["shape"])
+                assert np.array_equal(x, want[k]), (name, k)  # bit for bit
+    finally:
+        script.unlink()
