@@ -4,6 +4,9 @@ headless Chromium (software WebGL2 on this machine's CPUs: a floor, not a GPU fi
 
     python bench/web.py --checkpoint runs/demo/ckpt.pt [--extra-checkpoint runs/n3dv/ckpt.pt]
     # writes bench/results/web.json and the table in README.md
+    python bench/web.py --part bytes --checkpoint runs/demo/ckpt.pt [--scene PREPARED]
+    # bytes a frame against held-out PSNR of both streams (bench/_web_bytes.py): the "bytes" key of
+    # bench/results/web.json (the others kept) and the table in docs/web.md
 
 Targets (issue 39): the web export at most 1/8 of the PLY export's bytes; the browser's frames at
 least 35 dB against atgs-render; the first frame within 2 s of opening the page on localhost.
@@ -18,12 +21,14 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
 import tyro
 
-from _docs import publish, run_stamp  # bench/_docs.py (the script's own folder is on sys.path)
+from _docs import publish, run_stamp, update_docs_table, write_json_atomic  # bench/_docs.py (the script's folder is on sys.path)
+from _web_bytes import bytes_curve, bytes_table
 from atgs.eval.metrics import psnr
 from atgs.web.browser import PlayerPage, chromium, serving
 
@@ -34,6 +39,9 @@ FIRST_FRAME_TARGET_S = 2.0
 
 @dataclass
 class BenchConfig:
+    part: Literal["all", "bytes"] = "all"
+    """all: size, browser against atgs-view, first frame, playback; bytes: the bytes-a-frame against
+    held-out PSNR curve of both web streams (merged into --out under "bytes", table in docs/web.md)."""
     checkpoint: Path = Path("runs/demo/ckpt.pt")
     """The built-in scene's trained checkpoint (./scripts/demo.sh writes runs/demo/ckpt.pt)."""
     extra_checkpoints: list[Path] = field(default_factory=list)
@@ -51,6 +59,12 @@ class BenchConfig:
     """The page at 1280x720 while playing (the README's picture); None: none."""
     replot: bool = False
     """Only rewrite the table from --out's results (no measurement)."""
+    scene: Path | None = None
+    """--part bytes: the prepared scene of the held-out ground truth (default: the checkpoint's data_dir)."""
+    bytes_frames: int = 6
+    """--part bytes: frames (evenly spaced) of the held-out camera."""
+    bytes_docs: Path | None = Path("docs/web.md")
+    """--part bytes: the page with the bench:web-bytes markers."""
     out: Path = Path("bench/results/web.json")
     docs: Path | None = Path("README.md")
     """The page with the bench:web markers (issue 39 asks for the figures in the README)."""
@@ -73,13 +87,13 @@ def _desktop(ckpt: Path, camera: int, frame: int, out: Path) -> np.ndarray:
     return read_rgb8(out).astype(np.float32) / 255.0
 
 
-def _export(ckpt: Path, out: Path, fmt: str, chunk_frames: int) -> float:
+def _export(ckpt: Path, out: Path, fmt: str, chunk_frames: int, extra: list[str] | None = None) -> float:
     from atgs.cli.export import main as export_main
 
     t0 = time.perf_counter()
-    args = [str(ckpt), "--out", str(out), "--format", fmt, "--no-progress"]
-    if fmt == "web":
-        args += ["--chunk-frames", str(chunk_frames)]
+    args = [str(ckpt), "--out", str(out), "--format", fmt, "--no-progress", *(extra or [])]
+    if fmt == "web" and extra is None:
+        args += ["--web-stream", "gaussians", "--chunk-frames", str(chunk_frames)]
     assert export_main(args) == 0
     return time.perf_counter() - t0
 
@@ -228,7 +242,25 @@ def markdown_table(r: dict) -> str:
     return "\n".join(rows)
 
 
+def run_bytes(cfg: BenchConfig) -> None:
+    """--part bytes: the curve, merged into --out (its other keys kept) and tabled in docs/web.md."""
+    with tempfile.TemporaryDirectory() as d:
+        curve = bytes_curve(cfg.checkpoint, cfg.scene, cfg.bytes_frames, Path(d),
+                            lambda ckpt, out, extra: _export(ckpt, out, "web", cfg.chunk_frames, extra), _psnr)
+    curve.update(machine={"cpus": os.cpu_count()}, **run_stamp())
+    result = json.loads(cfg.out.read_text()) if cfg.out.exists() else {}
+    result["bytes"] = curve
+    write_json_atomic(cfg.out, result)
+    table = bytes_table(curve, f"{curve['date']} at {curve['commit']}")
+    print(table)
+    if cfg.bytes_docs is not None:
+        update_docs_table(cfg.bytes_docs, "web-bytes", table)
+
+
 def main(cfg: BenchConfig) -> None:
+    if cfg.part == "bytes":
+        run_bytes(cfg)
+        return
     if cfg.replot:
         result = json.loads(cfg.out.read_text())
         publish(result, cfg.out, markdown_table(result), cfg.docs, "web")
