@@ -115,8 +115,16 @@ def _torch_frame(model, f: int):
     return d.anchor_ids.numpy(), d.slot_ids.numpy(), g
 
 
-def test_the_page_decodes_what_torch_decodes(model, streams):
-    from atgs.web.browser import PlayerPage, chromium, serving
+@pytest.fixture(scope="module")
+def browser():
+    from atgs.web.browser import chromium
+
+    with chromium() as b:
+        yield b
+
+
+def test_the_page_decodes_what_torch_decodes(model, streams, browser):
+    from atgs.web.browser import PlayerPage, serving
 
     folder = streams["float32"].parent
     files = read_model_stream(streams["float32"])
@@ -126,7 +134,7 @@ def test_the_page_decodes_what_torch_decodes(model, streams):
     q = model.cfg.gaussians_per_anchor
     kf = model.timeline.keyframe_frames()
     frames = [kf[1], kf[1] + 1, kf[2] - 1, kf[2]]  # across a keyframe and a window change
-    with chromium() as browser, serving(folder) as url:
+    with serving(folder) as url:
         page = PlayerPage(browser, url, {"paused": 1, "size": "camera"})
         page.first_frame()
         for f in frames:
@@ -148,6 +156,26 @@ def test_the_page_decodes_what_torch_decodes(model, streams):
                 ref = want_x.numpy()[at]
                 err = np.abs(got_x - ref).max()
                 assert err <= 1e-4 * max(1.0, float(np.abs(ref).max())), (f, name, err)
+        page.close()
+
+
+def test_a_missing_part_is_an_error_on_the_page(streams, browser, tmp_path):
+    import shutil
+
+    from atgs.web.browser import PlayerPage, serving
+
+    broken = tmp_path / "broken"
+    shutil.copytree(streams["float16"].parent, broken)
+    man = json.loads((broken / "stream" / "manifest.json").read_text())["model"]
+    last = man["parts"][man["frames"][-1]["hash"]]["file"]
+    assert man["frames"][0]["hash"] != man["frames"][-1]["hash"]
+    (broken / "stream" / last).unlink()
+    with serving(broken) as url:
+        page = PlayerPage(browser, url, {"paused": 1})
+        page.first_frame()  # frame 0 needs another segment's grid: it still shows
+        page.page.evaluate(f"() => {{ window.atgsPlayer.seek({len(man['frames']) - 1}); }}")
+        text = page.error_text()
+        assert last in text and "missing" in text
         page.close()
 
 

@@ -8,6 +8,7 @@
 import { inflate } from './chunk.js';
 import { parsePart } from './model_part.js';
 import { ModelDecoder } from './model_decode.js';
+import { Stream } from './stream.js';
 
 /** Frames ahead of the playhead whose parts are fetched and kept. */
 export const LOOKAHEAD_FRAMES = 24;
@@ -91,16 +92,14 @@ export class ModelStream {
    * @param {string} base folder URL of manifest.json and the parts
    * @param {object} manifest the parsed manifest (kind "model")
    * @param {WebGL2RenderingContext} gl the renderer's context (frames are decoded on it)
-   * @param {object} [options] fetch, maxInFlight (2), onProgress(loaded, total), onError(error, frame)
+   * @param {object} [options] fetch, maxInFlight (2), onProgress(loaded, total), onError(error, part)
    */
   constructor(base, manifest, gl, options = {}) {
     this.base = base.endsWith('/') ? base : `${base}/`;
     this.manifest = manifest;
     this.model = manifest.model;
     this.gl = gl;
-    this.fetch = options.fetch ?? ((url) => globalThis.fetch(url));
     this.maxInFlight = options.maxInFlight ?? 2;
-    this.onProgress = options.onProgress ?? (() => {});
     this.onError = options.onError ?? (() => {});
     this.parts = new Map();       // part index -> its tensors
     this.partFailed = new Map();  // part index -> Error
@@ -111,9 +110,10 @@ export class ModelStream {
     this.decodeFailure = null;  // the GPU decode's error: no frame decodes after it
     this.decoded = new Map();     // frame -> FrameOfModel (the last two)
     this.playhead = 0;
-    this.loadedBytes = 0;
     // what playing the whole video once downloads: every part once
     this.totalBytes = this.model.parts.reduce((sum, p) => sum + p.bytes, 0);
+    this.fetcher = new Stream(base, { fetch: options.fetch, onProgress: options.onProgress });
+    this.fetcher.totalBytes = this.totalBytes;
   }
 
   url(file) {
@@ -184,20 +184,11 @@ export class ModelStream {
   async _download(p) {
     const entry = this.model.parts[p];
     const where = this.url(entry.file);
-    let response;
-    try {
-      response = await this.fetch(where);
-    } catch (e) {
-      throw new Error(`could not fetch ${where} (${e.message})`);
-    }
-    if (response.status === 404) throw new Error(`${where} is missing (HTTP 404)`);
-    if (!response.ok) throw new Error(`${where} could not be loaded (HTTP ${response.status})`);
-    const bytes = new Uint8Array(await response.arrayBuffer());
+    // the chunk stream's GET (its errors, its progress count): one way to fetch a file
+    const bytes = await this.fetcher._get(where, entry.bytes);
     if (bytes.length !== entry.bytes) {
       throw new Error(`${where} is ${bytes.length < entry.bytes ? 'truncated' : 'longer than the manifest says'} (got ${bytes.length} of ${entry.bytes} bytes)`);
     }
-    this.loadedBytes += bytes.length;
-    this.onProgress(this.loadedBytes, this.totalBytes);
     let inflated;
     try {
       inflated = await inflate(bytes);
@@ -205,6 +196,11 @@ export class ModelStream {
       throw new Error(`${where} is corrupt: ${e.message}`);
     }
     return parsePart(inflated, where);
+  }
+
+  /** Bytes downloaded so far. */
+  get loadedBytes() {
+    return this.fetcher.loadedBytes;
   }
 
   _whenLoaded(p) {
