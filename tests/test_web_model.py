@@ -124,10 +124,20 @@ def browser():
 
 
 def test_the_page_decodes_what_torch_decodes(model, streams, browser):
+    _check_page_decode(model, streams["float32"], browser)
+
+
+def test_the_page_decodes_the_per_keyframe_layout(browser, tmp_path):
+    """Static anchors of keyframe 0 in every window (static_keyframe0), the 3D filter."""
+    model = decode_case_model("per-keyframe")
+    _check_page_decode(model, _export(model, tmp_path / "web", "float32"), browser)
+
+
+def _check_page_decode(model, stream: Path, browser) -> None:
     from atgs.web.browser import PlayerPage, serving
 
-    folder = streams["float32"].parent
-    files = read_model_stream(streams["float32"])
+    folder = stream.parent
+    files = read_model_stream(stream)
     man = files.manifest["model"]
     ids_of_part = {i: ids for i, (k, ids) in zip(
         (j for j, p in enumerate(man["parts"]) if p["kind"] == "anchors"), anchor_groups(model))}

@@ -6,7 +6,8 @@
 //   1. hash:   per anchor, the 4D hash grid's quadrilinear lookup at the frame's local time
 //   2. tmlp1:  per anchor, the segment's temporal MLP, first layer (ReLU)
 //   3. tmlp2:  second layer: f_t
-//   4. heads1: the four decoder heads' first layers on [f_a + f_s, f_t], stacked (ReLU)
+//   4. heads1: the four decoder heads' first layers on [f_a + f_s, f_t], stacked (ReLU); their
+//              f_a + f_s half is a pass of its own, run when the frame's anchors change
 //   5. gauss:  per Gaussian (anchor a, slot j), the heads' second layers for that slot, their
 //              activations, the 3D filter, the fade and the velocity shift, the opacity cut and
 //              the camera clearance; four targets (MRT): mean + opacity, rotation, scale, colour
@@ -102,16 +103,20 @@ void main() {
 }`;
 }
 
-// out[4 k + c] = act(b[4 k + c] + sum_i W[4 k + c][i] x[i]) for vec4 k of OUT_N per anchor; the
-// input x is IN0_N vec4s of block IN0_BLOCK at IN0_OFF, then IN1_N of the second input.
-function layerShader({ in0, in1, outN, relu }) {
+// out[4 k + c] = act(init[4 k + c] + sum_i W[4 k + c][i] x[i]) for vec4 k of OUT_N per anchor:
+// the input x is IN0_N vec4s of block IN0_BLOCK at IN0_OFF, then IN1_N of the second input; row u
+// of W is `row` vec4s long and x meets it from vec4 `col` on; init is the bias, or a texture of
+// the same layout as the output (a partial sum from an earlier pass).
+function layerShader({ in0, in1, outN, relu, row = null, col = 0, init = 'bias' }) {
   const in1n = in1 ? in1.n : 0;
   return `${COMMON}
 #define IN_N ${in0.n + in1n}
+#define ROW ${row ?? in0.n + in1n}
 uniform sampler2D u_in0;
 uniform sampler2D u_in1;
 uniform sampler2D u_w;
-uniform int u_w_off;            // row u's vec4 i at texel u_w_off + u IN_N + i
+uniform sampler2D u_init;       // (init from a texture) the partial sums
+uniform int u_w_off;            // row u's vec4 i at texel u_w_off + u ROW + i
 uniform int u_b_off;            // the biases' vec4 k at texel u_b_off + k
 uniform int u_count;
 out vec4 o;
@@ -120,13 +125,13 @@ void main() {
   int i = fragmentIndex();
   int a = i / ${outN}, k = i - a * ${outN};
   if (a >= u_count) { o = vec4(0.0); return; }
-  vec4 acc = texelFetch(u_w, at(u_b_off + k), 0);
-  int row = u_w_off + 4 * k * IN_N;
+  vec4 acc = ${init === 'bias' ? 'texelFetch(u_w, at(u_b_off + k), 0)' : 'texelFetch(u_init, at(i), 0)'};
+  int row = u_w_off + 4 * k * ROW + ${col};
   for (int j = 0; j < IN_N; ++j) {
     vec4 x = j < ${in0.n} ? texelFetch(u_in0, at(a * ${in0.block} + ${in0.offset} + j), 0)
                           : texelFetch(u_in1, at(a * ${in1 ? in1.block : 1} + ${in1 ? in1.offset : 0} + j - ${in0.n}), 0);
-    acc += vec4(dot(texelFetch(u_w, at(row + j), 0), x), dot(texelFetch(u_w, at(row + IN_N + j), 0), x),
-                dot(texelFetch(u_w, at(row + 2 * IN_N + j), 0), x), dot(texelFetch(u_w, at(row + 3 * IN_N + j), 0), x));
+    acc += vec4(dot(texelFetch(u_w, at(row + j), 0), x), dot(texelFetch(u_w, at(row + ROW + j), 0), x),
+                dot(texelFetch(u_w, at(row + 2 * ROW + j), 0), x), dot(texelFetch(u_w, at(row + 3 * ROW + j), 0), x));
   }
   o = ${relu ? 'max(acc, vec4(0.0))' : 'acc'};
 }`;
@@ -139,6 +144,7 @@ function gaussianShader(s) {
 #define AB ${s.anchorBlock}
 #define HID ${s.hiddenBlock}
 #define FADE ${s.temporal_fade ? 1 : 0}
+#define MAX_HEAD ${Math.max(...HEADS.map((n) => vec4s(s.heads[n])))}
 uniform sampler2D u_anchors;
 uniform sampler2D u_hidden;     // the heads' hidden layers, HID vec4s per anchor
 uniform sampler2D u_w;
@@ -162,13 +168,19 @@ const ivec2 HEAD[4] = ivec2[4](${heads.join(', ')});  // each head's first hidde
 
 float sigmoid(float x) { return 1.0 / (1.0 + exp(-x)); }
 
+vec4 hid[MAX_HEAD];              // the hidden layer of the head being evaluated
+int head = -1;
+
+// Output out_index of head h (its hidden layer read once for all its outputs).
 float headOut(int h, int out_index, int a) {
   int n = HEAD[h].y;
+  if (h != head) {
+    for (int i = 0; i < n; ++i) hid[i] = texelFetch(u_hidden, at(a * HID + HEAD[h].x + i), 0);
+    head = h;
+  }
   float s = texelFetch(u_w, at(u_b2_off[h] + out_index / 4), 0)[out_index % 4];
   int row = u_w2_off[h] + out_index * n;
-  for (int i = 0; i < n; ++i) {
-    s += dot(texelFetch(u_w, at(row + i), 0), texelFetch(u_hidden, at(a * HID + HEAD[h].x + i), 0));
-  }
+  for (int i = 0; i < n; ++i) s += dot(texelFetch(u_w, at(row + i), 0), hid[i]);
   return s;
 }
 
@@ -269,9 +281,15 @@ export class ModelDecoder {
       hash: this._program(hashShader(s)),
       tmlp1: this._program(layerShader({ in0: { block: this.hashBlock, offset: 0, n: this.hashBlock }, outN: this.tmlpBlock, relu: true })),
       tmlp2: this._program(layerShader({ in0: { block: this.tmlpBlock, offset: 0, n: this.tmlpBlock }, outN: this.ftBlock, relu: false })),
+      // the heads' first layers in two halves, as the torch decode (fast_decode): the f_a + f_s
+      // half once per anchor set, the f_t half every frame
+      pre: this._program(layerShader({
+        in0: { block: s.anchorBlock, offset: ANCHOR_HEADER, n: vec4s(D) }, outN: s.hiddenBlock, relu: false,
+        row: 2 * vec4s(D), col: 0,
+      })),
       heads1: this._program(layerShader({
-        in0: { block: s.anchorBlock, offset: ANCHOR_HEADER, n: vec4s(D) }, in1: { block: this.ftBlock, offset: 0, n: this.ftBlock },
-        outN: s.hiddenBlock, relu: true,
+        in0: { block: this.ftBlock, offset: 0, n: this.ftBlock }, outN: s.hiddenBlock, relu: true,
+        row: 2 * vec4s(D), col: vec4s(D), init: 'texture',
       })),
       gauss: this._program(gaussianShader(s)),
     };
@@ -477,6 +495,7 @@ export class ModelDecoder {
     const hash = this._target('hash', n * this.hashBlock);
     const t1 = this._target('tmlp1', n * this.tmlpBlock);
     const ft = this._target('ft', n * this.ftBlock);
+    const pre = this._target('pre', n * s.hiddenBlock);
     const hidden = this._target('hidden', n * s.hiddenBlock);
     const out = this._target('gauss', n * s.q, 4);
     const h = s.hash;
@@ -491,8 +510,14 @@ export class ModelDecoder {
     const layer = (w, b) => (u) => { gl.uniform1i(u.u_w_off, w); gl.uniform1i(u.u_b_off, b); };
     this._pass('tmlp1', t1, n * this.tmlpBlock, { u_in0: hash.textures[0], u_in1: hash.textures[0], u_w: this.weights }, layer(o.w1, o.b1));
     this._pass('tmlp2', ft, n * this.ftBlock, { u_in0: t1.textures[0], u_in1: t1.textures[0], u_w: this.weights }, layer(o.w2, o.b2));
-    this._pass('heads1', hidden, n * s.hiddenBlock, { u_in0: this.anchors.texture, u_in1: ft.textures[0], u_w: this.weights },
-      layer(this.offsets.heads1, this.offsets.headsB1));
+    if (this.preOf !== this.anchors || pre !== this.preTarget) {
+      this._pass('pre', pre, n * s.hiddenBlock, { u_in0: this.anchors.texture, u_in1: this.anchors.texture, u_w: this.weights,
+        u_init: this.anchors.texture }, layer(this.offsets.heads1, this.offsets.headsB1));
+      this.preOf = this.anchors;
+      this.preTarget = pre;
+    }
+    this._pass('heads1', hidden, n * s.hiddenBlock, { u_in0: ft.textures[0], u_in1: ft.textures[0], u_w: this.weights,
+      u_init: pre.textures[0] }, layer(this.offsets.heads1, this.offsets.headsB1));
     this._pass('gauss', out, n * s.q, { u_anchors: this.anchors.texture, u_hidden: hidden.textures[0], u_w: this.weights }, (u) => {
       gl.uniform1f(u.u_frame, entry.frame);
       gl.uniform1f(u.u_kf_factor, s.kf_factor);
