@@ -7,7 +7,8 @@ settings, then its chunks rewritten leaner, each still a valid chunk the page pl
 below an opacity dropped, and positions and colours on coarser steps (the low bits of every u16
 position and u8 colour zeroed). Every point's PSNR comes from the page's canvas. The reference is
 atgs-eval's PSNR of the same checkpoint on the same frames and camera (the torch decode and the
-reference rasterizer)."""
+reference rasterizer); each point also gives the page's PSNR against atgs-view's render of the same
+view (the page must stay within 35 dB of it on every frame)."""
 
 from __future__ import annotations
 
@@ -71,22 +72,27 @@ def _rewrite_chunks(src: Path, dst: Path, opacity_cut: float = 0.0, coarse: tupl
 
 
 def _browser_psnr(browser, web: Path, camera: int, frames: list[int], truth: dict[int, np.ndarray],
-                  psnr) -> tuple[list[float], float]:
-    """PSNR of the page's canvas against the ground truth at each frame; seconds per seek."""
-    out, t0 = [], time.perf_counter()
+                  view: dict[int, np.ndarray], psnr) -> tuple[list[float], list[float], float]:
+    """PSNR of the page's canvas against the ground truth and against atgs-view at each frame;
+    seconds per seek."""
+    out, against_view = [], []
     with serving(web) as url:
         page = PlayerPage(browser, url, {"camera": camera, "paused": 1, "size": "camera"}, timeout_s=900)
         page.first_frame()
         t0 = time.perf_counter()
         for f in frames:
             page.seek(f)
-            out.append(psnr(page.pixels(), truth[f]))
+            got = page.pixels()
+            out.append(psnr(got, truth[f]))
+            against_view.append(psnr(got, view[f]))
+        seek_s = (time.perf_counter() - t0) / max(len(frames), 1)
         page.close()
-    return out, (time.perf_counter() - t0) / max(len(frames), 1)
+    return out, against_view, seek_s
 
 
-def bytes_curve(ckpt: Path, scene_dir: Path | None, count: int, tmp: Path, export, psnr) -> dict:
-    """Every point of the curve: {route, variant, bytes_per_frame, psnr_db (mean), per_frame, ...}."""
+def bytes_curve(ckpt: Path, scene_dir: Path | None, count: int, tmp: Path, export, desktop, psnr) -> dict:
+    """Every point of the curve: {route, variant, bytes_per_frame, psnr_db (mean), per_frame, ...};
+    ``export(ckpt, out, args)`` runs atgs-export, ``desktop(ckpt, camera, frame, png)`` atgs-view."""
     from atgs.checkpoint import load_model, read_checkpoint
     from atgs.data.scene import PreparedScene
     from atgs.eval.evaluate import EvalConfig, evaluate
@@ -103,12 +109,14 @@ def bytes_curve(ckpt: Path, scene_dir: Path | None, count: int, tmp: Path, expor
     ev = evaluate(model, scene, EvalConfig(frames=tuple(frames), cameras=(held,), images_per_camera=0, lpips=False,
                                            progress=False))
     eval_db = [float(r["psnr"]) for r in sorted(ev.rows, key=lambda r: r["frame"])]
+    view = {f: desktop(ckpt, camera, f, tmp / f"view_{f}.png") for f in frames}
     points = []
     with chromium() as browser:
         def point(route: str, variant: str, web: Path, **extra) -> None:
-            per, seek_s = _browser_psnr(browser, web, camera, frames, truth, psnr)
+            per, against_view, seek_s = _browser_psnr(browser, web, camera, frames, truth, view, psnr)
             points.append({"route": route, "variant": variant, "bytes_per_frame": _stream_bytes(web) / n,
                            "psnr_db": float(np.mean(per)), "per_frame_db": per,
+                           "view_db_min": float(min(against_view)), "view_per_frame_db": against_view,
                            "delta_to_eval_db": float(np.mean(per)) - float(np.mean(eval_db)), "seek_s": seek_s,
                            "psnr_from": "the browser's pixels", **extra})
             print(points[-1]["variant"], f"{points[-1]['bytes_per_frame'] / 1e3:.0f} kB/frame",
@@ -139,8 +147,9 @@ def bytes_table(r: dict, stamp: str) -> str:
             f"camera {r['camera']}, frames {', '.join(map(str, r['frames']))} of {r['num_frames']}; atgs-eval on the "
             f"same views: {r['eval_psnr_db']:.2f} dB. Every PSNR below is the browser's canvas (Chromium, software "
             "WebGL2) against the ground truth.", "",
-            "| route | stream | bytes a frame | held-out PSNR | against atgs-eval |", "|---|---|---|---|---|"]
+            "| route | stream | bytes a frame | held-out PSNR | against atgs-eval | page against atgs-view (min) "
+            "| seconds a seek (SwiftShader) |", "|---|---|---|---|---|---|---|"]
     for p in r["points"]:
         rows.append(f"| ({p['route']}) | {p['variant']} | {p['bytes_per_frame'] / 1e3:,.0f} kB | {p['psnr_db']:.2f} dB "
-                    f"| {p['delta_to_eval_db']:+.2f} dB |")
+                    f"| {p['delta_to_eval_db']:+.2f} dB | {p['view_db_min']:.1f} dB | {p['seek_s']:.1f} |")
     return "\n".join(rows)

@@ -246,7 +246,8 @@ def run_bytes(cfg: BenchConfig) -> None:
     """--part bytes: the curve, merged into --out (its other keys kept) and tabled in docs/web.md."""
     with tempfile.TemporaryDirectory() as d:
         curve = bytes_curve(cfg.checkpoint, cfg.scene, cfg.bytes_frames, Path(d),
-                            lambda ckpt, out, extra: _export(ckpt, out, "web", cfg.chunk_frames, extra), _psnr)
+                            lambda ckpt, out, extra: _export(ckpt, out, "web", cfg.chunk_frames, extra), _desktop,
+                            _psnr)
     curve.update(machine={"cpus": os.cpu_count()}, **run_stamp())
     result = json.loads(cfg.out.read_text()) if cfg.out.exists() else {}
     result["bytes"] = curve
