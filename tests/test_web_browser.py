@@ -58,9 +58,8 @@ def export(checkpoint, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def model_export(checkpoint, tmp_path_factory) -> Path:
-    """The model stream at float16 (the page decodes the model on its GPU)."""
-    return _export(checkpoint, tmp_path_factory.mktemp("export") / "web", "--web-stream", "model",
-                   "--web-precision", "float16")
+    """The default export: the model stream (the page decodes the model on its GPU), int8."""
+    return _export(checkpoint, tmp_path_factory.mktemp("export") / "web")
 
 
 @pytest.fixture(scope="module")

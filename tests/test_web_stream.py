@@ -266,13 +266,13 @@ def test_the_summary_line_and_the_bad_arguments(ckpt: Path, tmp_path: Path, caps
 
 def test_the_model_streams_summary_line_and_bad_arguments(ckpt: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "web"
-    model_stream = ["--format", "web", "--web-stream", "model"]
+    model_stream = ["--format", "web"]  # the default stream
     assert export_main([str(ckpt), "--out", str(out), *model_stream, "--no-progress"]) == 0
     line = capsys.readouterr().out.strip()
     assert re.fullmatch(r"atgs-export: wrote the model for 6 frames in \d+ part files to .*: [\d,]+ bytes, "
                         r"[\d,]+ B per frame; serve it with: atgs-serve .*", line), line
     man = json.loads((out / "stream" / "manifest.json").read_text())
-    assert man["kind"] == "model" and man["model"]["precision"] == "float16" and "chunks" not in man
+    assert man["kind"] == "model" and man["model"]["precision"] == "int8" and "chunks" not in man
     argv = [str(ckpt), "--out", str(out), *model_stream, "--no-progress", "--overwrite"]
     assert export_main([*argv, "--min-opacity", "0.1"]) == 2
     err = capsys.readouterr().err.strip()
