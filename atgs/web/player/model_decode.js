@@ -326,6 +326,10 @@ export class ModelDecoder {
   _texture(texels, data = null, single = false) {
     const gl = this.gl;
     const rows = rowsFor(texels);
+    if (rows > gl.getParameter(gl.MAX_TEXTURE_SIZE)) {
+      throw new Error(`the model's frames need ${texels} texels in a texture, more than this GPU's textures hold; `
+        + 'export with --web-stream gaussians');
+    }
     const tex = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, tex);
     gl.texStorage2D(gl.TEXTURE_2D, 1, single ? gl.R32F : gl.RGBA32F, TEXTURE_WIDTH, rows);
