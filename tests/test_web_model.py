@@ -133,6 +133,19 @@ def test_the_page_decodes_the_per_keyframe_layout(browser, tmp_path):
     _check_page_decode(model, _export(model, tmp_path / "web", "float32"), browser)
 
 
+def test_the_page_decodes_sizes_that_are_not_multiples_of_four(browser, tmp_path):
+    """Padding of every vec4 layout: 3 hash levels (6 features), D = 6, hidden layers of 10 and
+    7 units, 3 Gaussians an anchor."""
+    from atgs.model.config import HashGridConfig
+    from builders import random_point_model, ring_cameras, tiny_config
+
+    cfg = tiny_config(K=3, W=3, M=2, hidden=10, feature_dim=6, gaussians_per_anchor=3, hidden_offset=7,
+                      hash=HashGridConfig(levels=3, features_per_level=2, log2_table_size=8, base_resolution=4,
+                                          mlp_hidden=10))
+    model = random_point_model(cfg, 9, 60, ring_cameras(3, (32, 24)), randomize=True)
+    _check_page_decode(model, _export(model, tmp_path / "web", "float32"), browser)
+
+
 def _check_page_decode(model, stream: Path, browser) -> None:
     from atgs.web.browser import PlayerPage, serving
 
@@ -154,6 +167,7 @@ def _check_page_decode(model, stream: Path, browser) -> None:
             assert n == order.size * q
             field = {k: np.asarray(got[k], np.float32).reshape(n, 4) for k in ("mean", "quat", "scale", "color")}
             kept = field["mean"][:, 3] > 0
+            assert kept.any(), f"frame {f}: nothing kept"
             slot_anchor, slot_j = np.repeat(order, q), np.tile(np.arange(q), order.size)
             anchors, slots, g = _torch_frame(model, f)
             want = {(int(a), int(j)): i for i, (a, j) in enumerate(zip(anchors, slots))}
