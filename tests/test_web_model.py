@@ -28,7 +28,11 @@ def model():
 
 
 def _export(model, folder: Path, precision: str) -> Path:
-    export_web(model, folder, list(range(model.num_frames)), stream="model", precision=precision, progress=False)
+    return _export_frames(model, folder, list(range(model.num_frames)), precision)
+
+
+def _export_frames(model, folder: Path, frames: list[int], precision: str = "float16") -> Path:
+    export_web(model, folder, frames, stream="model", precision=precision, progress=False)
     return folder / "stream"
 
 
@@ -92,6 +96,16 @@ def test_each_frame_lists_the_parts_of_its_keyframe_window(model, streams):
         assert parts[entry["hash"]]["segment"] == model.timeline.segment_of_frame(f)
 
 
+def test_an_export_of_a_few_frames_ships_their_windows_only(model, tmp_path):
+    frames = [0, 1]
+    files = read_model_stream(_export_frames(model, tmp_path / "web", frames))
+    parts = files.manifest["model"]["parts"]
+    needed = {k for f in frames for k in model.anchor_keyframe[model.active_anchors(f)].unique().tolist()}
+    assert {p["keyframe"] for p in parts if p["kind"] == "anchors"} == needed
+    assert {p["segment"] for p in parts if p["kind"] == "hash"} == {model.timeline.segment_of_frame(f) for f in frames}
+    assert len(needed) < len(anchor_groups(model))
+
+
 def test_float16_takes_half_the_bytes_of_float32_and_int8_less(streams):
     size = {p: sum(q["bytes"] for q in json.loads((s / "manifest.json").read_text())["model"]["parts"])
             for p, s in streams.items()}
@@ -152,8 +166,8 @@ def _check_page_decode(model, stream: Path, browser) -> None:
     folder = stream.parent
     files = read_model_stream(stream)
     man = files.manifest["model"]
-    ids_of_part = {i: ids for i, (k, ids) in zip(
-        (j for j, p in enumerate(man["parts"]) if p["kind"] == "anchors"), anchor_groups(model))}
+    ids_of_keyframe = dict(anchor_groups(model))
+    ids_of_part = {i: ids_of_keyframe[p["keyframe"]] for i, p in enumerate(man["parts"]) if p["kind"] == "anchors"}
     q = model.cfg.gaussians_per_anchor
     kf = model.timeline.keyframe_frames()
     frames = [kf[1], kf[1] + 1, kf[2] - 1, kf[2]]  # across a keyframe and a window change

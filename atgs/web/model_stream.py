@@ -7,11 +7,11 @@ per-frame values and the part files) and part files (:mod:`atgs.web.model_format
 
 - ``weights.bin``: the segments' temporal MLPs, the four decoder heads, the clearance centres,
   always float32 (a few hundred KB at most);
-- ``anchors_static.bin`` and ``anchors_kf_NNNN.bin``: the static anchors and each keyframe's,
-  each anchor's position, log scales, velocity, log fade width and ``f_a + f_s`` (the spatial
+- ``anchors_static.bin`` and ``anchors_kf_NNNN.bin``: the static anchors and each keyframe's
+  (of the exported frames' windows), each anchor's position, log scales, velocity, log fade width and ``f_a + f_s`` (the spatial
   grid F_s is time-invariant, so its lookup at each anchor is done here and the grid is not
   shipped), and its 3D smoothing variance when the model filters;
-- ``hash_seg_NNNN.bin``: one time segment's 4D hash grid.
+- ``hash_seg_NNNN.bin``: one time segment's 4D hash grid (of the exported frames' segments).
 
 Frame f needs the weights, the anchors of its keyframe window (ATGSModel.active_anchors) and its
 segment's hash grid: the manifest lists the part files of each frame, and the page fetches them as
@@ -22,6 +22,7 @@ int8 are 16-bit over the anchors' box. :func:`read_model_stream` is the plain re
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -170,8 +171,12 @@ def write_model_stream(model, folder: Path, frames: list[int], precision: str = 
         return len(parts) - 1
 
     put(WEIGHTS_FILE, "weights", _weights_part(model))
+    shown = torch.zeros(model.num_anchors, dtype=torch.bool)
+    for f in frames:
+        shown |= model.active_anchors(f).cpu()
+    # the anchors of the exported frames' windows only (an export of a few frames ships their keyframes)
     part_of_keyframe = {k: put(anchor_file(k), "anchors", _anchor_part(model, ids, precision), anchors=int(ids.numel()),
-                               keyframe=k) for k, ids in anchor_groups(model)}
+                               keyframe=k) for k, ids in anchor_groups(model) if bool(shown[ids].any())}
     needed = sorted({model.timeline.segment_of_frame(f) for f in frames})
     part_of_segment = {m: put(hash_file(m), "hash", _hash_part(model, m, precision), segment=m) for m in needed}
     entry = {"precision": precision, **decode_sizes(model), "weights": 0,
@@ -194,8 +199,6 @@ class ModelStreamFiles:
 
 def read_model_stream(stream: Path) -> ModelStreamFiles:
     """The manifest and the dequantized tensors of every part of a model stream folder."""
-    import json
-
     manifest = json.loads((Path(stream) / "manifest.json").read_text())
     if manifest.get("kind") != KIND:
         raise ValueError(f"{stream}: not a model stream (kind {manifest.get('kind')!r})")
