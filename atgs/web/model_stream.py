@@ -190,11 +190,7 @@ class ModelStreamFiles:
     """A model stream read back (the reference reader): its manifest and every part's tensors."""
 
     manifest: dict
-    parts: list[dict[str, np.ndarray]]
-
-    def frame_anchor_parts(self, i: int) -> list[int]:
-        """The anchor parts of exported frame i, in the page's order."""
-        return list(self.manifest["model"]["frames"][i]["anchors"])
+    parts: list[dict[str, np.ndarray]]  # in the order of the manifest's model.parts
 
 
 def read_model_stream(stream: Path) -> ModelStreamFiles:
