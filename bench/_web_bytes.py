@@ -164,10 +164,16 @@ def bytes_rows(r: dict | None) -> list[str]:
     if not r:
         return []
     ok = lambda good: "reached" if good else "not reached"  # noqa: E731
-    return [f"| the model stream (`--web-stream model`), {p['precision']}{' (the default)' if p['precision'] == 'int8' else ''}"
-            f", held-out camera {r['camera']} ({r['date']} at {r['commit']}) | {p['bytes_per_frame'] / 1e3:,.0f} kB a "
-            f"frame; held-out PSNR from the browser's pixels {p['psnr_db']:.2f} dB, atgs-eval {r['eval_psnr_db']:.2f} dB; "
-            f"page against atgs-view {p['view_db_min']:.1f} dB; {p['seek_s']:.1f} s a seek (decoded in SwiftShader) "
-            f"| 0.15 MB a frame: {ok(p['bytes_per_frame'] <= BYTES_TARGET)}; within 0.3 dB of atgs-eval: "
-            f"{ok(abs(p['delta_to_eval_db']) <= EVAL_DELTA_TARGET_DB)} |"
-            for p in r["points"] if p["route"] == "a"]
+    rows = []
+    for p in r["points"]:
+        if p["route"] != "a":
+            continue
+        default = " (the default)" if p["precision"] == "int8" else ""
+        rows.append(
+            f"| the model stream (`--web-stream model`), {p['precision']}{default}, held-out camera {r['camera']} "
+            f"({r['date']} at {r['commit']}) | {p['bytes_per_frame'] / 1e3:,.0f} kB a frame; held-out PSNR from the "
+            f"browser's pixels {p['psnr_db']:.2f} dB, atgs-eval {r['eval_psnr_db']:.2f} dB; page against atgs-view "
+            f"{p['view_db_min']:.1f} dB; {p['seek_s']:.1f} s a seek (decoded in SwiftShader) | 0.15 MB a frame: "
+            f"{ok(p['bytes_per_frame'] <= BYTES_TARGET)}; within 0.3 dB of atgs-eval: "
+            f"{ok(abs(p['delta_to_eval_db']) <= EVAL_DELTA_TARGET_DB)} |")
+    return rows

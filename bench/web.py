@@ -30,7 +30,8 @@ import numpy as np
 import torch
 import tyro
 
-from _docs import REPO, publish, run_stamp, update_docs_table, write_json_atomic  # bench/_docs.py (the script's folder is on sys.path)
+# bench/_docs.py and bench/_web_bytes.py (the script's folder is on sys.path)
+from _docs import REPO, publish, run_stamp, update_docs_table, write_json_atomic
 from _web_bytes import bytes_curve, bytes_rows, bytes_table
 from atgs.eval.metrics import psnr
 from atgs.web.browser import PlayerPage, chromium, serving
