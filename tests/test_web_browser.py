@@ -101,6 +101,8 @@ def test_the_browser_draws_what_atgs_render_draws(kind, checkpoint, request, bro
             assert float(got.std()) > 0.02  # a picture, not a flat colour
         state = page.state()
         assert state["error"] in (None, "") and state["frames"] == 12
+        # either kind holds its files in the window's part of the budget (stream.js / model_stream.js memory())
+        assert 0 < state["heldBytes"] <= state["windowBudgetBytes"] < state["budgetBytes"]
         page.close()
 
 
