@@ -7,6 +7,9 @@ headless Chromium (software WebGL2 on this machine's CPUs: a floor, not a GPU fi
     python bench/web.py --part memory [--memory-baseline ad35ea5]
     # the page's memory while a synthetic 1,200-frame export plays through twice (no checkpoint
     # needed): merged into bench/results/web.json under "memory", its other keys kept
+    python bench/web.py --part bytes --checkpoint runs/demo/ckpt.pt [--scene PREPARED]
+    # bytes a frame against held-out PSNR of both streams (bench/_web_bytes.py): the "bytes" key of
+    # bench/results/web.json (the others kept) and the table in docs/web.md
 
 Targets (issue 39): the web export at most 1/8 of the PLY export's bytes; the browser's frames at
 least 35 dB against atgs-render; the first frame within 2 s of opening the page on localhost.
@@ -21,12 +24,15 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
 import tyro
 
-from _docs import REPO, publish, run_stamp, update_docs_table  # bench/_docs.py (the script's own folder is on sys.path)
+# bench/_docs.py and bench/_web_bytes.py (the script's folder is on sys.path)
+from _docs import REPO, publish, run_stamp, update_docs_table, write_json_atomic
+from _web_bytes import bytes_curve, bytes_rows, bytes_table
 from atgs.eval.metrics import psnr
 from atgs.web.browser import PlayerPage, chromium, serving
 from atgs.web.synthetic import synthetic_export
@@ -38,9 +44,10 @@ FIRST_FRAME_TARGET_S = 2.0
 
 @dataclass
 class BenchConfig:
-    part: str = "all"
-    """"all": export size, pictures, first frame and playback of --checkpoint; "memory": the page's
-    memory over a long synthetic export (merged into --out, whose other keys stay)."""
+    part: Literal["all", "memory", "bytes"] = "all"
+    """all: size, browser against atgs-view, first frame, playback of --checkpoint; memory: the page's
+    memory over a long synthetic export; bytes: the bytes-a-frame against held-out PSNR curve of both
+    web streams (memory and bytes are merged into --out, whose other keys stay)."""
     checkpoint: Path = Path("runs/demo/ckpt.pt")
     """The built-in scene's trained checkpoint (./scripts/demo.sh writes runs/demo/ckpt.pt)."""
     extra_checkpoints: list[Path] = field(default_factory=list)
@@ -69,6 +76,12 @@ class BenchConfig:
     """Playback speed (the page's speed menu) during the memory run."""
     memory_docs: Path | None = Path("docs/web.md")
     """The page with the bench:web-memory markers (the memory runs' table)."""
+    scene: Path | None = None
+    """--part bytes: the prepared scene of the held-out ground truth (default: the checkpoint's data_dir)."""
+    bytes_frames: int = 6
+    """--part bytes: frames (evenly spaced) of the held-out camera."""
+    bytes_docs: Path | None = Path("docs/web.md")
+    """--part bytes: the page with the bench:web-bytes markers."""
     out: Path = Path("bench/results/web.json")
     docs: Path | None = Path("README.md")
     """The page with the bench:web markers (issue 39 asks for the figures in the README)."""
@@ -91,13 +104,13 @@ def _desktop(ckpt: Path, camera: int, frame: int, out: Path) -> np.ndarray:
     return read_rgb8(out).astype(np.float32) / 255.0
 
 
-def _export(ckpt: Path, out: Path, fmt: str, chunk_frames: int) -> float:
+def _export(ckpt: Path, out: Path, fmt: str, chunk_frames: int, extra: list[str] | None = None) -> float:
     from atgs.cli.export import main as export_main
 
     t0 = time.perf_counter()
-    args = [str(ckpt), "--out", str(out), "--format", fmt, "--no-progress"]
-    if fmt == "web":
-        args += ["--chunk-frames", str(chunk_frames)]
+    args = [str(ckpt), "--out", str(out), "--format", fmt, "--no-progress", *(extra or [])]
+    if fmt == "web" and extra is None:
+        args += ["--web-stream", "gaussians", "--chunk-frames", str(chunk_frames)]
     assert export_main(args) == 0
     return time.perf_counter() - t0
 
@@ -336,7 +349,8 @@ def markdown_table(r: dict) -> str:
         f"Measured {r['date']} at {r['commit']} with `python bench/web.py --checkpoint {s['checkpoint']}` on "
         f"{r['machine']['cpus']} CPUs; Chromium with software WebGL2 (SwiftShader): browser figures are a floor.", "",
         "| what | measured | target |", "|---|---|---|",
-        f"| web export of the built-in scene's model ({s['step']:,} steps) | {s['folder_bytes'] / 2**20:.1f} MiB "
+        f"| web export of the built-in scene's model as Gaussian chunks (`--web-stream gaussians`, "
+        f"{s['step']:,} steps) | {s['folder_bytes'] / 2**20:.1f} MiB "
         f"for {s['frames']} frames: "
         f"{s['bytes_per_frame'] / 1024:.0f} KiB a frame, {s['bytes_per_gaussian_frame']:.2f} B per Gaussian a frame "
         f"({s['gaussians_per_frame_mean']:,.0f} Gaussians a frame; {100 * s['static_share']:.0f}% of each chunk's "
@@ -354,10 +368,11 @@ def markdown_table(r: dict) -> str:
                     f"second (video at {p['video_fps']:g} fps) | a floor |")
     for e in r["extra"]:
         db = [p["db"] for p in e["psnr"]]
-        rows.append(f"| web export of {e['name']} ({e['step']:,} steps) | "
+        rows.append(f"| web export of {e['name']} as Gaussian chunks ({e['step']:,} steps) | "
                     f"{e['bytes_per_gaussian_frame']:.2f} B per Gaussian a frame, {e['gaussians_per_frame_mean']:,.0f} "
                     f"Gaussians, {e['frames']} frame(s); browser against atgs-view {min(db):.1f}-{max(db):.1f} dB "
                     f"({len(db)} views at {e['psnr'][0]['size'][0]}x{e['psnr'][0]['size'][1]}) | |")
+    rows += bytes_rows(r.get("bytes"))
     rows += memory_rows(r.get("memory"))
     return "\n".join(rows)
 
@@ -411,6 +426,24 @@ def memory_rows(m: dict | None) -> list[str]:
     return rows
 
 
+def run_bytes(cfg: BenchConfig) -> None:
+    """--part bytes: the curve, merged into --out (its other keys kept) and tabled in docs/web.md."""
+    with tempfile.TemporaryDirectory() as d:
+        curve = bytes_curve(cfg.checkpoint, cfg.scene, cfg.bytes_frames, Path(d),
+                            lambda ckpt, out, extra: _export(ckpt, out, "web", cfg.chunk_frames, extra), _desktop,
+                            _psnr)
+    curve.update(machine={"cpus": os.cpu_count()}, **run_stamp())
+    result = json.loads(cfg.out.read_text()) if cfg.out.exists() else {}
+    result["bytes"] = curve
+    write_json_atomic(cfg.out, result)
+    table = bytes_table(curve, f"{curve['date']} at {curve['commit']}")
+    print(table)
+    if "size" in result:  # the rest of the table measured before: the README's table again, with these rows
+        publish(result, cfg.out, markdown_table(result), cfg.docs, "web")
+    if cfg.bytes_docs is not None:
+        update_docs_table(cfg.bytes_docs, "web-bytes", table)
+
+
 def main(cfg: BenchConfig) -> None:
     previous = json.loads(cfg.out.read_text()) if cfg.out.is_file() else {}
     if cfg.part == "memory":
@@ -427,8 +460,9 @@ def main(cfg: BenchConfig) -> None:
         if cfg.memory_docs is not None:
             update_docs_table(cfg.memory_docs, "web-memory", memory_table(result["memory"]))
         return
-    if cfg.part != "all":
-        raise SystemExit(f"bench/web.py: --part {cfg.part}: one of all, memory")
+    if cfg.part == "bytes":
+        run_bytes(cfg)
+        return
     if cfg.replot:
         result = json.loads(cfg.out.read_text())
         publish(result, cfg.out, markdown_table(result), cfg.docs, "web")
@@ -437,8 +471,9 @@ def main(cfg: BenchConfig) -> None:
         if not c.is_file():
             raise SystemExit(f"bench/web.py: {c} does not exist; train one with atgs-train and pass its ckpt.pt")
     result = run(cfg)
-    if "memory" in previous:  # measured by --part memory: kept
-        result["memory"] = previous["memory"]
+    for key in ("memory", "bytes"):  # measured by --part memory and --part bytes: kept
+        if key in previous:
+            result[key] = previous[key]
     publish(result, cfg.out, markdown_table(result), cfg.docs, "web")
 
 

@@ -191,7 +191,8 @@ def model(ckpt: Path):
 @pytest.fixture(scope="module")
 def exported(ckpt: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("exported") / "web"
-    assert export_main([str(ckpt), "--out", str(out), "--format", "web", "--chunk-frames", "4", "--no-progress"]) == 0
+    assert export_main([str(ckpt), "--out", str(out), "--format", "web", "--web-stream", "gaussians", "--chunk-frames",
+                        "4", "--no-progress"]) == 0
     return out
 
 
@@ -248,7 +249,8 @@ def test_the_export_is_a_complete_folder_that_decodes_to_the_model(ckpt: Path, m
 
 def test_the_summary_line_and_the_bad_arguments(ckpt: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "web"
-    assert export_main([str(ckpt), "--out", str(out), "--format", "web", "--frames", "0:6:3", "--no-progress"]) == 0
+    gaussians = ["--format", "web", "--web-stream", "gaussians"]
+    assert export_main([str(ckpt), "--out", str(out), *gaussians, "--frames", "0:6:3", "--no-progress"]) == 0
     line = capsys.readouterr().out.strip()
     assert re.fullmatch(r"atgs-export: wrote 2 frames \(\d+ Gaussians per frame\) in 1 chunk to .*: [\d,]+ bytes, "
                         r"[\d,]+ B per frame, \d+\.\d\d B per Gaussian-frame; serve it with: atgs-serve .*", line), line
@@ -256,10 +258,29 @@ def test_the_summary_line_and_the_bad_arguments(ckpt: Path, tmp_path: Path, caps
     for argv, needle in ((["--chunk-frames", "0"], "--chunk-frames 0: must be within 1..65535"),
                          (["--chunk-frames", "65536"], "--chunk-frames 65536"),
                          ([], "--overwrite")):
-        assert export_main([str(ckpt), "--out", str(out), "--format", "web", "--no-progress", *argv]) == 2
+        assert export_main([str(ckpt), "--out", str(out), *gaussians, "--no-progress", *argv]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("atgs-export: error: ") and needle in err and "\n" not in err, err
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before  # refused: untouched
+
+
+def test_the_model_streams_summary_line_and_bad_arguments(ckpt: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "web"
+    model_stream = ["--format", "web"]  # the default stream
+    assert export_main([str(ckpt), "--out", str(out), *model_stream, "--no-progress"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert re.fullmatch(r"atgs-export: wrote the model for 6 frames in \d+ part files to .*: [\d,]+ bytes, "
+                        r"[\d,]+ B per frame; serve it with: atgs-serve .*", line), line
+    man = json.loads((out / "stream" / "manifest.json").read_text())
+    assert man["kind"] == "model" and man["model"]["precision"] == "int8" and "chunks" not in man
+    argv = [str(ckpt), "--out", str(out), *model_stream, "--no-progress", "--overwrite"]
+    assert export_main([*argv, "--min-opacity", "0.1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "atgs-export: error: --min-opacity applies to --web-stream gaussians only (the model stream drops " \
+                  "what the model's own opacity cut drops)", err
+    with pytest.raises(SystemExit) as exit_:  # the argument parser's own refusal of an unknown precision
+        export_main([*argv, "--web-precision", "int4"])
+    assert exit_.value.code == 2 and "int4" in capsys.readouterr().err
 
 
 def test_a_failed_export_leaves_nothing(model, tmp_path: Path, monkeypatch) -> None:
@@ -276,7 +297,7 @@ def test_a_failed_export_leaves_nothing(model, tmp_path: Path, monkeypatch) -> N
     second_fails.calls = 0
     monkeypatch.setattr(web_export, "pack_chunk", second_fails)
     with pytest.raises(OutputError, match="No space left on device"):
-        export_web(model, tmp_path / "web", [0, 1, 2], chunk_frames=2, progress=False)
+        export_web(model, tmp_path / "web", [0, 1, 2], stream="gaussians", chunk_frames=2, progress=False)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -286,7 +307,7 @@ def test_environment_and_min_opacity(model, tmp_path: Path, monkeypatch) -> None
     monkeypatch.setattr(model, "environment", EnvironmentMap(texels, basis))
     opac = model.gaussians_at_frame(1).opacities.sort().values
     cut = float(opac[len(opac) // 2: len(opac) // 2 + 2].mean())  # between two: no tie with round-off
-    res = export_web(model, tmp_path / "web", [1], min_opacity=cut, progress=False)
+    res = export_web(model, tmp_path / "web", [1], stream="gaussians", min_opacity=cut, progress=False)
     assert 0 < res.gaussians[0] == int((model.gaussians_at_frame(1).opacities >= cut).sum()) < len(model.gaussians_at_frame(1))
     man = json.loads((tmp_path / "web" / "stream" / "manifest.json").read_text())
     assert man["environment"] == {"file": "environment.png", "basis": basis.reshape(-1).tolist()}

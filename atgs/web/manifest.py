@@ -59,18 +59,15 @@ def scene_entry(model) -> dict[str, Any]:
     return {"center": [float(v) for v in center], "radius": max(radius, 1e-3)}
 
 
-def web_manifest(model, frames: list[int], chunk_frames: int, chunks: list[ChunkInfo],
-                 source: dict[str, Any]) -> dict[str, Any]:
-    """The manifest of ``frames`` of ``model`` written as ``chunks`` (stream/environment.png holds
-    the model's background by direction, if it has one)."""
+def stream_entries(model, frames: list[int], source: dict[str, Any]) -> dict[str, Any]:
+    """What every kind of stream's manifest holds: the frames, the cameras, the background and the
+    render numerics (stream/environment.png holds the model's background by direction, if any)."""
     held_out = set(getattr(model, "test_camera_names", []))
     env = getattr(model, "environment", None)
     return {
         "format": FORMAT, "version": VERSION,
         "fps": float(model.fps),
         "frames": [int(f) for f in frames],
-        "chunk_frames": int(chunk_frames),
-        "chunks": [asdict(c) for c in chunks],
         "cameras": [camera_entry(c, c.name in held_out) for c in model.cameras],
         "background": [float(c) for c in getattr(model, "background", (0.0, 0.0, 0.0))],
         "environment": None if env is None else {"file": ENVIRONMENT_NAME,
@@ -79,3 +76,8 @@ def web_manifest(model, frames: list[int], chunk_frames: int, chunks: list[Chunk
         "scene": scene_entry(model),
         "source": source,
     }  # fmt: skip
+
+
+def chunk_entries(chunk_frames: int, chunks: list[ChunkInfo]) -> dict[str, Any]:
+    """A Gaussian stream's own manifest entries: its chunk files."""
+    return {"chunk_frames": int(chunk_frames), "chunks": [asdict(c) for c in chunks]}

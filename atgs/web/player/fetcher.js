@@ -153,3 +153,46 @@ export function wait(ms, signal) {
     signal?.addEventListener('abort', stop, { once: true });
   });
 }
+
+/**
+ * A stream folder's files, fetched with one set of settings: every stream kind (stream.js,
+ * model_stream.js) holds one, so each file of each kind gets the same timeout and retries.
+ */
+export class StreamFolder {
+  /**
+   * @param {string} base folder URL ("stream/")
+   * @param {object} [options] fetch (the fetch to use), FETCH_DEFAULTS' fields, random and sleep
+   *   (jitter and wait, for tests), onRetry(file, attempt, delayMs, error) before each retry
+   */
+  constructor(base, options = {}) {
+    this.base = base.endsWith('/') ? base : `${base}/`;
+    const fetch = options.fetch ?? ((url, init) => globalThis.fetch(url, init));
+    this.settings = {
+      fetch, random: options.random, sleep: options.sleep,
+      ...Object.fromEntries(Object.keys(FETCH_DEFAULTS).map((k) => [k, options[k] ?? FETCH_DEFAULTS[k]])),
+    };
+    this.onRetry = options.onRetry ?? (() => {});
+  }
+
+  /** URL of a file of the folder. */
+  url(file) {
+    return this.base + file;
+  }
+
+  /** GET a file of the folder (fetchBytes' extra options: signal, onBytes, expectedBytes). */
+  get(file, extra = {}) {
+    return fetchBytes(this.url(file), {
+      ...this.settings, ...extra,
+      onRetry: (attempt, delay, error) => this.onRetry(file, attempt, delay, error),
+    });
+  }
+
+  /** GET a file the manifest gives the size of; a file of another size is an error no retry mends. */
+  async getSized(file, bytes, extra = {}) {
+    const got = await this.get(file, { ...extra, expectedBytes: bytes });
+    const where = this.url(file);
+    if (got.length < bytes) throw new Error(`${where} is truncated (got ${got.length} of ${bytes} bytes)`);
+    if (got.length > bytes) throw new Error(`${where} is ${got.length} bytes, the manifest says ${bytes}`);
+    return got;
+  }
+}

@@ -4,7 +4,7 @@
 import { ViewCamera, fitIntrinsics, upDirection } from './camera.js';
 import { attachControls, fillHelp } from './controls.js';
 import { Renderer } from './renderer.js';
-import { Stream } from './stream.js';
+import { openStream } from './streams.js';
 
 const SPEEDS = [0.25, 0.5, 1, 1.5, 2];
 // How long a lost WebGL context may stay lost before the page says so (browsers restore within a second or two).
@@ -106,7 +106,9 @@ export class Player {
       this.renderer = new Renderer(this.el.canvas);
       this.renderer.onContextLost = () => this._contextLost();
       this.renderer.onContextRestored = () => this._contextRestored();
-      this.stream = new Stream(this.options.stream, {
+      // a Gaussian chunk stream or the model itself, as the manifest says (streams.js); both
+      // hold their files in the same byte budget and fetch them with the same retries
+      this.stream = await openStream(this.options.stream, this.renderer.gl, {
         budgetBytes: this.options.budgetBytes ?? undefined,
         maxChunks: this.options.maxChunks ?? undefined,
         onProgress: (buffered, wanted) => this._showProgress(buffered, wanted),
@@ -114,14 +116,14 @@ export class Player {
           this.retrying = `connection trouble (${e.message}): trying ${file} again in ${(delay / 1000).toFixed(1)} s…`;
         },
         onChunkLoaded: () => { this.retrying = null; },
-        // the manifest's failure also rejects open() below; a chunk's leaves the others playable
+        // the manifest's failure also rejects openStream; a chunk's leaves the others playable
         onError: (e, chunk) => { if (chunk !== undefined) this.showError(e.message, false); },
       });
-      const manifest = await this.stream.open();
+      const manifest = this.stream.manifest;
       this.manifest = manifest;
       if (this.options.budgetBytes !== null && this.stream.budgetBytes > this.options.budgetBytes) {
         this.showNote(`URL parameter budget=${this.options.budgetBytes / 1e6}: this stream needs ${megabytes(this.stream.budgetBytes)} MB `
-          + 'to play without stalls (two chunks decoded, the playing one and the next downloaded): holding that');
+          + 'to play without stalls (what the unit playing and the next need, downloaded and decoded): holding that');
       }
       this.renderer.configure(manifest);
       this._setupControls(manifest);
@@ -173,6 +175,7 @@ export class Player {
     clearTimeout(this.contextTimer);
     this.contextLost = false;
     this.contextRestores++;
+    this.stream?.contextRestored();  // a model stream's decoder lived on the lost context
     this.el.status.textContent = '';
     this.forceDraw = true;
   }
@@ -371,7 +374,7 @@ export class Player {
       if (this.el.status.textContent && !this.contextLost) this.el.status.textContent = '';
       this.buffering = false;
       this._draw(want, chunk, local);
-      const chunks = this.manifest.chunks.length;
+      const chunks = this.stream.units;
       if (this.playing && chunks > 1 && (ci + 1 < chunks || this.el.loop.checked)) {
         this.stream.chunk((ci + 1) % chunks).catch(() => {});  // inflate the next chunk before it is needed
       }
@@ -443,6 +446,8 @@ export class Player {
    *   peakHeldChunks, budgetBytes, maxChunks, decodedChunks, fetchedBytes, downloads, windowFull)}
    * - readPixels(): {width, height, encoding: 'base64', data}: the last drawn image (RGBA bytes,
    *   top row first), drawn again and read back at once
+   * - gaussians(i): Promise of exported frame i's Gaussians as the page decoded them (a model
+   *   stream only; model_stream.js ModelStream.gaussians)
    */
   api() {
     return {
@@ -481,6 +486,10 @@ export class Player {
         firstFrameMs: this.firstFrameMs,
         drawFps: this._drawFps(),
       }),
+      gaussians: (i) => {
+        if (!this.stream?.gaussians) return Promise.reject(new Error('gaussians(i): the stream is not a model stream'));
+        return this.stream.gaussians(i);
+      },
       readPixels: () => {
         if (!this.last) throw new Error('nothing drawn yet');
         const { chunk, local, view } = this.last;

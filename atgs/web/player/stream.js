@@ -5,24 +5,38 @@
 // are kept only for the few most recently used. No DOM: Node tests it with a stand-in fetch.
 
 import { HEADER_BYTES, RECORD_BYTES, inflate, parseChunk } from './chunk.js';
-import { FETCH_DEFAULTS, fetchBytes } from './fetcher.js';
+import { StreamFolder } from './fetcher.js';
 import { DEFAULT_BUDGET_BYTES, FetchWindow } from './window.js';
 
 export const FORMAT = 'atgs-web';
 export const VERSION = 1;
 
 /**
- * Checks the manifest's fields the player relies on; throws one line naming the first problem.
+ * Checks the fields every stream kind's manifest has (format, version, frames, fps, cameras,
+ * render); throws one line naming the first problem.
  * @param {object} m parsed manifest.json
  * @param {string} where the manifest's URL, for the message
  */
-export function checkManifest(m, where) {
+export function checkCommonManifest(m, where) {
   const fail = (what) => { throw new Error(`${where}: ${what}`); };
   if (!m || typeof m !== 'object') fail('not a JSON object');
   if (m.format !== FORMAT) fail(`format is ${JSON.stringify(m.format)}, not "${FORMAT}"`);
   if (m.version !== VERSION) fail(`version ${m.version} is not supported (this player reads version ${VERSION})`);
   if (!Array.isArray(m.frames) || m.frames.length === 0) fail('"frames" is empty');
   if (!(m.fps > 0)) fail(`fps ${m.fps} is not a positive number`);
+  if (!Array.isArray(m.cameras)) fail('"cameras" is missing');
+  for (const key of ['near', 'dilation', 'alpha_min', 'alpha_max', 'extent']) {
+    if (typeof m.render?.[key] !== 'number') fail(`render.${key} is missing`);
+  }
+}
+
+/**
+ * Checks a chunk stream's manifest (checkCommonManifest, then its chunks); throws one line naming
+ * the first problem.
+ */
+export function checkManifest(m, where) {
+  checkCommonManifest(m, where);
+  const fail = (what) => { throw new Error(`${where}: ${what}`); };
   const F = m.chunk_frames;
   if (!Number.isInteger(F) || F < 1) fail(`chunk_frames ${F} is not a positive integer`);
   const n = Math.ceil(m.frames.length / F);
@@ -35,9 +49,18 @@ export function checkManifest(m, where) {
     if (c.frames !== frames) fail(`${c.file} holds ${c.frames} frames, ${frames} expected`);
     if (!Number.isInteger(c.bytes) || c.bytes <= 0) fail(`${c.file} has no byte size`);
   });
-  if (!Array.isArray(m.cameras)) fail('"cameras" is missing');
-  for (const key of ['near', 'dilation', 'alpha_min', 'alpha_max', 'extent']) {
-    if (typeof m.render?.[key] !== 'number') fail(`render.${key} is missing`);
+}
+
+/**
+ * A stream folder's manifest.json, fetched (timeout, retries) and parsed; throws one line.
+ * @param {StreamFolder} folder
+ */
+export async function readManifest(folder) {
+  const bytes = await folder.get('manifest.json');
+  try {
+    return JSON.parse(new TextDecoder().decode(bytes));
+  } catch (e) {
+    throw new Error(`${folder.url('manifest.json')} is not valid JSON (${e.message})`);
   }
 }
 
@@ -87,17 +110,11 @@ export class Stream {
    *   fetcher.js FETCH_DEFAULTS; [options.random], [options.sleep]: its jitter and wait (tests)
    */
   constructor(base = 'stream/', options = {}) {
-    this.base = base.endsWith('/') ? base : `${base}/`;
+    this.folder = new StreamFolder(base, options);
     this.options = options;
-    const fetch = options.fetch ?? ((url, init) => globalThis.fetch(url, init));
-    this.fetchOptions = {
-      fetch, random: options.random, sleep: options.sleep,
-      ...Object.fromEntries(Object.keys(FETCH_DEFAULTS).map((k) => [k, options[k] ?? FETCH_DEFAULTS[k]])),
-    };
     this.maxDecoded = options.maxDecoded ?? 2;
     this.onProgress = options.onProgress ?? (() => {});
     this.onError = options.onError ?? (() => {});
-    this.onRetry = options.onRetry ?? (() => {});
     this.onChunkLoaded = options.onChunkLoaded ?? (() => {});
     this.manifest = null;
     this.window = null;        // FetchWindow over the chunk files, once the manifest is in
@@ -111,30 +128,30 @@ export class Stream {
     this.minimumBytes = null;
   }
 
+  /** Units the player steps through (streams.js's interface): the chunks. */
+  get units() {
+    return this.manifest.chunks.length;
+  }
+
   /** URL of a file of the stream folder. */
   url(file) {
-    return this.base + file;
+    return this.folder.url(file);
   }
 
   /** Fetch a file of the stream folder with the stream's timeout and retries (the environment map too). */
   fetchFile(file, extra = {}) {
-    return fetchBytes(this.url(file), {
-      ...this.fetchOptions, ...extra,
-      onRetry: (attempt, delay, error) => this.onRetry(file, attempt, delay, error),
-    });
+    return this.folder.get(file, extra);
   }
 
-  /** Loads and checks manifest.json, then starts loading chunks. @returns {Promise<object>} the manifest */
-  async open() {
+  /**
+   * Loads and checks manifest.json (or takes the one streams.js read), then starts loading chunks.
+   * @param {object} [read] the manifest, already fetched and parsed
+   * @returns {Promise<object>} the manifest
+   */
+  async open(read = undefined) {
     const where = this.url('manifest.json');
     try {
-      const bytes = await this.fetchFile('manifest.json');
-      let manifest;
-      try {
-        manifest = JSON.parse(new TextDecoder().decode(bytes));
-      } catch (e) {
-        throw new Error(`${where} is not valid JSON (${e.message})`);
-      }
+      const manifest = read ?? await readManifest(this.folder);
       checkManifest(manifest, where);
       this.manifest = manifest;
       this.totalBytes = manifest.chunks.reduce((sum, c) => sum + c.bytes, 0);
@@ -186,6 +203,9 @@ export class Stream {
     this.window?.setWrap(wrap);
   }
 
+  /** The renderer's context came back (streams.js's interface): a chunk stream holds nothing on the GPU. */
+  contextRestored() {}
+
   /** Abort the downloads and drop the chunks (a page that stops playing for good). */
   close() {
     this.window?.close();
@@ -205,14 +225,11 @@ export class Stream {
   memory() {
     const w = this.window;
     return {
-      heldBytes: w ? w.heldBytes : 0, heldChunks: w ? w.heldItems : 0,
-      peakHeldBytes: w ? w.peakBytes : 0, peakHeldChunks: w ? w.peakItems : 0,
+      heldBytes: 0, heldChunks: 0, peakHeldBytes: 0, peakHeldChunks: 0, windowBudgetBytes: null,
+      maxChunks: this.options.maxChunks ?? Infinity, downloads: 0, windowFull: false, ...w?.memory(),
       budgetBytes: this.budgetBytes ?? (this.options.budgetBytes ?? DEFAULT_BUDGET_BYTES),
-      minimumBytes: this.minimumBytes ?? null,
-      windowBudgetBytes: w ? w.budgetBytes : null, decodedReserveBytes: w ? this.decodedReserve : null,
-      maxChunks: w ? w.maxItems : (this.options.maxChunks ?? Infinity),
-      decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes, downloads: w ? w.loads : 0,
-      windowFull: w ? w.full() : false,
+      minimumBytes: this.minimumBytes ?? null, decodedReserveBytes: w ? this.decodedReserve : null,
+      decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes,
     };
   }
 
@@ -268,24 +285,13 @@ export class Stream {
     return this.window.get(i);
   }
 
-  async _download(i, signal) {
+  _download(i, signal) {
     const entry = this.manifest.chunks[i];
-    const where = this.url(entry.file);
-    const bytes = await this.fetchFile(entry.file, {
-      signal, expectedBytes: entry.bytes, onBytes: (n) => { this.fetchedBytes += n; },
-    });
-    // the server sent the whole file: a size that differs is the file's, and no retry mends it
-    if (bytes.length < entry.bytes) throw new Error(`${where} is truncated (got ${bytes.length} of ${entry.bytes} bytes)`);
-    if (bytes.length > entry.bytes) throw new Error(`${where} is ${bytes.length} bytes, the manifest says ${entry.bytes}`);
-    return bytes;
+    return this.folder.getSized(entry.file, entry.bytes, { signal, onBytes: (n) => { this.fetchedBytes += n; } });
   }
 
   _progress() {
-    const w = this.window;
-    const wanted = w.wanted();
-    const target = wanted.reduce((sum, i) => sum + w.sizes[i], 0);
-    const held = wanted.reduce((sum, i) => sum + (w.peek(i) ? w.sizes[i] : 0), 0);
-    this.onProgress(held, target);
+    this.onProgress(...this.window.progress());
   }
 
   // Marks chunk i failed (its first error stands), rejects its waiters, reports it once; returns the error.

@@ -3,13 +3,22 @@
 // on, up to a byte budget (and optionally a number of items), are fetched and kept. Moving the
 // playhead evicts what falls out of the window (behind it, or beyond the budget) and aborts its
 // downloads; a seek outside the window goes back to the network. Any stream kind keeps its files
-// through one of these; what an item is (a chunk, a model segment) is its `load`. No DOM: Node
-// tests it with a stand-in load.
+// through one of these; what an item is (a chunk, a model part) is its `load`, and a kind whose
+// items are not one per playhead position (a model part serves many frames) gives the `order` in
+// which it wants them from a playhead. No DOM: Node tests it with a stand-in load.
 
 import { isAbort } from './fetcher.js';
 
 /** The default budget: 32 MiB of compressed bytes held (a phone's tab holds that easily). */
 export const DEFAULT_BUDGET_BYTES = 32 * 2 ** 20;
+
+/** The items in playing order from item `playhead` on (past the last back to 0 when `wrap`). */
+export function* playingOrder(playhead, wrap, n) {
+  for (let k = 0; k < n; k++) {
+    if (!wrap && playhead + k >= n) return;
+    yield (playhead + k) % n;
+  }
+}
 
 export class FetchWindow {
   /**
@@ -21,6 +30,8 @@ export class FetchWindow {
    * @param {number} [o.maxItems] items held and in flight at most (Infinity)
    * @param {number} [o.maxInFlight] concurrent loads (2)
    * @param {boolean} [o.wrap] the window continues at item 0 past the last (a looping video)
+   * @param {(playhead: number, wrap: boolean) => Iterable<number>} [o.order] the items the window
+   *   wants from a playhead, most urgent first, each once (playingOrder: the playhead is an item)
    * @param {(i: number) => void} [o.onLoaded]
    * @param {(i: number, error: Error) => void} [o.onFailed] once per item whose load failed (it stays failed)
    */
@@ -31,6 +42,7 @@ export class FetchWindow {
     this.maxItems = o.maxItems ?? Infinity;
     this.maxInFlight = o.maxInFlight ?? 2;
     this.wrap = o.wrap ?? true;
+    this.order = o.order ?? ((playhead, wrap) => playingOrder(playhead, wrap, this.sizes.length));
     this.onLoaded = o.onLoaded ?? (() => {});
     this.onFailed = o.onFailed ?? (() => {});
     this.playhead = 0;
@@ -45,14 +57,13 @@ export class FetchWindow {
     this.closed = false;
   }
 
-  /** The items of the window, in the order they are fetched: the playhead's first. */
+  /** The items of the window, in the order they are fetched: the playhead's first (`order`). */
   wanted() {
-    const n = this.closed ? 0 : this.sizes.length;
     const out = [];
+    if (this.closed) return out;
     let bytes = 0;
-    for (let k = 0; k < n && out.length < this.maxItems; k++) {
-      if (!this.wrap && this.playhead + k >= n) break;
-      const i = (this.playhead + k) % n;
+    for (const i of this.order(this.playhead, this.wrap)) {
+      if (out.length >= this.maxItems) break;
       if (out.length > 0 && bytes + this.sizes[i] > this.budgetBytes) break;
       bytes += this.sizes[i];
       out.push(i);
@@ -68,6 +79,25 @@ export class FetchWindow {
   /** True when every item of the window is held (or failed): nothing more to fetch until the playhead moves. */
   full() {
     return this.wanted().every((i) => this.items.has(i) || this.failed.has(i));
+  }
+
+  /**
+   * What the window holds, in the player's state() names (docs/web.md): bytes and items held and
+   * in flight, their peaks, its budget and item limit, loads started, whether it is complete.
+   */
+  memory() {
+    return {
+      heldBytes: this.heldBytes, heldChunks: this.heldItems, peakHeldBytes: this.peakBytes, peakHeldChunks: this.peakItems,
+      windowBudgetBytes: this.budgetBytes, maxChunks: this.maxItems, downloads: this.loads, windowFull: this.full(),
+    };
+  }
+
+  /** [bytes held, bytes wanted] of the window's items: the page's loading bar. */
+  progress() {
+    const wanted = this.wanted();
+    const target = wanted.reduce((sum, i) => sum + this.sizes[i], 0);
+    const held = wanted.reduce((sum, i) => sum + (this.items.has(i) ? this.sizes[i] : 0), 0);
+    return [held, target];
   }
 
   /** Items held and in flight. */

@@ -1,0 +1,294 @@
+// A model stream (manifest kind "model", docs/web.md "Streaming the model"): the part files the
+// frames from the playhead on need, held in a window.js FetchWindow within the page's byte budget
+// and fetched through fetcher.js (stall timeout, retries), and each frame decoded on the GPU
+// (model_decode.js) when the player asks for it. Offers the player the interface of stream.js
+// (streams.js) with one frame a unit. What it hands the renderer is a one-frame stand-in for a
+// chunk (FrameOfModel), quantized as the chunk files are, so the one renderer draws both kinds.
+
+import { inflate } from './chunk.js';
+import { StreamFolder } from './fetcher.js';
+import { parsePart } from './model_part.js';
+import { ModelDecoder } from './model_decode.js';
+import { DEFAULT_BUDGET_BYTES, FetchWindow, playingOrder } from './window.js';
+
+/**
+ * Bytes a decoded frame holds a Gaussian slot: the four RGBA float32 read-backs of the decode
+ * (64) and the quantized fields the renderer takes (16).
+ */
+export const DECODED_BYTES_PER_SLOT = 80;
+
+const POSITION_STEPS = 65535, LOG_SCALE_STEPS = 255, ROTATION_STEPS = 127, UNIT_STEPS = 255;
+
+/**
+ * A decoded frame as the renderer takes a chunk: F = 1, no static part, quantized fields over
+ * the kept Gaussians' ranges (atgs/web/stream_format.py's rules), and the floats as decoded.
+ */
+export class FrameOfModel {
+  constructor(decoded) {
+    const { count, mean, quat, scale, color } = decoded;
+    this.decoded = decoded;
+    this.F = 1;
+    this.G = count;
+    this.S = 0;
+    this.D = count;
+    const pmin = [Infinity, Infinity, Infinity], pmax = [-Infinity, -Infinity, -Infinity];
+    let lo = Infinity, hi = -Infinity;
+    for (let i = 0; i < count; i++) {
+      if (!(mean[4 * i + 3] > 0)) continue;
+      for (let c = 0; c < 3; c++) {
+        const x = mean[4 * i + c], l = Math.log(Math.max(scale[4 * i + c], 1e-30));
+        if (x < pmin[c]) pmin[c] = x;
+        if (x > pmax[c]) pmax[c] = x;
+        if (l < lo) lo = l;
+        if (l > hi) hi = l;
+      }
+    }
+    if (!(lo <= hi)) { pmin.fill(0); pmax.fill(1); lo = 0; hi = 1; }  // nothing kept
+    this.ranges = { posMin: pmin.map(Math.fround), posMax: pmax.map(Math.fround), logScaleMin: Math.fround(lo), logScaleMax: Math.fround(hi) };
+    const steps = (x, a, b, n) => Math.min(n, Math.max(0, Math.round(b > a ? ((x - a) / (b - a)) * n : 0)));
+    const fields = {
+      count, position: new Uint16Array(4 * count), scaleOpacity: new Uint8Array(4 * count),
+      rotation: new Int8Array(4 * count), color: new Uint8Array(4 * count), geometryVersion: 0,
+    };
+    const r = this.ranges;
+    for (let i = 0; i < count; i++) {
+      const o = mean[4 * i + 3];
+      if (!(o > 0)) continue;  // opacity byte 0: the sort and the shader cull it
+      for (let c = 0; c < 3; c++) {
+        fields.position[4 * i + c] = steps(mean[4 * i + c], r.posMin[c], r.posMax[c], POSITION_STEPS);
+        fields.scaleOpacity[4 * i + c] = steps(Math.log(Math.max(scale[4 * i + c], 1e-30)), r.logScaleMin, r.logScaleMax, LOG_SCALE_STEPS);
+        fields.color[4 * i + c] = steps(color[4 * i + c], 0, 1, UNIT_STEPS);
+      }
+      fields.scaleOpacity[4 * i + 3] = steps(o, 0, 1, UNIT_STEPS);
+      const q = quat.subarray(4 * i, 4 * i + 4);
+      const norm = Math.hypot(q[0], q[1], q[2], q[3]) || 1;
+      const sign = q[0] < 0 ? -1 : 1;  // q and -q are one rotation: keep w >= 0
+      for (let c = 0; c < 4; c++) fields.rotation[4 * i + c] = Math.round((sign * q[c] / norm) * ROTATION_STEPS);
+    }
+    this.fields = fields;
+  }
+
+  frame(k) {
+    if (k !== 0) throw new RangeError(`frame ${k}: a decoded model frame holds frame 0 only`);
+    return this.fields;
+  }
+}
+
+// The failures of the parts a frame needs, as the player reads stream.failed.get(frame).
+class FrameFailures {
+  constructor(stream) {
+    this.stream = stream;
+  }
+
+  get(i) {
+    if (this.stream.decodeFailure) return this.stream.decodeFailure;
+    for (const p of this.stream._partsOf(i)) if (this.stream.window.failed.has(p)) return this.stream.window.failed.get(p);
+    return undefined;
+  }
+
+  has(i) {
+    return this.get(i) !== undefined;
+  }
+}
+
+/**
+ * The loader of a model stream. The window's items are the part files, each counted at what it
+ * holds once read (its `values` as float32: parts are kept parsed, since a frame is decoded at
+ * once when asked for); its order from a playhead frame is the parts of that frame, then the new
+ * ones of each next frame (past the last back to the first while looping), so a part many frames
+ * share (the weights, a keyframe's anchors, a segment's grid) is held once, from the first of
+ * them to the last. Fetches nothing until setPlayhead.
+ */
+export class ModelStream {
+  /**
+   * @param {string} base folder URL of manifest.json and the parts
+   * @param {object} manifest the parsed manifest (kind "model", streams.js checkModelManifest)
+   * @param {WebGL2RenderingContext} gl the renderer's context (frames are decoded on it)
+   * @param {object} [options] stream.js Stream's: fetch and fetcher.js's settings, budgetBytes
+   *   (raised to what the playing frame and the next need: minimumBytes), maxChunks (parts held
+   *   at most, raised to the playing frame's and the next's), wrap, maxInFlight (2), onProgress,
+   *   onRetry, onChunkLoaded(part), onError(error, frame or part)
+   */
+  constructor(base, manifest, gl, options = {}) {
+    this.folder = new StreamFolder(base, options);
+    this.options = options;
+    this.manifest = manifest;
+    this.model = manifest.model;
+    this.gl = gl;
+    this.maxDecoded = 2;
+    this.onProgress = options.onProgress ?? (() => {});
+    this.onError = options.onError ?? (() => {});
+    this.onChunkLoaded = options.onChunkLoaded ?? (() => {});
+    this.failed = new FrameFailures(this);
+    this.decoder = null;
+    this.decodeFailure = null;  // the GPU decode's error: no frame decodes after it
+    this.decoded = new Map();   // frame -> FrameOfModel, in least-recently-used order
+    this.playhead = 0;
+    this.fetchedBytes = 0;
+    // what playing the whole video once downloads: every part once
+    this.totalBytes = this.model.parts.reduce((sum, p) => sum + p.bytes, 0);
+    const sizes = this.model.parts.map((p) => 4 * p.values);
+    const slots = (f) => this.model.frames[f].anchors.reduce((n, p) => n + this.model.parts[p].anchors, 0) * this.model.q;
+    this.decodedReserve = (this.maxDecoded + 1) * DECODED_BYTES_PER_SLOT * Math.max(...this.model.frames.map((_, f) => slots(f)));
+    // the least that plays without a stall: the playing frame's parts and the next's, and the decoded frames
+    let minimumParts = 0, minimumHeld = 0;
+    for (let f = 0; f < this.units; f++) {
+      const both = new Set([...this._partsOf(f), ...this._partsOf((f + 1) % this.units)]);
+      minimumParts = Math.max(minimumParts, both.size);
+      minimumHeld = Math.max(minimumHeld, [...both].reduce((sum, p) => sum + sizes[p], 0));
+    }
+    this.minimumBytes = this.decodedReserve + minimumHeld;
+    this.budgetBytes = Math.max(options.budgetBytes ?? DEFAULT_BUDGET_BYTES, this.minimumBytes);
+    this.window = new FetchWindow({
+      sizes,
+      load: (p, signal) => this._download(p, signal),
+      budgetBytes: this.budgetBytes - this.decodedReserve,
+      maxItems: Math.max(options.maxChunks ?? Infinity, minimumParts),
+      maxInFlight: options.maxInFlight ?? 2,
+      wrap: options.wrap ?? true,
+      order: (frame, wrap) => this._order(frame, wrap),
+      onLoaded: (p) => { this.onChunkLoaded(p); this._progress(); },
+      onFailed: (p, e) => this.onError(e, p),
+    });
+  }
+
+  url(file) {
+    return this.folder.url(file);
+  }
+
+  /** Fetch a file of the stream folder with the stream's timeout and retries (the environment map). */
+  fetchFile(file, extra = {}) {
+    return this.folder.get(file, extra);
+  }
+
+  /** Units the player steps through: one a frame. */
+  get units() {
+    return this.manifest.frames.length;
+  }
+
+  locate(i) {
+    return { chunk: i, local: 0 };
+  }
+
+  /** The part indices exported frame i needs: the weights, its anchors, its hash grid. */
+  _partsOf(i) {
+    const f = this.model.frames[i];
+    return [this.model.weights, ...f.anchors, f.hash];
+  }
+
+  // The window's order from playhead frame `frame`: each frame's parts not listed for an earlier one.
+  * _order(frame, wrap) {
+    const listed = new Set();
+    for (const f of playingOrder(frame, wrap, this.units)) {
+      for (const p of this._partsOf(f)) {
+        if (listed.has(p)) continue;
+        listed.add(p);
+        yield p;
+      }
+      if (listed.size === this.model.parts.length) return;
+    }
+  }
+
+  /** Move the window to start at frame i: parts no frame from there on needs within the budget are dropped. */
+  setPlayhead(i) {
+    this.playhead = i;
+    this.window.setPlayhead(i);
+    this._progress();
+  }
+
+  /** Whether the window continues at frame 0 past the last one (the page's loop box). */
+  setWrap(wrap) {
+    this.options.wrap = wrap;
+    this.window.setWrap(wrap);
+  }
+
+  /** The renderer's context came back: the decoder's textures and programs were on the lost one. */
+  contextRestored() {
+    this.decoder = null;
+  }
+
+  /** Abort the downloads and drop the parts. */
+  close() {
+    this.window.close();
+    this.decoded.clear();
+  }
+
+  /** What the stream holds now (stream.js Stream.memory's fields; its "chunks" are parts here). */
+  memory() {
+    return {
+      ...this.window.memory(), budgetBytes: this.budgetBytes, minimumBytes: this.minimumBytes,
+      decodedReserveBytes: this.decodedReserve, decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes,
+    };
+  }
+
+  async _download(p, signal) {
+    const entry = this.model.parts[p];
+    const bytes = await this.folder.getSized(entry.file, entry.bytes, { signal, onBytes: (n) => { this.fetchedBytes += n; } });
+    const where = this.url(entry.file);
+    let inflated;
+    try {
+      inflated = await inflate(bytes);
+    } catch (e) {
+      throw new Error(`${where} is corrupt: ${e.message}`);
+    }
+    return parsePart(inflated, where);
+  }
+
+  _progress() {
+    this.onProgress(...this.window.progress());
+  }
+
+  /** Frame i decoded now if its parts are in (decoding it on the GPU if need be), else null. */
+  decodedNow(i) {
+    const ready = this.decoded.get(i);
+    if (ready) {
+      this.decoded.delete(i);  // most recently used goes last
+      this.decoded.set(i, ready);
+      return ready;
+    }
+    const w = this.window;
+    if (this.decodeFailure || !this._partsOf(i).every((p) => w.peek(p) !== undefined)) return null;
+    const m = this.model, entry = m.frames[i];
+    let frame;
+    try {
+      if (!this.decoder) this.decoder = new ModelDecoder(this.gl, m, w.peek(m.weights));
+      this.decoder.setAnchors(entry.anchors.join(','), entry.anchors.map((p) => ({ keyframe: m.parts[p].keyframe, tensors: w.peek(p) })));
+      this.decoder.setHash(String(entry.hash), w.peek(entry.hash));
+      frame = new FrameOfModel(this.decoder.decode(entry));
+    } catch (e) {  // no float targets, a shader the GPU refuses: every frame fails the same way
+      this.decodeFailure = e;
+      this.onError(e, i);
+      return null;
+    }
+    this.decoded.set(i, frame);
+    while (this.decoded.size > this.maxDecoded) this.decoded.delete(this.decoded.keys().next().value);
+    return frame;
+  }
+
+  /**
+   * Frame i decoded, once its parts are in; waits for them (a frame outside the window waits
+   * until setPlayhead brings its parts in).
+   */
+  async chunk(i) {
+    for (;;) {
+      const failure = this.failed.get(i);
+      if (failure) throw failure;
+      const frame = this.decodedNow(i);
+      if (frame) return frame;
+      if (this.decodeFailure) throw this.decodeFailure;
+      await Promise.all(this._partsOf(i).map((p) => this.window.get(p)));
+    }
+  }
+
+  /**
+   * The Gaussians of frame i as decoded (for tests): per slot, mean + opacity, rotation, scale +
+   * kept and colour (4 floats each), and the anchor parts in the page's order.
+   */
+  async gaussians(i) {
+    const frame = await this.chunk(i);
+    const d = frame.decoded, n = 4 * d.count;
+    const plain = (a) => Array.from(a.subarray(0, n));
+    return { count: d.count, anchors: this.model.frames[i].anchors, mean: plain(d.mean), quat: plain(d.quat),
+      scale: plain(d.scale), color: plain(d.color) };
+  }
+}
