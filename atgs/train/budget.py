@@ -14,7 +14,7 @@ run, across resumes (the checkpoint carries the time used). The pace of a step i
 without the evaluations and checkpoints (the trainer reports their seconds as overhead), whose
 cost is spread over the steps as an average: one evaluation must not read as one very slow
 step (it once ended a 4-minute run after 79 steps, 57 s in). The final evaluation is reserved
-inside the budget at one step per view (measured with atgs-eval: a view cost 0.71 of a step on
+inside the budget at one step per view, at the run's mean pace (measured with atgs-eval: a view cost 0.71 of a step on
 the built-in scene, 0.85 on a 5-camera 160x120 one; half a step, the earlier figure, made runs
 end late). Scene loading and model set-up come on top (the
 trainer compiles its rasterizer while it sets up: ``atgs.render.warm_up``).
@@ -54,6 +54,10 @@ class TimeBudget:
     _mark: tuple[int, float, float] | None = field(default=None, repr=False)
     _pace: float = field(default=0.0, repr=False)  # measured seconds per step, overhead excluded
     _overhead_per_step: float = field(default=0.0, repr=False)  # evaluations and saves, averaged
+    # seconds per step since calibration began: the final evaluation's reserve is sized by it, so
+    # that a short slow patch (another job on the machine) does not swell a reserve of hundreds of
+    # views and freeze a plan that ends the run at once (a 20-minute run once ended after 229 s)
+    _mean_pace: float = field(default=0.0, repr=False)
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:
@@ -67,8 +71,9 @@ class TimeBudget:
         return self._pace
 
     def reserve(self) -> float:
-        """Seconds kept for the final evaluation: a step per view (see the module's notes)."""
-        return self.reserve_views * self._pace + 1.0
+        """Seconds kept for the final evaluation: a step per view (see the module's notes), at the
+        run's mean pace."""
+        return self.reserve_views * (self._mean_pace or self._pace) + 1.0
 
     def plan(self, step: int, used: float, planned: int, overhead: float = 0.0) -> int | None:
         """New total step count, or None to keep ``planned``. ``step``: steps done; ``used``:
@@ -95,6 +100,9 @@ class TimeBudget:
                 planned: int) -> int | None:
         s0, u0, o0 = since
         self._pace = max(0.0, (used - overhead) - (u0 - o0)) / max(1, step - s0)
+        if self._start is not None:
+            s1, u1, o1 = self._start
+            self._mean_pace = max(0.0, (used - overhead) - (u1 - o1)) / max(1, step - s1)
         self._overhead_per_step = overhead / max(1, step)
         self._mark = (step, used, overhead)
         left = self.seconds - used - self.reserve()
@@ -105,7 +113,8 @@ class TimeBudget:
     # --- checkpoints ---------------------------------------------------------------------------
     def state_dict(self, used: float, overhead: float = 0.0) -> dict:
         return {"seconds": float(self.seconds), "used": float(used), "overhead": float(overhead),
-                "pace": float(self._pace), "overhead_per_step": float(self._overhead_per_step)}
+                "pace": float(self._pace), "overhead_per_step": float(self._overhead_per_step),
+                "mean_pace": float(self._mean_pace)}
 
     @classmethod
     def resumed(cls, state: dict, seconds: float) -> "TimeBudget":
@@ -114,6 +123,7 @@ class TimeBudget:
         b = cls(seconds=seconds, used=float(state["used"]), overhead=float(state.get("overhead", 0.0)))
         b._pace = float(state.get("pace", 0.0))
         b._overhead_per_step = float(state.get("overhead_per_step", 0.0))
+        b._mean_pace = float(state.get("mean_pace", 0.0))
         return b
 
     def steps_left(self) -> int | None:
