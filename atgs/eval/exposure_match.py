@@ -31,11 +31,12 @@ SUMS = 6
 
 
 def view_sums(render: torch.Tensor, gt: torch.Tensor) -> list[float]:
-    """(3 x SUMS) sums of one view's (H, W, 3) render and ground truth, channel-major, in float64."""
-    x = render.detach().reshape(-1, 3).to("cpu", torch.float64)
-    y = gt.detach().reshape(-1, 3).to("cpu", torch.float64)
-    n = torch.full((3,), float(x.shape[0]), dtype=torch.float64)
-    cols = torch.stack([n, x.sum(0), y.sum(0), (x * x).sum(0), (x * y).sum(0), (y * y).sum(0)], 1)
+    """(3 x SUMS) sums of one view's (H, W, 3) render and ground truth, channel-major, in float64
+    (in numpy: the scores leave the model's device, whatever torch's default device is)."""
+    x = render.detach().cpu().numpy().reshape(-1, 3).astype(np.float64)
+    y = gt.detach().cpu().numpy().reshape(-1, 3).astype(np.float64)
+    n = np.full(3, float(x.shape[0]))
+    cols = np.stack([n, x.sum(0), y.sum(0), (x * x).sum(0), (x * y).sum(0), (y * y).sum(0)], 1)
     return cols.reshape(-1).tolist()
 
 
