@@ -68,10 +68,12 @@ class PlayerPage:
     """One open player page. ``params``: the page's URL parameters (docs/web.md). ``touch``: a
     touch screen (touch events, pointers of type touch); ``fake_clock``: Playwright's clock drives
     the page's time (requestAnimationFrame included), so a test can step playback by exact times
-    (``page.clock.run_for``) after ``page.clock.pause_at``."""
+    (``page.clock.run_for``) after ``page.clock.pause_at``. ``routes``: (URL pattern, handler)
+    pairs of Playwright's ``page.route``, installed before the page loads (a test that fails a file
+    must catch its first request, which the look-ahead may make at once)."""
 
     def __init__(self, browser, url: str, params: dict[str, object] | None = None, timeout_s: float = 60.0,
-                 touch: bool = False, fake_clock: bool = False):
+                 touch: bool = False, fake_clock: bool = False, routes: list | None = None):
         query = "&".join(f"{k}={v}" for k, v in (params or {}).items())
         self.page = browser.new_page(device_scale_factor=1, has_touch=touch)
         if fake_clock:
@@ -80,6 +82,8 @@ class PlayerPage:
         self.console: list[str] = []
         self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))
         self.page.on("pageerror", lambda e: self.console.append(f"pageerror: {e}"))
+        for pattern, handler in routes or ():
+            self.page.route(pattern, handler)
         self.page.goto(url + "index.html" + (f"?{query}" if query else ""))
 
     def call(self, expression: str):
