@@ -276,3 +276,36 @@ def test_trainer_reports_evaluations_and_saves_as_overhead(tmp_path) -> None:
     assert res["seconds_used"] <= 30.0  # on time, evaluations included
     ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=True)
     assert ck["trainer"]["budget"]["overhead"] == pytest.approx(extra[0])
+
+
+def test_the_final_evaluations_reserve_is_measured_not_guessed(tmp_path) -> None:
+    """Once calibrated, the trainer times the final evaluation on one frame and reserves that per
+    view (with RESERVE_MARGIN), scaled with the pace: where a view costs a fifth of a step (held-out
+    cameras sharing a frame's decode), a step per view would have kept most of the reserve idle."""
+    from atgs.train.budget import RESERVE_MARGIN
+
+    scene = make_toy_scene(num_frames=6, num_cameras=4, width=32, height=24, keyframes=3)
+    tr = _budget_trainer(scene, tmp_path / "run", minutes=0.5)
+    extra, probes = [0.0], []
+    tr.clock = lambda: 0.5 * tr.step + extra[0]  # a step takes 0.5 s, an evaluated view 0.1 s
+    real_evaluate = tr.evaluate
+
+    def timed_evaluate(*a, frames=None, **k):
+        probes.append((tr.step, tuple(frames), k.get("resolution_scale")))
+        extra[0] += 0.1 * len(frames) * len(tr.test_idx)
+        return real_evaluate(*a, frames=frames, **k)
+
+    tr.evaluate = timed_evaluate
+    res = tr.run_steps(progress=False)
+    views = tr.final_views()
+    assert len(probes) == 1 and len(probes[0][1]) == 1 and probes[0][2] == 1.0, probes  # once, one frame, full size
+    assert tr.budget.view_cost == pytest.approx(0.1 / 0.5)
+    reserve = views * 0.1 * RESERVE_MARGIN + 1.0
+    assert tr.budget.reserve() == pytest.approx(reserve)
+    assert reserve < views * 0.5 + 1.0  # less than the step-per-view guess
+    # the budget is filled up to the measured reserve, and the final evaluation fits in it
+    assert 30.0 - reserve - 1.0 <= res["seconds_used"] <= 30.0 - reserve + 0.5, (res["seconds_used"], reserve)
+    assert res["seconds_used"] + 0.1 * views <= 30.0
+    ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=True)
+    assert ck["trainer"]["budget"]["view_cost"] == pytest.approx(0.2)  # a resume keeps the measurement
+    assert ck["trainer"]["budget"]["overhead"] == pytest.approx(extra[0])  # the probe is not step time

@@ -14,9 +14,15 @@ run, across resumes (the checkpoint carries the time used). The pace of a step i
 without the evaluations and checkpoints (the trainer reports their seconds as overhead), whose
 cost is spread over the steps as an average: one evaluation must not read as one very slow
 step (it once ended a 4-minute run after 79 steps, 57 s in). The final evaluation is reserved
-inside the budget at one step per view, at the run's mean pace (measured with atgs-eval: a view cost 0.71 of a step on
-the built-in scene, 0.85 on a 5-camera 160x120 one; half a step, the earlier figure, made runs
-end late). Scene loading and model set-up come on top (the
+inside the budget. Until it is measured, at one step per view at the run's mean pace (with
+atgs-eval, a view cost 0.71 of a step on the built-in scene and 0.85 on a 5-camera 160x120 one;
+half a step, an earlier guess, made runs end late). Once calibrated, the trainer times the final
+evaluation itself on one frame (:meth:`TimeBudget.measured_view`), and the reserve is that
+cost per view, in steps, at the mean pace, so it grows with the model as the steps do, plus
+RESERVE_MARGIN. A view is far cheaper than a step where several held-out cameras share a
+frame's decode: on a 27-camera stage with 4 held-out cameras x 120 frames, one step per view
+reserved 552 s of a 20-minute run for an evaluation that took 181 s. Scene loading and model
+set-up come on top (the
 trainer compiles its rasterizer while it sets up: ``atgs.render.warm_up``).
 Runs with a budget are not bit-reproducible (their length depends on the machine); a fixed
 ``--train.iterations`` run is.
@@ -31,6 +37,8 @@ from dataclasses import dataclass, field
 # unless time runs out, which ends the run at once (with its final pruning).
 FREEZE_FRACTION = 0.9
 MIN_STEPS = 10
+# The measured reserve's headroom: the probe times one frame, the final evaluation all of them.
+RESERVE_MARGIN = 1.25
 
 
 @dataclass
@@ -49,6 +57,8 @@ class TimeBudget:
     skip_steps: int = 5
     replan_seconds: float = 0.0  # 0: seconds / 40, at least 10 s
     reserve_views: int = 16  # views rendered by the final evaluation, reserved in the budget
+    # a view of the final evaluation in steps at the mean pace (measured_view); None until measured
+    view_cost: float | None = None
     # (step, seconds, overhead seconds) when calibration began / of the last plan
     _start: tuple[int, float, float] | None = field(default=None, repr=False)
     _mark: tuple[int, float, float] | None = field(default=None, repr=False)
@@ -58,6 +68,7 @@ class TimeBudget:
     # that a short slow patch (another job on the machine) does not swell a reserve of hundreds of
     # views and freeze a plan that ends the run at once (a 20-minute run once ended after 229 s)
     _mean_pace: float = field(default=0.0, repr=False)
+    _view_seconds: float | None = field(default=None, repr=False)  # measured_view's, until the first plan
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:
@@ -71,9 +82,21 @@ class TimeBudget:
         return self._pace
 
     def reserve(self) -> float:
-        """Seconds kept for the final evaluation: a step per view (see the module's notes), at the
-        run's mean pace."""
-        return self.reserve_views * (self._mean_pace or self._pace) + 1.0
+        """Seconds kept for the final evaluation at the run's mean pace: its measured cost per view
+        with RESERVE_MARGIN, or a step per view before it is measured (see the module's notes)."""
+        per_view = 1.0 if self.view_cost is None else self.view_cost * RESERVE_MARGIN
+        return self.reserve_views * per_view * (self._mean_pace or self._pace) + 1.0
+
+    @property
+    def wants_view_cost(self) -> bool:
+        """Calibration has begun and the final evaluation's cost is not measured yet."""
+        return self._start is not None and self.view_cost is None and self._view_seconds is None
+
+    def measured_view(self, seconds: float) -> None:
+        """The final evaluation takes ``seconds`` a view (the trainer's probe of one frame, as
+        calibration begins): the first plan turns it into steps at the pace it measures, and the
+        reserve follows it from then on, scaled with the mean pace."""
+        self._view_seconds = max(0.0, float(seconds))
 
     def plan(self, step: int, used: float, planned: int, overhead: float = 0.0) -> int | None:
         """New total step count, or None to keep ``planned``. ``step``: steps done; ``used``:
@@ -104,6 +127,8 @@ class TimeBudget:
             s1, u1, o1 = self._start
             self._mean_pace = max(0.0, (used - overhead) - (u1 - o1)) / max(1, step - s1)
         self._overhead_per_step = overhead / max(1, step)
+        if self.view_cost is None and self._view_seconds is not None and self._pace > 0:
+            self.view_cost = self._view_seconds / (self._mean_pace or self._pace)
         self._mark = (step, used, overhead)
         left = self.seconds - used - self.reserve()
         per_step = max(self._pace + self._overhead_per_step, 1e-9)
@@ -114,7 +139,7 @@ class TimeBudget:
     def state_dict(self, used: float, overhead: float = 0.0) -> dict:
         return {"seconds": float(self.seconds), "used": float(used), "overhead": float(overhead),
                 "pace": float(self._pace), "overhead_per_step": float(self._overhead_per_step),
-                "mean_pace": float(self._mean_pace)}
+                "mean_pace": float(self._mean_pace), "view_cost": self.view_cost}
 
     @classmethod
     def resumed(cls, state: dict, seconds: float) -> "TimeBudget":
@@ -124,6 +149,7 @@ class TimeBudget:
         b._pace = float(state.get("pace", 0.0))
         b._overhead_per_step = float(state.get("overhead_per_step", 0.0))
         b._mean_pace = float(state.get("mean_pace", 0.0))
+        b.view_cost = state.get("view_cost")  # (None: older checkpoints, or not measured yet)
         return b
 
     def steps_left(self) -> int | None:

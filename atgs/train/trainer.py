@@ -636,6 +636,8 @@ class Trainer:
         used, overhead = self._time_used(), self._overhead_used()
         used, overhead = self.partition.agreed_floats([used, overhead])  # (rank 0's clock on several workers)
         n = self.budget.plan(self.step, used, self.cfg.iterations, overhead)
+        if self.budget.wants_view_cost:
+            self._time_final_evaluation()
         if n is None:
             return
         first = self.budget.pace > 0 and self._planned_once is False
@@ -648,6 +650,20 @@ class Trainer:
             self._planned_once = True
             bar.write(f"atgs-train: {self.budget.seconds / 60:.4g} min budget: {self.budget.pace:.3f} s per step "
                       f"-> about {n} steps (re-sized as the model grows)")
+
+    def _time_final_evaluation(self) -> None:
+        """The budget's reserve for the final evaluation, measured: that evaluation (full
+        resolution, no pictures) on one of this process's frames, timed, per view (rank 0's
+        figure on several workers). Its seconds are overhead, as a periodic evaluation's are."""
+        frames = self.own_eval_frames()[:1]
+        t = self.clock()
+        if frames:
+            self.evaluate(frames=frames, resolution_scale=1.0)
+        seconds = self.clock() - t
+        self._overhead += seconds
+        views = len(frames) * len(self.test_idx or self.train_idx[:1])
+        (per_view,) = self.partition.agreed_floats([seconds / views if views else 0.0])
+        self.budget.measured_view(per_view)
 
     # --- the loop -------------------------------------------------------------------------------------
     def train(self, progress: bool = True, final_renders: bool = True, stop_at: int | None = None,
