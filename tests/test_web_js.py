@@ -1,4 +1,4 @@
-"""The web player's JavaScript unit tests (tests/js/*.test.mjs: chunk, stream, fetcher, camera, sort, options,
+"""The web player's JavaScript unit tests (tests/js/*.test.mjs: chunk, stream, window, fetcher, camera, sort, options,
 controls),
 run with Node's built-in test runner so that the Python suite runs them too."""
 

@@ -139,8 +139,9 @@ test('a part fetch is retried through the shared fetcher, and a missing one is t
   });
   s.setPlayhead(0);
   await assert.rejects(Promise.all(s._partsOf(9).map((p) => s.window.get(p))), /anchors_kf_3\.bin is missing \(HTTP 404\)/);
-  assert.match(s.failed.get(9).message, /anchors_kf_3\.bin/);
-  assert.equal(s.failed.get(0), undefined);  // frame 0 needs keyframes 0 and 1 only
+  assert.match(s.failure(9).error.message, /anchors_kf_3\.bin/);
+  assert.equal(s.failure(9).retryAt, Infinity);  // missing: fetched again only when asked for
+  assert.equal(s.failure(0), undefined);  // frame 0 needs keyframes 0 and 1 only
   assert.equal(errors.length, 1);
   assert.deepEqual(retries, [['anchors_kf_1.bin', 1]]);  // HTTP 503 once: tried again, and held
   await settle(s);

@@ -74,23 +74,6 @@ export class FrameOfModel {
   }
 }
 
-// The failures of the parts a frame needs, as the player reads stream.failed.get(frame).
-class FrameFailures {
-  constructor(stream) {
-    this.stream = stream;
-  }
-
-  get(i) {
-    if (this.stream.decodeFailure) return this.stream.decodeFailure;
-    for (const p of this.stream._partsOf(i)) if (this.stream.window.failed.has(p)) return this.stream.window.failed.get(p);
-    return undefined;
-  }
-
-  has(i) {
-    return this.get(i) !== undefined;
-  }
-}
-
 /**
  * The loader of a model stream. The window's items are the part files, each counted at what it
  * holds once read (its `values` as float32: parts are kept parsed, since a frame is decoded at
@@ -107,7 +90,9 @@ export class ModelStream {
    * @param {object} [options] stream.js Stream's: fetch and fetcher.js's settings, budgetBytes
    *   (raised to what the playing frame and the next need: minimumBytes), maxChunks (parts held
    *   at most, raised to the playing frame's and the next's), wrap, maxInFlight (2), onProgress,
-   *   onRetry, onChunkLoaded(part), onError(error, frame or part)
+   *   onRetry, onChunkLoaded(part), onError(error, part, retryAt) for a part's failure (stream.js's
+   *   rule) and onError(error) for the GPU decode's (every frame decodes alike: nothing plays),
+   *   retryDelayMs, maxRetryDelayMs, clock
    */
   constructor(base, manifest, gl, options = {}) {
     this.folder = new StreamFolder(base, options);
@@ -119,7 +104,6 @@ export class ModelStream {
     this.onProgress = options.onProgress ?? (() => {});
     this.onError = options.onError ?? (() => {});
     this.onChunkLoaded = options.onChunkLoaded ?? (() => {});
-    this.failed = new FrameFailures(this);
     this.decoder = null;
     this.decodeFailure = null;  // the GPU decode's error: no frame decodes after it
     this.decoded = new Map();   // frame -> FrameOfModel, in least-recently-used order
@@ -148,7 +132,10 @@ export class ModelStream {
       wrap: options.wrap ?? true,
       order: (frame, wrap) => this._order(frame, wrap),
       onLoaded: (p) => { this.onChunkLoaded(p); this._progress(); },
-      onFailed: (p, e) => this.onError(e, p),
+      onFailed: (p, e, retryAt) => this.onError(e, p, retryAt),
+      retryDelayMs: options.retryDelayMs,
+      maxRetryDelayMs: options.maxRetryDelayMs,
+      clock: options.clock,
     });
   }
 
@@ -189,11 +176,31 @@ export class ModelStream {
     }
   }
 
-  /** Move the window to start at frame i: parts no frame from there on needs within the budget are dropped. */
-  setPlayhead(i) {
+  /**
+   * Move the window to start at frame i: parts no frame from there on needs within the budget
+   * are dropped. `asked`: the viewer asked for frame i (a seek, Play): the failures of its parts
+   * no longer stand and they are fetched again now.
+   */
+  setPlayhead(i, asked = false) {
     this.playhead = i;
     this.window.setPlayhead(i);
+    if (asked) for (const p of this._partsOf(i)) if (this.window.failure(p)) this.window.forget(p);
     this._progress();
+  }
+
+  /**
+   * The failure that keeps frame i from decoding while it stands, else undefined: {error,
+   * retryAt} (stream.js Stream.failure), the GPU decode's (for good) before any part's, and of
+   * its parts' the one that stands longest.
+   */
+  failure(i) {
+    if (this.decodeFailure) return { error: this.decodeFailure, retryAt: Infinity };
+    let worst;
+    for (const p of this._partsOf(i)) {
+      const f = this.window.failure(p);
+      if (f && !(worst?.retryAt >= f.retryAt)) worst = f;
+    }
+    return worst;
   }
 
   /** Whether the window continues at frame 0 past the last one (the page's loop box). */
@@ -257,7 +264,7 @@ export class ModelStream {
       frame = new FrameOfModel(this.decoder.decode(entry));
     } catch (e) {  // no float targets, a shader the GPU refuses: every frame fails the same way
       this.decodeFailure = e;
-      this.onError(e, i);
+      this.onError(e);
       return null;
     }
     this.decoded.set(i, frame);
@@ -271,8 +278,8 @@ export class ModelStream {
    */
   async chunk(i) {
     for (;;) {
-      const failure = this.failed.get(i);
-      if (failure) throw failure;
+      const failure = this.failure(i);
+      if (failure) throw failure.error;
       const frame = this.decodedNow(i);
       if (frame) return frame;
       if (this.decodeFailure) throw this.decodeFailure;

@@ -74,7 +74,9 @@ export class Player {
     this.view = null;
     this.homeCamera = 0;            // the training camera last chosen: where resetView returns
     this.manifest = null;
-    this.error = null;              // the first error shown
+    this.error = null;              // the error line as shown now (null: hidden)
+    this.fatal = null;              // the error that stopped the player (the first stays)
+    this.failures = new Map();      // stream file (window item) -> {message, retryAt}: failed, until it loads
     this.note = null;               // a one-line note of something the page works around (no environment map)
     this.retrying = null;           // the status line while a download is retried
     this.contextLost = false;
@@ -115,9 +117,10 @@ export class Player {
         onRetry: (file, attempt, delay, e) => {
           this.retrying = `connection trouble (${e.message}): trying ${file} again in ${(delay / 1000).toFixed(1)} s…`;
         },
-        onChunkLoaded: () => { this.retrying = null; },
-        // the manifest's failure also rejects openStream; a chunk's leaves the others playable
-        onError: (e, chunk) => { if (chunk !== undefined) this.showError(e.message, false); },
+        onChunkLoaded: (item) => { this.retrying = null; this._fileLoaded(item); },
+        // a file's failure leaves the others playable; the manifest's (also rejecting openStream)
+        // and the model decode's stop the player
+        onError: (e, item, retryAt) => (item === undefined ? this.showError(e.message) : this._fileFailed(item, e, retryAt)),
       });
       const manifest = this.stream.manifest;
       this.manifest = manifest;
@@ -137,20 +140,45 @@ export class Player {
   }
 
   /**
-   * Shows a one-line error (the first one stays). A fatal one (no manifest, no WebGL2, a bad URL
-   * parameter) stops the player; a chunk's does not: the frames of the other chunks still play,
-   * and playback stops where it reaches the broken chunk.
+   * Shows a one-line error that stops the player (no manifest, no WebGL2, a bad URL parameter);
+   * the first one stays.
    */
-  showError(message, fatal = true) {
-    if (!this.error) {
-      this.error = String(message).split('\n')[0];
-      this.el.error.textContent = this.error;
-      this.el.error.hidden = false;
-    }
-    if (fatal && !this.stopped) {
+  showError(message) {
+    this.fatal ??= String(message).split('\n')[0];
+    this._showErrorLine();
+    if (!this.stopped) {
       this.stopped = true;
-      this._halt(new Error(this.error));
+      this._halt(new Error(this.fatal));
     }
+  }
+
+  // A stream file's download failed (its retries spent, or a corrupt file): the error line says
+  // so until it loads, and when it is tried again. The frames of the other files still play;
+  // playback waits where it reaches a file that is tried again later, stops at one that is not.
+  _fileFailed(item, error, retryAt) {
+    this.retrying = null;  // the fetcher's retries are over: the error line says what comes next
+    this.failures.set(item, { message: String(error.message).split('\n')[0], retryAt });
+    this._showErrorLine();
+  }
+
+  _fileLoaded(item) {
+    if (this.failures.delete(item)) this._showErrorLine();
+  }
+
+  // The error line: the fatal error, else the oldest failure still standing with when it is tried
+  // again (a countdown, refreshed every tick), else hidden.
+  _showErrorLine() {
+    let text = this.fatal;
+    const failure = this.failures.values().next().value;
+    if (text === null && failure) {
+      const wait = failure.retryAt - performance.now();
+      if (failure.retryAt === Infinity) text = failure.message;
+      else text = `${failure.message}: ${wait > 0 ? `trying again in ${Math.ceil(wait / 1000)} s` : 'trying again'}…`;
+    }
+    if (text === this.error) return;
+    this.error = text;
+    this.el.error.textContent = text ?? '';
+    this.el.error.hidden = text === null;
   }
 
   /** Shows a one-line note (not an error: the page plays on); the first one stays. */
@@ -196,7 +224,10 @@ export class Player {
     const n = manifest.frames.length;
     if (this.options.frame >= n) throw new Error(`URL parameter frame=${this.options.frame}: the stream has ${n} frames (0..${n - 1})`);
     scrub.max = String(n - 1);
-    scrub.addEventListener('input', () => this._requestFrame(Number(scrub.value)));
+    // dragging moves the playhead; letting go asks for the frame (a failed file there is fetched
+    // again once, not at every step of the drag)
+    scrub.addEventListener('input', () => this._requestFrame(Number(scrub.value), false));
+    scrub.addEventListener('change', () => this._requestFrame(Number(scrub.value)));
     scrub.addEventListener('pointerdown', () => this._pauseWhileScrubbing());
     play.addEventListener('click', () => (this.playing ? this.pause() : this.play()));
     loop.checked = true;
@@ -293,12 +324,13 @@ export class Player {
   }
 
   // --- playing ---------------------------------------------------------------------------
-  /** Start playing from the current frame. */
+  /** Start playing from the current frame (asked for: a failed file of it is fetched again now). */
   play() {
     if (this.stopped || !this.manifest) return;
     if (!this.el.loop.checked && Math.floor(this.position) >= this.manifest.frames.length - 1) this.position = 0;
     this.playing = true;
     this._showPlaying();
+    this.stream.setPlayhead(this.stream.locate(Math.floor(this.position)).chunk, true);
   }
 
   /** Stop at the current frame. */
@@ -328,10 +360,11 @@ export class Player {
     }
   }
 
-  _requestFrame(i) {
+  // Go to frame i; `asked`: the viewer asked for it (a seek): a failed file of it is fetched again now.
+  _requestFrame(i, asked = true) {
     this.position = i;
     this.forceDraw = true;
-    if (this.stream?.manifest) this.stream.setPlayhead(this.stream.locate(i).chunk);
+    if (this.stream?.manifest) this.stream.setPlayhead(this.stream.locate(i).chunk, asked);
   }
 
   _intrinsics() {
@@ -360,15 +393,16 @@ export class Player {
     const { chunk: ci, local } = this.stream.locate(want);
     if (ci !== this.stream.playhead) this.stream.setPlayhead(ci);  // load from here on
     const chunk = this.stream.decodedNow(ci);
-    const broken = this.stream.failed.get(ci);
-    if (broken) {
-      if (this.playing || this.buffering || this.waiters.length) this._halt(broken);
+    const failure = this.stream.failure(ci);
+    if (failure?.retryAt === Infinity) {  // broken until asked for again (a seek, Play)
+      if (this.playing || this.buffering || this.waiters.length) this._halt(failure.error);
       this.position = want;
     } else if (!chunk) {
-      // wait for the frame, never skip it: playback holds here until its chunk is decoded
+      // wait for the frame, never skip it: playback holds here until its chunk is decoded (or,
+      // after a failure that may pass, fetched again: the error line counts down to it)
       this.buffering = true;
       this.position = want;
-      this.stream.chunk(ci).then(() => { this.forceDraw = true; }, () => {});
+      if (!failure) this.stream.chunk(ci).then(() => { this.forceDraw = true; }, () => {});
       this.el.status.textContent = this.retrying ?? (this.framesDrawn ? 'buffering…' : 'loading…');
     } else {
       if (this.el.status.textContent && !this.contextLost) this.el.status.textContent = '';
@@ -379,6 +413,7 @@ export class Player {
         this.stream.chunk((ci + 1) % chunks).catch(() => {});  // inflate the next chunk before it is needed
       }
     }
+    if (this.failures.size) this._showErrorLine();  // the countdown
     win.requestAnimationFrame((t) => this._tick(t));
   }
 
@@ -423,7 +458,7 @@ export class Player {
   }
 
   _whenDrawn(test) {
-    if (this.stopped) return Promise.reject(new Error(this.error));
+    if (this.stopped) return Promise.reject(new Error(this.fatal));
     return new Promise((resolve, reject) => this.waiters.push({ test, resolve, reject }));
   }
 
@@ -440,7 +475,7 @@ export class Player {
    * - play(), pause()
    * - state(): {frame, frames, playing, loop, speed, buffering, camera (training index or null), loadedBytes
    *   (chunk bytes fetched so far, refetches included), totalBytes (the chunk files' total),
-   *   framesDrawn, error, note, firstFrameMs (ms from navigation start to the first drawn frame),
+   *   framesDrawn, error (the error line as shown: null once a failed file loaded), note, firstFrameMs (ms from navigation start to the first drawn frame),
    *   drawFps (draws per second over the last 2 s), contextLost, contextRestores, and the
    *   stream's memory (stream.js Stream.memory: heldBytes, heldChunks, peakHeldBytes,
    *   peakHeldChunks, budgetBytes, maxChunks, decodedChunks, fetchedBytes, downloads, windowFull)}

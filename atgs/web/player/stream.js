@@ -88,9 +88,11 @@ export function decodedBytes(entry) {
  * The loader of one exported stream.
  * Callbacks (all optional): onProgress(bufferedBytes, windowBytes): the window's bytes held of
  * those it wants; onChunkLoaded(index); onRetry(file, attempt, delayMs, error) before a retry;
- * onError(error, index) for each failure: the manifest's (index undefined: nothing loads after
- * it) or chunk index's once its retries are spent (missing, truncated, corrupt: that chunk stays
- * failed, every request for it rejects with the same error, and the other chunks load on).
+ * onError(error, index, retryAt) for each failure: the manifest's (index undefined: nothing loads
+ * after it) or chunk index's once its retries are spent (every request for it rejects with that
+ * error while it stands, and the other chunks load on). retryAt: when it is fetched again unasked
+ * (performance.now() time: after an outage's network error, stall or 5xx, retry.js), or Infinity
+ * (missing, truncated, corrupt: only once asked for, setPlayhead(index, true)).
  */
 export class Stream {
   /**
@@ -108,6 +110,8 @@ export class Stream {
    *   chunk holds about 17 bytes a Gaussian a frame, several times its compressed size)
    * @param {number} [options.timeoutMs], [options.retries], [options.backoffMs], [options.maxBackoffMs]
    *   fetcher.js FETCH_DEFAULTS; [options.random], [options.sleep]: its jitter and wait (tests)
+   * @param {number} [options.retryDelayMs], [options.maxRetryDelayMs] the waits before a failed chunk
+   *   is fetched again unasked (retry.js RETRY_LATER_DEFAULTS); [options.clock]: their clock (tests)
    */
   constructor(base = 'stream/', options = {}) {
     this.folder = new StreamFolder(base, options);
@@ -118,7 +122,7 @@ export class Stream {
     this.onChunkLoaded = options.onChunkLoaded ?? (() => {});
     this.manifest = null;
     this.window = null;        // FetchWindow over the chunk files, once the manifest is in
-    this.failed = new Map();   // chunk index -> its Error (download or decode)
+    this.broken = new Map();   // chunk index -> its decode Error (downloaded, but corrupt): until asked for again
     this.fetchedBytes = 0;     // chunk body bytes received, every attempt and every refetch counted
     this.totalBytes = 0;       // the chunk files' total size
     this.decoded = new Map();  // chunk index -> Chunk, in least-recently-used order
@@ -167,7 +171,10 @@ export class Stream {
         maxInFlight: this.options.maxInFlight ?? 2,
         wrap: this.options.wrap ?? true,
         onLoaded: (i) => { this.onChunkLoaded(i); this._progress(); },
-        onFailed: (i, e) => this._failChunk(i, e),
+        onFailed: (i, e, retryAt) => this.onError(e, i, retryAt),
+        retryDelayMs: this.options.retryDelayMs,
+        maxRetryDelayMs: this.options.maxRetryDelayMs,
+        clock: this.options.clock,
       });
       this.window.setPlayhead(this.playhead);
       this._progress();
@@ -187,14 +194,25 @@ export class Stream {
   /**
    * Move the window to start at chunk i: chunks outside it are dropped and their downloads
    * aborted, then chunk i is fetched first (if it is not held), and the ones after it in order.
-   * The player calls it with the chunk it plays or seeks to.
+   * The player calls it with the chunk it plays or seeks to; `asked`: the viewer asked for it (a
+   * seek, Play): a failure of chunk i no longer stands and it is fetched again now.
    */
-  setPlayhead(i) {
+  setPlayhead(i, asked = false) {
     this.playhead = i;
-    if (this.window) {
-      this.window.setPlayhead(i);
-      this._progress();
-    }
+    if (!this.window) return;
+    this.window.setPlayhead(i);
+    if (asked && (this.broken.delete(i) || this.window.failure(i))) this.window.forget(i);
+    this._progress();
+  }
+
+  /**
+   * Chunk i's failure while it stands, else undefined: {error, retryAt} (retryAt: when it is
+   * fetched again unasked, Infinity: only once asked for).
+   */
+  failure(i) {
+    const broken = this.broken.get(i);
+    if (broken) return { error: broken, retryAt: Infinity };
+    return this.window?.failure(i);
   }
 
   /** Whether the window continues at chunk 0 past the last one (the page's loop box). */
@@ -250,7 +268,8 @@ export class Stream {
   chunk(i) {
     const ready = this.decodedNow(i);
     if (ready) return Promise.resolve(ready);
-    if (this.failed.has(i)) return Promise.reject(this.failed.get(i));
+    const failure = this.failure(i);
+    if (failure) return Promise.reject(failure.error);
     if (!this.decoding.has(i)) {
       const job = this._decode(i).finally(() => this.decoding.delete(i));
       job.catch(() => {});  // failures are reported through onError and the returned promise
@@ -294,11 +313,11 @@ export class Stream {
     this.onProgress(...this.window.progress());
   }
 
-  // Marks chunk i failed (its first error stands), rejects its waiters, reports it once; returns the error.
+  // Marks chunk i broken (its first error stands until it is asked for again), reports it once; returns the error.
   _failChunk(i, error) {
-    if (this.failed.has(i)) return this.failed.get(i);
-    this.failed.set(i, error);
-    this.onError(error, i);
+    if (this.broken.has(i)) return this.broken.get(i);
+    this.broken.set(i, error);
+    this.onError(error, i, Infinity);
     return error;
   }
 }

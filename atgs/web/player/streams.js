@@ -1,8 +1,9 @@
 // Which stream a folder holds (manifest.json's "kind"): the Gaussian chunks of stream.js, or the
 // model itself (model_stream.js, kind "model"). Both offer the player one interface (locate,
-// setPlayhead, setWrap, decodedNow, chunk, failed, url, fetchFile, units, memory, fetchedBytes,
-// totalBytes, budgetBytes, contextRestored), fetch through fetcher.js and hold their files in a
-// window.js FetchWindow within the page's byte budget.
+// setPlayhead(unit, asked), setWrap, decodedNow, chunk, failure, url, fetchFile, units, memory,
+// fetchedBytes, totalBytes, budgetBytes, contextRestored), fetch through fetcher.js and hold their
+// files in a window.js FetchWindow within the page's byte budget, fetching a failed file again by
+// retry.js's rule.
 
 import { StreamFolder } from './fetcher.js';
 import { ModelStream } from './model_stream.js';

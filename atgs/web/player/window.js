@@ -5,12 +5,23 @@
 // downloads; a seek outside the window goes back to the network. Any stream kind keeps its files
 // through one of these; what an item is (a chunk, a model part) is its `load`, and a kind whose
 // items are not one per playhead position (a model part serves many frames) gives the `order` in
-// which it wants them from a playhead. No DOM: Node tests it with a stand-in load.
+// which it wants them from a playhead. An item whose load failed is fetched again by retry.js's
+// rule: after a growing wait if the failure may pass (an outage), else only when asked for (a
+// seek onto it); the window's clock times the waits. No DOM: Node tests it with a stand-in load
+// and clock.
 
 import { isAbort } from './fetcher.js';
+import { Failures } from './retry.js';
 
 /** The default budget: 32 MiB of compressed bytes held (a phone's tab holds that easily). */
 export const DEFAULT_BUDGET_BYTES = 32 * 2 ** 20;
+
+/** The page's clock: performance.now()'s milliseconds, and its timers. */
+export const SYSTEM_CLOCK = Object.freeze({
+  now: () => performance.now(),
+  setTimeout: (fn, ms) => setTimeout(fn, ms),
+  clearTimeout: (id) => clearTimeout(id),
+});
 
 /** The items in playing order from item `playhead` on (past the last back to 0 when `wrap`). */
 export function* playingOrder(playhead, wrap, n) {
@@ -33,7 +44,11 @@ export class FetchWindow {
    * @param {(playhead: number, wrap: boolean) => Iterable<number>} [o.order] the items the window
    *   wants from a playhead, most urgent first, each once (playingOrder: the playhead is an item)
    * @param {(i: number) => void} [o.onLoaded]
-   * @param {(i: number, error: Error) => void} [o.onFailed] once per item whose load failed (it stays failed)
+   * @param {(i: number, error: Error, retryAt: number) => void} [o.onFailed] each time an item's load
+   *   fails; retryAt: when the window may fetch it again unasked (a time of `clock`; Infinity:
+   *   only once asked for, forget)
+   * @param {number} [o.retryDelayMs], [o.maxRetryDelayMs] the waits after a failure (retry.js RETRY_LATER_DEFAULTS)
+   * @param {{now: () => number, setTimeout: Function, clearTimeout: Function}} [o.clock] (SYSTEM_CLOCK; tests pass a fake)
    */
   constructor(o) {
     this.sizes = o.sizes;
@@ -45,10 +60,13 @@ export class FetchWindow {
     this.order = o.order ?? ((playhead, wrap) => playingOrder(playhead, wrap, this.sizes.length));
     this.onLoaded = o.onLoaded ?? (() => {});
     this.onFailed = o.onFailed ?? (() => {});
+    this.clock = o.clock ?? SYSTEM_CLOCK;
     this.playhead = 0;
     this.items = new Map();     // i -> value, loaded and held
     this.inFlight = new Map();  // i -> AbortController
-    this.failed = new Map();    // i -> Error
+    this.failures = new Failures(o);  // i -> why it failed, until when it is not fetched
+    this.timer = null;          // wakes the window when the first standing failure ends
+    this.timerAt = Infinity;
     this.waiters = new Map();   // i -> [{resolve, reject}]
     this.heldBytes = 0;         // of items and loads in flight (a load reserves its item's size)
     this.peakBytes = 0;
@@ -76,9 +94,17 @@ export class FetchWindow {
     return this.items.get(i);
   }
 
-  /** True when every item of the window is held (or failed): nothing more to fetch until the playhead moves. */
+  /**
+   * Item i's failure while it stands ({error, count, retryAt}: not fetched before retryAt, a time
+   * of the window's clock, Infinity: until asked for), else undefined.
+   */
+  failure(i) {
+    return this.failures.standing(i, this.clock.now());
+  }
+
+  /** True when every item of the window is held (or failed): nothing more to fetch until the playhead moves or a failure ends. */
   full() {
-    return this.wanted().every((i) => this.items.has(i) || this.failed.has(i));
+    return this.wanted().every((i) => this.items.has(i) || this.failure(i));
   }
 
   /**
@@ -122,15 +148,27 @@ export class FetchWindow {
   /**
    * Item i once loaded (at once when held). An item outside the window is not fetched for this:
    * the promise waits until the playhead brings it in (move the playhead first).
-   * @returns {Promise<any>} rejects with the item's error if its load failed
+   * @returns {Promise<any>} rejects with the item's error while its failure stands (failure(i))
    */
   get(i) {
     if (this.items.has(i)) return Promise.resolve(this.items.get(i));
-    if (this.failed.has(i)) return Promise.reject(this.failed.get(i));
+    const failure = this.failure(i);
+    if (failure) return Promise.reject(failure.error);
     return new Promise((resolve, reject) => {
       if (!this.waiters.has(i)) this.waiters.set(i, []);
       this.waiters.get(i).push({ resolve, reject });
     });
+  }
+
+  /**
+   * Item i is asked for again (a seek onto it): its failure no longer stands, or the copy held
+   * (that proved bad) is dropped, so it is fetched now if it is in the window (else when the
+   * playhead brings it in). Its failures in a row still count for the next wait.
+   */
+  forget(i) {
+    if (this.items.has(i)) this._drop(i);
+    this.failures.forgive(i, this.clock.now());
+    this._update();
   }
 
   /** Abort every load and drop every item: the window holds nothing after this. */
@@ -154,8 +192,26 @@ export class FetchWindow {
     }
     for (const i of wanted) {
       if (this.inFlight.size >= this.maxInFlight) break;
-      if (!this.items.has(i) && !this.inFlight.has(i) && !this.failed.has(i)) this._start(i);
+      if (!this.items.has(i) && !this.inFlight.has(i) && !this.failure(i)) this._start(i);
     }
+    this._wakeAtNextRetry();
+  }
+
+  // One timer, at the end of the first standing failure that ends on its own: the window looks
+  // again then (and fetches the item if the playhead still wants it; if not, when it does).
+  _wakeAtNextRetry() {
+    const now = this.clock.now();
+    const next = this.closed ? Infinity : this.failures.nextEnd(now);
+    if (next === this.timerAt) return;
+    if (this.timer !== null) this.clock.clearTimeout(this.timer);
+    this.timer = null;
+    this.timerAt = next;
+    if (next === Infinity) return;
+    this.timer = this.clock.setTimeout(() => {
+      this.timer = null;
+      this.timerAt = Infinity;
+      this._update();
+    }, next - now);
   }
 
   _drop(i) {
@@ -175,6 +231,7 @@ export class FetchWindow {
         if (this.inFlight.get(i) !== controller) return;  // aborted: its reservation is already released
         this.inFlight.delete(i);
         this.items.set(i, value);
+        this.failures.succeeded(i);
         this.onLoaded(i);
         this._settle(i, (w) => w.resolve(value));
         this._update();
@@ -184,8 +241,8 @@ export class FetchWindow {
         this.inFlight.delete(i);
         this.heldBytes -= this.sizes[i];
         if (isAbort(error)) return;
-        this.failed.set(i, error);
-        this.onFailed(i, error);
+        const { retryAt } = this.failures.failed(i, error, this.clock.now());
+        this.onFailed(i, error, retryAt);
         this._settle(i, (w) => w.reject(error));
         this._update();
       },
