@@ -80,6 +80,8 @@ class BenchConfig:
     """--part bytes: the prepared scene of the held-out ground truth (default: the checkpoint's data_dir)."""
     bytes_frames: int = 6
     """--part bytes: frames (evenly spaced) of the held-out camera."""
+    bytes_routes: tuple[str, ...] = ("a", "b")
+    """--part bytes: the routes measured: "a" the model stream, "b" the Gaussian chunks."""
     bytes_docs: Path | None = Path("docs/web.md")
     """--part bytes: the page with the bench:web-bytes markers."""
     out: Path = Path("bench/results/web.json")
@@ -431,7 +433,7 @@ def run_bytes(cfg: BenchConfig) -> None:
     with tempfile.TemporaryDirectory() as d:
         curve = bytes_curve(cfg.checkpoint, cfg.scene, cfg.bytes_frames, Path(d),
                             lambda ckpt, out, extra: _export(ckpt, out, "web", cfg.chunk_frames, extra), _desktop,
-                            _psnr)
+                            _psnr, cfg.bytes_routes)
     curve.update(machine={"cpus": os.cpu_count()}, **run_stamp())
     result = json.loads(cfg.out.read_text()) if cfg.out.exists() else {}
     result["bytes"] = curve

@@ -122,6 +122,9 @@ export class ModelStream {
     this.failed = new FrameFailures(this);
     this.decoder = null;
     this.decodeFailure = null;  // the GPU decode's error: no frame decodes after it
+    // the last frame decoded: {frame, decodeMs (the GPU passes and the read-back), prepareMs (the
+    // frame object the renderer takes)}; state() carries it for bench/web.py
+    this.lastDecode = null;
     this.decoded = new Map();   // frame -> FrameOfModel, in least-recently-used order
     this.playhead = 0;
     this.fetchedBytes = 0;
@@ -218,6 +221,7 @@ export class ModelStream {
     return {
       ...this.window.memory(), budgetBytes: this.budgetBytes, minimumBytes: this.minimumBytes,
       decodedReserveBytes: this.decodedReserve, decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes,
+      lastDecode: this.lastDecode,
     };
   }
 
@@ -251,10 +255,14 @@ export class ModelStream {
     const m = this.model, entry = m.frames[i];
     let frame;
     try {
+      const t0 = performance.now();
       if (!this.decoder) this.decoder = new ModelDecoder(this.gl, m, w.peek(m.weights));
       this.decoder.setAnchors(entry.anchors.join(','), entry.anchors.map((p) => ({ keyframe: m.parts[p].keyframe, tensors: w.peek(p) })));
       this.decoder.setHash(String(entry.hash), w.peek(entry.hash));
-      frame = new FrameOfModel(this.decoder.decode(entry));
+      const decoded = this.decoder.decode(entry);  // readPixels waits for the GPU: the passes are in this time
+      const t1 = performance.now();
+      frame = new FrameOfModel(decoded);
+      this.lastDecode = { frame: i, decodeMs: t1 - t0, prepareMs: performance.now() - t1 };
     } catch (e) {  // no float targets, a shader the GPU refuses: every frame fails the same way
       this.decodeFailure = e;
       this.onError(e, i);
