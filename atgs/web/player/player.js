@@ -448,6 +448,8 @@ export class Player {
    *   top row first), drawn again and read back at once
    * - gaussians(i): Promise of exported frame i's Gaussians as the page decoded them (a model
    *   stream only; model_stream.js ModelStream.gaussians)
+   * - drawnGaussians(): the Gaussians of the last drawn frame as the renderer's textures hold them
+   *   (renderer.js readGaussians: what the renderer received, read back from the GPU)
    */
   api() {
     return {
@@ -489,6 +491,10 @@ export class Player {
       gaussians: (i) => {
         if (!this.stream?.gaussians) return Promise.reject(new Error('gaussians(i): the stream is not a model stream'));
         return this.stream.gaussians(i);
+      },
+      drawnGaussians: () => {
+        if (!this.last) throw new Error('nothing drawn yet');
+        return this.renderer.readGaussians(this.last.chunk.G);
       },
       readPixels: () => {
         if (!this.last) throw new Error('nothing drawn yet');
