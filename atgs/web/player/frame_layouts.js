@@ -39,12 +39,9 @@ vec3 gaussianScale(ivec2 texel) {
 vec3 gaussianColor(ivec2 texel) { return vec3(texelFetch(u_color, texel, 0).xyz) / 255.0; }
 `;
 
-const FLOAT_TEXTURES = [
-  { field: 'mean', uniform: 'u_mean', internal: 'RGBA32F', format: 'RGBA', type: 'FLOAT', read: 'FLOAT' },
-  { field: 'quat', uniform: 'u_quat', internal: 'RGBA32F', format: 'RGBA', type: 'FLOAT', read: 'FLOAT' },
-  { field: 'scale', uniform: 'u_scale', internal: 'RGBA32F', format: 'RGBA', type: 'FLOAT', read: 'FLOAT' },
-  { field: 'color', uniform: 'u_color', internal: 'RGBA32F', format: 'RGBA', type: 'FLOAT', read: 'FLOAT' },
-];
+// the four RGBA32F read-backs of model_decode.js, each in a texture of its own
+const FLOAT_TEXTURES = ['mean', 'quat', 'scale', 'color'].map((field) => (
+  { field, uniform: `u_${field}`, internal: 'RGBA32F', format: 'RGBA', type: 'FLOAT', read: 'FLOAT' }));
 
 const FLOAT_GLSL = `
 uniform highp sampler2D u_mean;             // RGBA32F: x, y, z, opacity (0: dropped)

@@ -1,7 +1,8 @@
-// WebGL2 splatting of one frame of a chunk, the same projection and blending as the desktop
-// player (atgs/shaders/splat.vert, splat.geom, splat.frag, environment.frag): EWA with the
-// dilation, gsplat's Jacobian clamp, the near plane, a k-sigma extent, alpha = min(alpha_max,
-// o exp(-sigma)), premultiplied back-to-front blending over the background. A frame source (a
+// WebGL2 splatting of one frame (of a chunk, or a decoded model frame), the same projection and
+// blending as the desktop player (atgs/shaders/splat.vert, splat.geom, splat.frag,
+// environment.frag): EWA with the dilation, gsplat's Jacobian clamp, the near plane, a k-sigma
+// extent, alpha = min(alpha_max, o exp(-sigma)), premultiplied back-to-front blending over the
+// background. A frame source (a
 // chunk, a decoded model frame) names its layout (frame_layouts.js): a chunk's quantized fields
 // stay quantized on the GPU (integer textures) and are dequantized in the vertex shader with the
 // chunk's ranges; a decoded model frame's floats are drawn as decoded (float textures).
