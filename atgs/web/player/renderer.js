@@ -2,10 +2,10 @@
 // blending as the desktop player (atgs/shaders/splat.vert, splat.geom, splat.frag,
 // environment.frag): EWA with the dilation, gsplat's Jacobian clamp, the near plane, a k-sigma
 // extent, alpha = min(alpha_max, o exp(-sigma)), premultiplied back-to-front blending over the
-// background. A frame source (a
-// chunk, a decoded model frame) names its layout (frame_layouts.js): a chunk's quantized fields
-// stay quantized on the GPU (integer textures) and are dequantized in the vertex shader with the
-// chunk's ranges; a decoded model frame's floats are drawn as decoded (float textures).
+// background. A frame source (a chunk, a decoded model frame) names its layout
+// (frame_layouts.js): a chunk's quantized fields stay quantized on the GPU (integer textures) and
+// are dequantized in the vertex shader with the chunk's ranges; a decoded model frame's floats
+// are drawn as decoded (float textures).
 //
 // One quad per Gaussian, drawn as one indexed draw of four vertices per quad: vertex 4 s + c is
 // corner c of the s-th Gaussian back to front, whose index the shader reads from the order
