@@ -9,7 +9,9 @@ headless Chromium (software WebGL2 on this machine's CPUs: a floor, not a GPU fi
     # needed): merged into bench/results/web.json under "memory", its other keys kept
     python bench/web.py --part bytes --checkpoint runs/demo/ckpt.pt [--scene PREPARED]
     # bytes a frame against held-out PSNR of both streams (bench/_web_bytes.py): the "bytes" key of
-    # bench/results/web.json (the others kept) and the table in docs/web.md
+    # bench/results/web.json (the others kept) and the table in docs/web.md; with each seek's time
+    # and, for the model stream, the page's decode and frame-preparation times. --bytes-routes a:
+    # the model stream only (with --out elsewhere and --bytes-docs None --docs None: a comparison run)
 
 Targets (issue 39): the web export at most 1/8 of the PLY export's bytes; the browser's frames at
 least 35 dB against atgs-render; the first frame within 2 s of opening the page on localhost.

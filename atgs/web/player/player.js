@@ -443,7 +443,8 @@ export class Player {
    *   framesDrawn, error, note, firstFrameMs (ms from navigation start to the first drawn frame),
    *   drawFps (draws per second over the last 2 s), contextLost, contextRestores, and the
    *   stream's memory (stream.js Stream.memory: heldBytes, heldChunks, peakHeldBytes,
-   *   peakHeldChunks, budgetBytes, maxChunks, decodedChunks, fetchedBytes, downloads, windowFull)}
+   *   peakHeldChunks, budgetBytes, maxChunks, decodedChunks, fetchedBytes, downloads, windowFull;
+   *   a model stream's lastDecode: model_stream.js)}
    * - readPixels(): {width, height, encoding: 'base64', data}: the last drawn image (RGBA bytes,
    *   top row first), drawn again and read back at once
    * - gaussians(i): Promise of exported frame i's Gaussians as the page decoded them (a model
