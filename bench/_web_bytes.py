@@ -72,27 +72,37 @@ def _rewrite_chunks(src: Path, dst: Path, opacity_cut: float = 0.0, coarse: tupl
 
 
 def _browser_psnr(browser, web: Path, camera: int, frames: list[int], truth: dict[int, np.ndarray],
-                  view: dict[int, np.ndarray], psnr) -> tuple[list[float], list[float], float]:
+                  view: dict[int, np.ndarray], psnr) -> tuple[list[float], list[float], float, dict]:
     """PSNR of the page's canvas against the ground truth and against atgs-view at each frame;
-    seconds per seek."""
-    out, against_view = [], []
+    seconds per seek; and per seek its seconds and, for a model stream, the page's own times of
+    the frame it decoded (model_stream.js lastDecode: the GPU passes with the read-back, and the
+    frame object the renderer takes)."""
+    out, against_view, times = [], [], {"seek_s": [], "decode_ms": [], "prepare_ms": []}
     with serving(web) as url:
         page = PlayerPage(browser, url, {"camera": camera, "paused": 1, "size": "camera"}, timeout_s=900)
         page.first_frame()
         t0 = time.perf_counter()
         for f in frames:
+            t = time.perf_counter()
             page.seek(f)
             got = page.pixels()
+            times["seek_s"].append(time.perf_counter() - t)
+            last = page.state().get("lastDecode")
+            if last is not None:  # frame 0's decode came with the first frame (and the decoder's set-up)
+                times["decode_ms"].append(last["decodeMs"])
+                times["prepare_ms"].append(last["prepareMs"])
             out.append(psnr(got, truth[f]))
             against_view.append(psnr(got, view[f]))
         seek_s = (time.perf_counter() - t0) / max(len(frames), 1)
         page.close()
-    return out, against_view, seek_s
+    return out, against_view, seek_s, times
 
 
-def bytes_curve(ckpt: Path, scene_dir: Path | None, count: int, tmp: Path, export, desktop, psnr) -> dict:
+def bytes_curve(ckpt: Path, scene_dir: Path | None, count: int, tmp: Path, export, desktop, psnr,
+                routes: tuple[str, ...] = ("a", "b")) -> dict:
     """Every point of the curve: {route, variant, bytes_per_frame, psnr_db (mean), per_frame, ...};
-    ``export(ckpt, out, args)`` runs atgs-export, ``desktop(ckpt, camera, frame, png)`` atgs-view."""
+    ``export(ckpt, out, args)`` runs atgs-export, ``desktop(ckpt, camera, frame, png)`` atgs-view;
+    ``routes``: the routes measured ("a" the model stream, "b" the Gaussian chunks)."""
     from atgs.checkpoint import load_model, read_checkpoint
     from atgs.data.scene import PreparedScene
     from atgs.eval.evaluate import EvalConfig, evaluate
@@ -113,19 +123,29 @@ def bytes_curve(ckpt: Path, scene_dir: Path | None, count: int, tmp: Path, expor
     points = []
     with chromium() as browser:
         def point(route: str, variant: str, web: Path, **extra) -> None:
-            per, against_view, seek_s = _browser_psnr(browser, web, camera, frames, truth, view, psnr)
+            per, against_view, seek_s, times = _browser_psnr(browser, web, camera, frames, truth, view, psnr)
+            # a frame's time: the seeks that decoded or drew a new frame (the first frame is drawn at load)
+            later = lambda xs: xs[1:] if len(xs) > 1 else xs  # noqa: E731
+            frame_times = {"seek_per_frame_s": times["seek_s"], "frame_s_median": float(np.median(later(times["seek_s"])))}
+            if times["decode_ms"]:
+                frame_times.update(decode_ms=times["decode_ms"], prepare_ms=times["prepare_ms"],
+                                   decode_ms_median=float(np.median(later(times["decode_ms"]))),
+                                   prepare_ms_median=float(np.median(later(times["prepare_ms"]))))
             points.append({"route": route, "variant": variant, "bytes_per_frame": _stream_bytes(web) / n,
                            "psnr_db": float(np.mean(per)), "per_frame_db": per,
                            "view_db_min": float(min(against_view)), "view_per_frame_db": against_view,
+                           "view_db_mean": float(np.mean(against_view)),
                            "delta_to_eval_db": float(np.mean(per)) - float(np.mean(eval_db)), "seek_s": seek_s,
-                           "psnr_from": "the browser's pixels", **extra})
+                           **frame_times, "psnr_from": "the browser's pixels", **extra})
             print(points[-1]["variant"], f"{points[-1]['bytes_per_frame'] / 1e3:.0f} kB/frame",
                   f"{points[-1]['psnr_db']:.2f} dB", flush=True)
 
-        for p in MODEL_PRECISIONS:
+        for p in MODEL_PRECISIONS if "a" in routes else ():
             web = tmp / f"model-{p}"
             export(ckpt, web, ["--web-stream", "model", "--web-precision", p])
             point("a", f"model, {p}", web, precision=p)
+        if "b" not in routes:
+            return _curve(ckpt, data_dir, held, frames, n, eval_db, points)
         base = tmp / "gaussians"
         export(ckpt, base, ["--web-stream", "gaussians", "--chunk-frames", "8"])
         point("b", "Gaussians, as exported (8-frame chunks)", base)
@@ -138,6 +158,11 @@ def bytes_curve(ckpt: Path, scene_dir: Path | None, count: int, tmp: Path, expor
             _rewrite_chunks(base, web, coarse=(pos_bits, col_bits))
             point("b", f"Gaussians, {16 - pos_bits}-bit positions, {8 - col_bits}-bit colours", web,
                   coarse=[pos_bits, col_bits])
+    return _curve(ckpt, data_dir, held, frames, n, eval_db, points)
+
+
+def _curve(ckpt: Path, data_dir: Path, held: str, frames: list[int], n: int, eval_db: list[float],
+           points: list[dict]) -> dict:
     return {"checkpoint": str(ckpt), "scene": str(data_dir), "camera": held, "frames": frames,
             "num_frames": n, "eval_psnr_db": float(np.mean(eval_db)), "eval_per_frame_db": eval_db, "points": points}
 

@@ -9,7 +9,9 @@ headless Chromium (software WebGL2 on this machine's CPUs: a floor, not a GPU fi
     # needed): merged into bench/results/web.json under "memory", its other keys kept
     python bench/web.py --part bytes --checkpoint runs/demo/ckpt.pt [--scene PREPARED]
     # bytes a frame against held-out PSNR of both streams (bench/_web_bytes.py): the "bytes" key of
-    # bench/results/web.json (the others kept) and the table in docs/web.md
+    # bench/results/web.json (the others kept) and the table in docs/web.md; with each seek's time
+    # and, for the model stream, the page's decode and frame-preparation times. --bytes-routes a:
+    # the model stream only (with --out elsewhere and --bytes-docs None --docs None: a comparison run)
 
 Targets (issue 39): the web export at most 1/8 of the PLY export's bytes; the browser's frames at
 least 35 dB against atgs-render; the first frame within 2 s of opening the page on localhost.
@@ -80,6 +82,8 @@ class BenchConfig:
     """--part bytes: the prepared scene of the held-out ground truth (default: the checkpoint's data_dir)."""
     bytes_frames: int = 6
     """--part bytes: frames (evenly spaced) of the held-out camera."""
+    bytes_routes: tuple[str, ...] = ("a", "b")
+    """--part bytes: the routes measured: "a" the model stream, "b" the Gaussian chunks."""
     bytes_docs: Path | None = Path("docs/web.md")
     """--part bytes: the page with the bench:web-bytes markers."""
     out: Path = Path("bench/results/web.json")
@@ -431,7 +435,7 @@ def run_bytes(cfg: BenchConfig) -> None:
     with tempfile.TemporaryDirectory() as d:
         curve = bytes_curve(cfg.checkpoint, cfg.scene, cfg.bytes_frames, Path(d),
                             lambda ckpt, out, extra: _export(ckpt, out, "web", cfg.chunk_frames, extra), _desktop,
-                            _psnr)
+                            _psnr, cfg.bytes_routes)
     curve.update(machine={"cpus": os.cpu_count()}, **run_stamp())
     result = json.loads(cfg.out.read_text()) if cfg.out.exists() else {}
     result["bytes"] = curve

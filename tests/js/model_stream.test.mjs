@@ -1,11 +1,11 @@
-// model_stream.js without a GPU: FrameOfModel's quantization (the chunk's rules) and the parts a
+// model_stream.js without a GPU: the frame it hands the renderer (DecodedFrame) and the parts a
 // ModelStream holds from the playhead on within its byte budget, with a stand-in fetch.
 import assert from 'node:assert/strict';
 import { test } from 'node:test';
 
 import { gzipSync } from 'node:zlib';
 
-import { DECODED_BYTES_PER_SLOT, FrameOfModel, ModelStream } from '../../atgs/web/player/model_stream.js';
+import { DECODED_BYTES_PER_SLOT, DecodedFrame, ModelStream } from '../../atgs/web/player/model_stream.js';
 
 // A part file holding no tensors (docs/web.md, "A model part file").
 function emptyPart() {
@@ -19,7 +19,7 @@ function emptyPart() {
 }
 const PART = emptyPart();
 
-test('a decoded frame is quantized over its kept Gaussians, dropped ones at opacity 0', () => {
+test('a decoded frame hands the renderer its read-backs as they are (layout float, no copy)', () => {
   const count = 3;
   const decoded = {
     count,
@@ -28,24 +28,13 @@ test('a decoded frame is quantized over its kept Gaussians, dropped ones at opac
     scale: Float32Array.from([0.01, 0.02, 0.04, 1, 0.1, 0.2, 0.3, 1, 5, 5, 5, 0]),
     color: Float32Array.from([0, 0.5, 1, 0, 0.25, 0.75, 0.1, 0, 1, 1, 1, 0]),
   };
-  const frame = new FrameOfModel(decoded);
-  assert.deepEqual([frame.F, frame.G, frame.S, frame.D], [1, 3, 0, 3]);
-  assert.deepEqual(frame.ranges.posMin, [0, -5, 2]);  // the dropped Gaussian's 99s are not in the range
-  assert.deepEqual(frame.ranges.posMax, [10, 1, 4]);
+  const frame = new DecodedFrame(decoded);
+  assert.deepEqual([frame.layout, frame.F, frame.G, frame.S, frame.D], ['float', 1, 3, 0, 3]);
   const f = frame.frame(0);
-  const r = frame.ranges;
-  for (let i = 0; i < 2; i++) {
-    for (let c = 0; c < 3; c++) {
-      const x = r.posMin[c] + (f.position[4 * i + c] / 65535) * (r.posMax[c] - r.posMin[c]);
-      assert.ok(Math.abs(x - decoded.mean[4 * i + c]) <= 0.5 * (r.posMax[c] - r.posMin[c]) / 65535 + 1e-6);
-      const s = Math.exp(r.logScaleMin + (f.scaleOpacity[4 * i + c] / 255) * (r.logScaleMax - r.logScaleMin));
-      assert.ok(Math.abs(Math.log(s / decoded.scale[4 * i + c])) <= 0.5 * (r.logScaleMax - r.logScaleMin) / 255 + 1e-6);
-      assert.equal(f.color[4 * i + c], Math.round(decoded.color[4 * i + c] * 255));
-    }
-  }
-  assert.deepEqual(Array.from(f.scaleOpacity.subarray(0, 12)).filter((_, k) => k % 4 === 3), [229, 128, 0]);
-  assert.deepEqual(Array.from(f.rotation.subarray(0, 4)), [127, 0, 0, 0]);  // -q is q: w >= 0
-  assert.deepEqual(Array.from(f.rotation.subarray(4, 8)), [64, 64, 64, 64]);
+  for (const name of ['mean', 'quat', 'scale', 'color']) assert.equal(f[name], decoded[name], name);  // the same arrays
+  // the depth sort reads the positions and the opacities (at 4 i + 3) of the mean texels
+  assert.equal(f.position, decoded.mean);
+  assert.equal(f.opacity, decoded.mean);
   assert.throws(() => frame.frame(1), RangeError);
 });
 
@@ -88,7 +77,7 @@ const noWait = { sleep: async () => {}, random: () => 0 };
 test('the parts are fetched in playing order from the playhead, each once, within the byte budget', async () => {
   const n = 200;
   const m = manifest(n);
-  // room for 12 parts besides the decoded frames: 3 (the most a frame decodes: 15 anchors of 2) x 80 bytes x 3
+  // room for 12 parts besides the decoded frames: 3 (the most a frame decodes: 15 anchors of 2) x 64 bytes x 3
   const reserve = 3 * DECODED_BYTES_PER_SLOT * 30;
   const { fetch, requested } = standIn();
   const s = new ModelStream('stream/', m, null, { fetch, budgetBytes: reserve + 12 * 4 * VALUES });

@@ -2,7 +2,7 @@
 import assert from 'node:assert/strict';
 import { test } from 'node:test';
 
-import { DEPTH_LEVELS, DepthSorter, backToFront, depthAffine } from '../../atgs/web/player/sort.js';
+import { DEPTH_LEVELS, DepthSorter, backToFront, depthAffine, depthAffineOfFloats } from '../../atgs/web/player/sort.js';
 import { random } from './encode.mjs';
 
 function randomFields(rand, n) {
@@ -11,7 +11,7 @@ function randomFields(rand, n) {
     for (let c = 0; c < 3; c++) position[4 * i + c] = Math.floor(rand() * 65536);
     scaleOpacity[4 * i + 3] = Math.floor(rand() * 256);
   }
-  return { count: n, position, scaleOpacity, geometryVersion: 1 };
+  return { count: n, position, scaleOpacity, opacity: scaleOpacity, geometryVersion: 1 };
 }
 
 // A view from (0, 0, -3) looking along +z, turned a little about y: row 2 of w2c is what counts.
@@ -70,19 +70,42 @@ test('DepthSorter sorts again only when the depth axis or the geometry changes',
   const sorter = new DepthSorter();
   const cull = { near: 0.01 };
   const view = w2cLookingZ(0.2);
-  sorter.sort(fields, view, ranges, cull);
+  sorter.sort(fields, depthAffine(view, ranges.posMin, ranges.posMax), cull);
   assert.equal(sorter.sorted, true);
-  sorter.sort(fields, view, ranges, cull);
+  sorter.sort(fields, depthAffine(view, ranges.posMin, ranges.posMax), cull);
   assert.equal(sorter.sorted, false);
   const sideways = [...view];
   sideways[3] += 0.5;  // moving along the camera's x axis leaves every depth as it was
-  sorter.sort(fields, sideways, ranges, cull);
+  sorter.sort(fields, depthAffine(sideways, ranges.posMin, ranges.posMax), cull);
   assert.equal(sorter.sorted, false);
-  sorter.sort(fields, w2cLookingZ(0.21), ranges, cull);
+  sorter.sort(fields, depthAffine(w2cLookingZ(0.21), ranges.posMin, ranges.posMax), cull);
   assert.equal(sorter.sorted, true);
   fields.geometryVersion++;
-  sorter.sort(fields, w2cLookingZ(0.21), ranges, cull);
+  sorter.sort(fields, depthAffine(w2cLookingZ(0.21), ranges.posMin, ranges.posMax), cull);
   assert.equal(sorter.sorted, true);
-  sorter.sort({ ...fields }, w2cLookingZ(0.21), ranges, cull);  // another chunk's fields
+  sorter.sort({ ...fields }, depthAffine(w2cLookingZ(0.21), ranges.posMin, ranges.posMax), cull);  // another chunk's fields
   assert.equal(sorter.sorted, true);
+});
+
+test('float positions and opacities (a decoded model frame) sort as their quantized images do', () => {
+  // the random quantized fields as floats: the same depths up to rounding, the same culls
+  const rand = random(14);
+  const q = randomFields(rand, 2000);
+  const mean = new Float32Array(4 * q.count);
+  for (let i = 0; i < q.count; i++) {
+    for (let c = 0; c < 3; c++) mean[4 * i + c] = ranges.posMin[c] + (q.position[4 * i + c] / 65535) * (ranges.posMax[c] - ranges.posMin[c]);
+    mean[4 * i + 3] = q.scaleOpacity[4 * i + 3] / 255;
+  }
+  const floats = { count: q.count, position: mean, opacity: mean, geometryVersion: 0 };
+  const w2c = w2cLookingZ(0.7, 1.5);
+  const got = backToFront(floats, depthAffineOfFloats(w2c), { near: 0.3, minOpacity: Math.fround(64 / 255) });
+  const ref = reference(q, w2c, 0.3, 64);
+  assert.ok(ref.kept.length > 0 && ref.kept.length < q.count);
+  assert.equal(got.count, ref.kept.length);
+  // keys may differ by one where float32 rounding moves a depth across a key boundary
+  const z = new Map(ref.kept.map((k) => [k.i, k.z]));
+  const zs = Array.from(got.order.subarray(0, got.count), (i) => z.get(i));
+  assert.ok(zs.every((d) => d !== undefined), 'the kept Gaussians are the reference\'s');
+  const width = (zs[0] - zs[zs.length - 1]) / (DEPTH_LEVELS - 1);
+  for (let j = 1; j < zs.length; j++) assert.ok(zs[j] <= zs[j - 1] + 2 * width, `depth rises at ${j}`);
 });

@@ -42,8 +42,9 @@ function planeOffsets(n) {
  * - scaleOpacity Uint8Array log-scale x, y, z, opacity (RGBA8UI)
  * - rotation   Int8Array    w, x, y, z        (RGBA8I)
  * - color      Uint8Array   r, g, b, 0        (RGBA8UI)
+ * - opacity    scaleOpacity itself: the array with the opacity at 4 i + 3, as the depth sort reads it
  * @typedef {{count: number, position: Uint16Array, scaleOpacity: Uint8Array,
- *            rotation: Int8Array, color: Uint8Array, geometryVersion: number}} FrameFields
+ *            rotation: Int8Array, color: Uint8Array, opacity: Uint8Array, geometryVersion: number}} FrameFields
  * geometryVersion changes only when a position or opacity changed from the frame returned
  * before (a depth sort of the previous frame is still valid while it stays the same).
  */
@@ -76,21 +77,25 @@ function keepsGeometry(delta, n) {
   return true;
 }
 
-/** A parsed chunk: header values plus frame(k). See parseChunk. */
+/** A parsed chunk: header values plus frame(k). See parseChunk. The renderer draws it as a frame
+ * source of layout "quantized" (frame_layouts.js). */
 export class Chunk {
   /** @param {Uint8Array} bytes inflated chunk bytes, already validated by parseChunk */
   constructor(bytes, header) {
     Object.assign(this, header);
+    this.layout = 'quantized';
     this.bytes = bytes;
     this.staticBytes = RECORD_BYTES * this.S;
     this.blockBytes = RECORD_BYTES * this.D;
     const G = this.G;
+    const scaleOpacity = new Uint8Array(4 * G);
     this.fields = {
       count: G,
       position: new Uint16Array(4 * G),
-      scaleOpacity: new Uint8Array(4 * G),
+      scaleOpacity,
       rotation: new Int8Array(4 * G),
       color: new Uint8Array(4 * G),
+      opacity: scaleOpacity,
       geometryVersion: 0,
     };
     // The static Gaussians are the same in every frame: unpacked once.

@@ -2,8 +2,9 @@
 // frames from the playhead on need, held in a window.js FetchWindow within the page's byte budget
 // and fetched through fetcher.js (stall timeout, retries), and each frame decoded on the GPU
 // (model_decode.js) when the player asks for it. Offers the player the interface of stream.js
-// (streams.js) with one frame a unit. What it hands the renderer is a one-frame stand-in for a
-// chunk (FrameOfModel), quantized as the chunk files are, so the one renderer draws both kinds.
+// (streams.js) with one frame a unit. What it hands the renderer is a one-frame frame source
+// (DecodedFrame) holding the decode's float read-backs as they are, drawn by the one renderer
+// through its float layout (frame_layouts.js): no quantization on the model stream's path.
 
 import { inflate } from './chunk.js';
 import { StreamFolder } from './fetcher.js';
@@ -11,61 +12,26 @@ import { parsePart } from './model_part.js';
 import { ModelDecoder } from './model_decode.js';
 import { DEFAULT_BUDGET_BYTES, FetchWindow, playingOrder } from './window.js';
 
-/**
- * Bytes a decoded frame holds a Gaussian slot: the four RGBA float32 read-backs of the decode
- * (64) and the quantized fields the renderer takes (16).
- */
-export const DECODED_BYTES_PER_SLOT = 80;
-
-const POSITION_STEPS = 65535, LOG_SCALE_STEPS = 255, ROTATION_STEPS = 127, UNIT_STEPS = 255;
+/** Bytes a decoded frame holds a Gaussian slot: the four RGBA float32 read-backs of the decode. */
+export const DECODED_BYTES_PER_SLOT = 64;
 
 /**
- * A decoded frame as the renderer takes a chunk: F = 1, no static part, quantized fields over
- * the kept Gaussians' ranges (atgs/web/stream_format.py's rules), and the floats as decoded.
+ * A decoded frame as the renderer takes a frame source (renderer.js draw): F = 1, no static
+ * part, and the decode's float32 read-backs themselves as its fields (layout "float",
+ * frame_layouts.js: drawn as decoded, no quantization; a dropped Gaussian has opacity 0, which
+ * the sort and the shader cull).
  */
-export class FrameOfModel {
+export class DecodedFrame {
   constructor(decoded) {
     const { count, mean, quat, scale, color } = decoded;
     this.decoded = decoded;
+    this.layout = 'float';
     this.F = 1;
     this.G = count;
     this.S = 0;
     this.D = count;
-    const pmin = [Infinity, Infinity, Infinity], pmax = [-Infinity, -Infinity, -Infinity];
-    let lo = Infinity, hi = -Infinity;
-    for (let i = 0; i < count; i++) {
-      if (!(mean[4 * i + 3] > 0)) continue;
-      for (let c = 0; c < 3; c++) {
-        const x = mean[4 * i + c], l = Math.log(Math.max(scale[4 * i + c], 1e-30));
-        if (x < pmin[c]) pmin[c] = x;
-        if (x > pmax[c]) pmax[c] = x;
-        if (l < lo) lo = l;
-        if (l > hi) hi = l;
-      }
-    }
-    if (!(lo <= hi)) { pmin.fill(0); pmax.fill(1); lo = 0; hi = 1; }  // nothing kept
-    this.ranges = { posMin: pmin.map(Math.fround), posMax: pmax.map(Math.fround), logScaleMin: Math.fround(lo), logScaleMax: Math.fround(hi) };
-    const steps = (x, a, b, n) => Math.min(n, Math.max(0, Math.round(b > a ? ((x - a) / (b - a)) * n : 0)));
-    const fields = {
-      count, position: new Uint16Array(4 * count), scaleOpacity: new Uint8Array(4 * count),
-      rotation: new Int8Array(4 * count), color: new Uint8Array(4 * count), geometryVersion: 0,
-    };
-    const r = this.ranges;
-    for (let i = 0; i < count; i++) {
-      const o = mean[4 * i + 3];
-      if (!(o > 0)) continue;  // opacity byte 0: the sort and the shader cull it
-      for (let c = 0; c < 3; c++) {
-        fields.position[4 * i + c] = steps(mean[4 * i + c], r.posMin[c], r.posMax[c], POSITION_STEPS);
-        fields.scaleOpacity[4 * i + c] = steps(Math.log(Math.max(scale[4 * i + c], 1e-30)), r.logScaleMin, r.logScaleMax, LOG_SCALE_STEPS);
-        fields.color[4 * i + c] = steps(color[4 * i + c], 0, 1, UNIT_STEPS);
-      }
-      fields.scaleOpacity[4 * i + 3] = steps(o, 0, 1, UNIT_STEPS);
-      const q = quat.subarray(4 * i, 4 * i + 4);
-      const norm = Math.hypot(q[0], q[1], q[2], q[3]) || 1;
-      const sign = q[0] < 0 ? -1 : 1;  // q and -q are one rotation: keep w >= 0
-      for (let c = 0; c < 4; c++) fields.rotation[4 * i + c] = Math.round((sign * q[c] / norm) * ROTATION_STEPS);
-    }
-    this.fields = fields;
+    // position and opacity: what the depth sort reads (x, y, z and the opacity of each mean texel)
+    this.fields = { count, mean, quat, scale, color, position: mean, opacity: mean, geometryVersion: 0 };
   }
 
   frame(k) {
@@ -106,7 +72,10 @@ export class ModelStream {
     this.onChunkLoaded = options.onChunkLoaded ?? (() => {});
     this.decoder = null;
     this.decodeFailure = null;  // the GPU decode's error: no frame decodes after it
-    this.decoded = new Map();   // frame -> FrameOfModel, in least-recently-used order
+    // the last frame decoded: {frame, decodeMs (the GPU passes and the read-back), prepareMs (the
+    // frame object the renderer takes)}; state() carries it for bench/web.py
+    this.lastDecode = null;
+    this.decoded = new Map();   // frame -> DecodedFrame, in least-recently-used order
     this.playhead = 0;
     this.fetchedBytes = 0;
     // what playing the whole video once downloads: every part once
@@ -225,6 +194,7 @@ export class ModelStream {
     return {
       ...this.window.memory(), budgetBytes: this.budgetBytes, minimumBytes: this.minimumBytes,
       decodedReserveBytes: this.decodedReserve, decodedChunks: this.decoded.size, fetchedBytes: this.fetchedBytes,
+      lastDecode: this.lastDecode,
     };
   }
 
@@ -258,10 +228,14 @@ export class ModelStream {
     const m = this.model, entry = m.frames[i];
     let frame;
     try {
+      const t0 = performance.now();
       if (!this.decoder) this.decoder = new ModelDecoder(this.gl, m, w.peek(m.weights));
       this.decoder.setAnchors(entry.anchors.join(','), entry.anchors.map((p) => ({ keyframe: m.parts[p].keyframe, tensors: w.peek(p) })));
       this.decoder.setHash(String(entry.hash), w.peek(entry.hash));
-      frame = new FrameOfModel(this.decoder.decode(entry));
+      const decoded = this.decoder.decode(entry);  // readPixels waits for the GPU: the passes are in this time
+      const t1 = performance.now();
+      frame = new DecodedFrame(decoded);
+      this.lastDecode = { frame: i, decodeMs: t1 - t0, prepareMs: performance.now() - t1 };
     } catch (e) {  // no float targets, a shader the GPU refuses: every frame fails the same way
       this.decodeFailure = e;
       this.onError(e);

@@ -478,11 +478,14 @@ export class Player {
    *   framesDrawn, error (the error line as shown: null once a failed file loaded), note, firstFrameMs (ms from navigation start to the first drawn frame),
    *   drawFps (draws per second over the last 2 s), contextLost, contextRestores, and the
    *   stream's memory (stream.js Stream.memory: heldBytes, heldChunks, peakHeldBytes,
-   *   peakHeldChunks, budgetBytes, maxChunks, decodedChunks, fetchedBytes, downloads, windowFull)}
+   *   peakHeldChunks, budgetBytes, maxChunks, decodedChunks, fetchedBytes, downloads, windowFull;
+   *   a model stream's lastDecode: model_stream.js)}
    * - readPixels(): {width, height, encoding: 'base64', data}: the last drawn image (RGBA bytes,
    *   top row first), drawn again and read back at once
    * - gaussians(i): Promise of exported frame i's Gaussians as the page decoded them (a model
    *   stream only; model_stream.js ModelStream.gaussians)
+   * - drawnGaussians(): the Gaussians of the last drawn frame as the renderer's textures hold them
+   *   (renderer.js readGaussians: what the renderer received, read back from the GPU)
    */
   api() {
     return {
@@ -524,6 +527,10 @@ export class Player {
       gaussians: (i) => {
         if (!this.stream?.gaussians) return Promise.reject(new Error('gaussians(i): the stream is not a model stream'));
         return this.stream.gaussians(i);
+      },
+      drawnGaussians: () => {
+        if (!this.last) throw new Error('nothing drawn yet');
+        return this.renderer.readGaussians(this.last.chunk.G);
       },
       readPixels: () => {
         if (!this.last) throw new Error('nothing drawn yet');

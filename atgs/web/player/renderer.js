@@ -1,9 +1,11 @@
-// WebGL2 splatting of one frame of a chunk, the same projection and blending as the desktop
-// player (atgs/shaders/splat.vert, splat.geom, splat.frag, environment.frag): EWA with the
-// dilation, gsplat's Jacobian clamp, the near plane, a k-sigma extent, alpha = min(alpha_max,
-// o exp(-sigma)), premultiplied back-to-front blending over the background. The quantized
-// fields stay quantized on the GPU (integer textures) and are dequantized in the vertex shader
-// with the chunk's ranges.
+// WebGL2 splatting of one frame (of a chunk, or a decoded model frame), the same projection and
+// blending as the desktop player (atgs/shaders/splat.vert, splat.geom, splat.frag,
+// environment.frag): EWA with the dilation, gsplat's Jacobian clamp, the near plane, a k-sigma
+// extent, alpha = min(alpha_max, o exp(-sigma)), premultiplied back-to-front blending over the
+// background. A frame source (a chunk, a decoded model frame) names its layout
+// (frame_layouts.js): a chunk's quantized fields stay quantized on the GPU (integer textures) and
+// are dequantized in the vertex shader with the chunk's ranges; a decoded model frame's floats
+// are drawn as decoded (float textures).
 //
 // One quad per Gaussian, drawn as one indexed draw of four vertices per quad: vertex 4 s + c is
 // corner c of the s-th Gaussian back to front, whose index the shader reads from the order
@@ -11,28 +13,24 @@
 // a frame for 38k Gaussians at 96x72 (and llvmpipe, the desktop player found, twice the time).
 
 import { CLAMP_MARGIN, clampLimits } from './camera.js';
+import { FRAME_LAYOUTS, layoutOf } from './frame_layouts.js';
 import { DepthSorter } from './sort.js';
 
 // Texels per row of the Gaussian and order textures (entry i at (i % width, i / width)).
 const TEXTURE_WIDTH = 2048;
 
-const SPLAT_VERT = `#version 300 es
+// The splat vertex shader of a frame layout (its textures and gaussian* readers).
+const splatVert = (layout) => `#version 300 es
 // Vertex 4 s + c is corner c of the s-th quad back to front (u_order: the Gaussian it draws).
 // The projection is splat.vert's; the quad is the rectangle of the +-k sigma ellipse in its
 // eigen-frame, the shape splat.geom's triangle stands in for (WebGL2 has no geometry shader).
 precision highp float;
 precision highp int;
 precision highp usampler2D;
-precision highp isampler2D;
 
 uniform usampler2D u_order;                 // R32UI: Gaussian index of each quad, back to front
-uniform usampler2D u_position;              // RGBA16UI: x, y, z, _
-uniform usampler2D u_scale_opacity;         // RGBA8UI: log-scale x, y, z, opacity
-uniform isampler2D u_rotation;              // RGBA8I: w, x, y, z (any common scale)
-uniform usampler2D u_color;                 // RGBA8UI: r, g, b, _
-uniform vec3 u_pos_min;
-uniform vec3 u_pos_max;
-uniform vec2 u_log_scale;                   // lo, hi
+// the ${layout.name} layout (frame_layouts.js)
+${layout.glsl}
 
 uniform mat4 u_w2c;                         // OpenCV world-to-camera
 uniform vec4 u_intr;                        // fx, fy, cx, cy
@@ -60,19 +58,18 @@ void main() {
     vec2 corner = vec2((gl_VertexID & 1) == 1 ? 1.0 : -1.0, (gl_VertexID & 2) == 2 ? 1.0 : -1.0);
     int i = int(texelFetch(u_order, ivec2(slot % ${TEXTURE_WIDTH}, slot / ${TEXTURE_WIDTH}), 0).x);
     ivec2 texel = ivec2(i % ${TEXTURE_WIDTH}, i / ${TEXTURE_WIDTH});
-    uvec4 so = texelFetch(u_scale_opacity, texel, 0);
-    float opacity = float(so.w) / 255.0;
-    vec3 mean = u_pos_min + vec3(texelFetch(u_position, texel, 0).xyz) / 65535.0 * (u_pos_max - u_pos_min);
+    float opacity = gaussianOpacity(texel);
+    vec3 mean = gaussianMean(texel);
     vec4 pc = u_w2c * vec4(mean, 1.0);
     if (pc.z <= u_near || opacity < u_alpha_min) { cull(); return; }
 
-    vec4 quat = vec4(texelFetch(u_rotation, texel, 0));
+    vec4 quat = gaussianRotation(texel);
     vec4 q = quat * inversesqrt(max(dot(quat, quat), 1e-30));
     float w = q.x, x = q.y, y = q.z, z = q.w;
     mat3 R = mat3(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
                   2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
                   2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
-    vec3 s = exp(u_log_scale.x + vec3(so.xyz) / 255.0 * (u_log_scale.y - u_log_scale.x));
+    vec3 s = gaussianScale(texel);
 
     float fx = u_intr.x, fy = u_intr.y;
     float iz = 1.0 / pc.z;
@@ -112,7 +109,7 @@ void main() {
     // image row 0 is the top (OpenCV), NDC y = +1
     gl_Position = vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0);
     v_white = corner * vec2(h1 * inversesqrt(l1), h2 * inversesqrt(l2));
-    v_color = vec4(vec3(texelFetch(u_color, texel, 0).xyz) / 255.0, opacity);
+    v_color = vec4(gaussianColor(texel), opacity);
 }
 `;
 
@@ -201,13 +198,6 @@ function program(gl, vert, frag) {
   return { program: p, uniforms };
 }
 
-// The four integer textures of a chunk's Gaussians, the field arrays of chunk.js FrameFields.
-const FIELD_TEXTURES = [
-  { field: 'position', uniform: 'u_position', internal: 'RGBA16UI', format: 'RGBA_INTEGER', type: 'UNSIGNED_SHORT' },
-  { field: 'scaleOpacity', uniform: 'u_scale_opacity', internal: 'RGBA8UI', format: 'RGBA_INTEGER', type: 'UNSIGNED_BYTE' },
-  { field: 'rotation', uniform: 'u_rotation', internal: 'RGBA8I', format: 'RGBA_INTEGER', type: 'BYTE' },
-  { field: 'color', uniform: 'u_color', internal: 'RGBA8UI', format: 'RGBA_INTEGER', type: 'UNSIGNED_BYTE' },
-];
 // The draw order (sort.js), one Gaussian index a quad.
 const ORDER_TEXTURE = { field: 'order', uniform: 'u_order', internal: 'R32UI', format: 'RED_INTEGER', type: 'UNSIGNED_INT' };
 
@@ -234,7 +224,6 @@ export class Renderer {
     this.gl = gl;
     this.render = null;
     this.background = [0, 0, 0];
-    this.minOpacity = 0;
     this.environment = null;    // {image, basis, texture}: the image is kept to upload it again after a context loss
     this.lost = false;
     this.onContextLost = () => {};
@@ -259,11 +248,12 @@ export class Renderer {
   // The programs, buffers and state of a new (or restored) context; textures come with the first draw.
   _createResources() {
     const gl = this.gl;
-    this.splat = program(gl, SPLAT_VERT, SPLAT_FRAG);
+    // a splat program per frame layout (the one draw reads a Gaussian as its source's layout says)
+    this.splats = new Map(Object.values(FRAME_LAYOUTS).map((l) => [l, program(gl, splatVert(l), SPLAT_FRAG)]));
     this.environmentProgram = program(gl, FULLSCREEN_VERT, ENVIRONMENT_FRAG);
     this.present = program(gl, FULLSCREEN_VERT, PRESENT_FRAG);
     this.sorter = new DepthSorter();
-    this.textures = null;       // {capacity, order, [field]: WebGLTexture}
+    this.textures = null;       // {layout, capacity, order, [field]: WebGLTexture}
     this.uploaded = { chunk: null, frame: -1 };
     this.target = null;         // {width, height, fbo, texture} or null: draw to the canvas
     this.floatTarget = !!(gl.getExtension('EXT_color_buffer_float') || gl.getExtension('EXT_color_buffer_half_float'));
@@ -281,8 +271,6 @@ export class Renderer {
   configure(manifest) {
     this.render = manifest.render;
     this.background = manifest.background ?? [0, 0, 0];
-    // the opacity byte below which the shader culls anyway (opacity / 255 < alpha_min)
-    this.minOpacity = Math.max(0, Math.ceil(this.render.alpha_min * 255 - 1e-9));
   }
 
   /**
@@ -311,19 +299,19 @@ export class Renderer {
     this.environment.texture = texture;
   }
 
-  // (Re)allocates the Gaussian textures, the order texture and the quads' element buffer when a
-  // chunk has more Gaussians than they hold.
-  _ensureTextures(count) {
+  // (Re)allocates the Gaussian textures of `layout`, the order texture and the quads' element
+  // buffer when a frame has more Gaussians than they hold or another layout.
+  _ensureTextures(layout, count) {
     const gl = this.gl;
-    if (this.textures && this.textures.capacity >= count) return this.textures;
+    if (this.textures && this.textures.layout === layout && this.textures.capacity >= count) return this.textures;
     const height = Math.max(1, Math.ceil(count / TEXTURE_WIDTH));
     if (height > gl.getParameter(gl.MAX_TEXTURE_SIZE)) {
       throw new Error(`${count} Gaussians in a chunk are more than this GPU's textures hold`);
     }
-    if (this.textures) for (const t of [...FIELD_TEXTURES, ORDER_TEXTURE]) gl.deleteTexture(this.textures[t.field]);
+    if (this.textures) for (const t of [...this.textures.layout.textures, ORDER_TEXTURE]) gl.deleteTexture(this.textures[t.field]);
     const capacity = TEXTURE_WIDTH * height;
-    const textures = { capacity };
-    for (const t of [...FIELD_TEXTURES, ORDER_TEXTURE]) {
+    const textures = { layout, capacity };
+    for (const t of [...layout.textures, ORDER_TEXTURE]) {
       const tex = gl.createTexture();
       gl.bindTexture(gl.TEXTURE_2D, tex);
       gl.texStorage2D(gl.TEXTURE_2D, 1, gl[t.internal], TEXTURE_WIDTH, height);
@@ -367,7 +355,7 @@ export class Renderer {
 
   // Uploads Gaussians [first, first + count) of every field.
   _uploadFields(fields, first, count) {
-    for (const t of FIELD_TEXTURES) this._upload(this.textures[t.field], t, fields[t.field], 4, first, count);
+    for (const t of this.textures.layout.textures) this._upload(this.textures[t.field], t, fields[t.field], 4, first, count);
   }
 
   // The float target of the canvas's size, or null when the browser cannot render to one.
@@ -425,7 +413,9 @@ export class Renderer {
 
   /**
    * Draw frame `local` of `chunk` as seen by `view` into the canvas.
-   * @param {import('./chunk.js').Chunk} chunk
+   * @param {{layout: string, G: number, S: number, D: number, frame: (k: number) => object}} chunk a
+   *   frame source: a chunk.js Chunk or a model_stream.js DecodedFrame (frame_layouts.js: its
+   *   layout reads its fields and, for a chunk, its ranges)
    * @param {number} local frame index within the chunk
    * @param {{w2c: ArrayLike<number>, intr: {width: number, height: number, fx: number, fy: number, cx: number, cy: number}}} view
    *   intrinsics already fitted to the canvas size
@@ -437,7 +427,8 @@ export class Renderer {
     if (this.lost) return null;
     const { width, height } = this.canvas;
     const fields = chunk.frame(local);
-    const textures = this._ensureTextures(chunk.G);
+    const layout = layoutOf(chunk);
+    const textures = this._ensureTextures(layout, chunk.G);
     if (this.uploaded.chunk !== chunk) {
       this._uploadFields(fields, 0, chunk.G);
     } else if (this.uploaded.frame !== local) {
@@ -446,7 +437,8 @@ export class Renderer {
     this.uploaded = { chunk, frame: local };
 
     const r = this.render;
-    const { order, count } = this.sorter.sort(fields, view.w2c, chunk.ranges, { near: r.near, minOpacity: this.minOpacity });
+    const cull = { near: r.near, minOpacity: layout.minOpacity(r.alpha_min) };
+    const { order, count } = this.sorter.sort(fields, layout.depthAffine(view.w2c, chunk), cull);
     if (this.sorter.sorted) this._upload(textures.order, ORDER_TEXTURE, order, 1, 0, count);
 
     const target = this._ensureTarget(width, height);
@@ -458,17 +450,14 @@ export class Renderer {
     gl.clear(gl.COLOR_BUFFER_BIT);
     if (this.environment) this._drawEnvironment(view);
 
-    const { program: p, uniforms: u } = this.splat;
+    const { program: p, uniforms: u } = this.splats.get(layout);
     gl.useProgram(p);
-    [...FIELD_TEXTURES, ORDER_TEXTURE].forEach((t, unit) => {
+    [...layout.textures, ORDER_TEXTURE].forEach((t, unit) => {
       gl.activeTexture(gl.TEXTURE0 + unit);
       gl.bindTexture(gl.TEXTURE_2D, textures[t.field]);
       gl.uniform1i(u[t.uniform], unit);
     });
-    const { posMin, posMax, logScaleMin, logScaleMax } = chunk.ranges;
-    gl.uniform3fv(u.u_pos_min, posMin);
-    gl.uniform3fv(u.u_pos_max, posMax);
-    gl.uniform2f(u.u_log_scale, logScaleMin, logScaleMax);
+    layout.setUniforms(gl, u, chunk);
     gl.uniformMatrix4fv(u.u_w2c, true, Float32Array.from(view.w2c));
     const intr = view.intr;
     gl.uniform4f(u.u_intr, intr.fx, intr.fy, intr.cx, intr.cy);
@@ -498,6 +487,33 @@ export class Renderer {
     }
     gl.bindVertexArray(null);
     return { drawn: count, sorted: this.sorter.sorted };
+  }
+
+  /**
+   * The Gaussian textures as the last draw left them (tests: what the renderer received), read
+   * back from the GPU: per field of the frame's layout (frame_layouts.js), its first 4 `count`
+   * values as base64 of their float32 (a float layout), uint32 or int32 (an integer one) bytes.
+   * @param {number} count Gaussians to read
+   * @returns {{layout: string, fields: Object<string, string>}}
+   */
+  readGaussians(count) {
+    const gl = this.gl;
+    if (this.lost || !this.textures) throw new Error('nothing drawn: no Gaussian textures to read');
+    const { layout } = this.textures;
+    const rows = Math.max(1, Math.ceil(count / TEXTURE_WIDTH));
+    const fbo = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+    const fields = {};
+    for (const t of layout.textures) {
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.textures[t.field], 0);
+      const Type = { FLOAT: Float32Array, UNSIGNED_INT: Uint32Array, INT: Int32Array }[t.read];
+      const px = new Type(4 * TEXTURE_WIDTH * rows);
+      gl.readPixels(0, 0, TEXTURE_WIDTH, rows, gl[t.format], gl[t.read], px);
+      fields[t.field] = base64(new Uint8Array(px.buffer, 0, 16 * count));
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.deleteFramebuffer(fbo);
+    return { layout: layout.name, fields };
   }
 
   /**

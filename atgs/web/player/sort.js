@@ -1,5 +1,7 @@
 // Back-to-front order of the Gaussians for a view: a 16-bit counting sort of the view depth,
-// as the desktop player's radix sort (atgs/viewer/sorting.py). Pure logic, tested by Node.
+// as the desktop player's radix sort (atgs/viewer/sorting.py). Pure logic, tested by Node. It
+// reads a frame's stored positions (quantized or float: the affine map to view depth says which)
+// and opacities (frame_layouts.js).
 
 /** Depth levels of the sort key (16 bits). */
 export const DEPTH_LEVELS = 65536;
@@ -22,21 +24,31 @@ export function depthAffine(w2c, posMin, posMax) {
 }
 
 /**
- * Indices of the Gaussians in front of the near plane whose opacity byte reaches minOpacity,
+ * The affine map from a float position to view depth (depthAffine's for positions stored as they are).
+ * @param {ArrayLike<number>} w2c world-to-camera, 16 numbers row-major
+ * @returns {Float64Array} four coefficients
+ */
+export function depthAffineOfFloats(w2c) {
+  return Float64Array.of(w2c[8], w2c[9], w2c[10], w2c[11]);
+}
+
+/**
+ * Indices of the Gaussians in front of the near plane whose stored opacity reaches minOpacity,
  * farthest first (ties keep index order). Depths are quantized to 16 bits between the nearest
  * and farthest kept Gaussian, so two Gaussians closer than (zmax - zmin) / 65535 may keep
  * either order, exactly as the desktop player.
- * @param {{count: number, position: Uint16Array, scaleOpacity: Uint8Array}} fields quantized
- *   fields (chunk.js FrameFields: position x, y, z, _ and opacity at 4 i + 3)
- * @param {Float64Array} affine depthAffine of the view
- * @param {{near: number, minOpacity?: number}} cull near plane; minimum opacity byte (0: keep all)
+ * @param {{count: number, position: ArrayLike<number>, opacity: ArrayLike<number>}} fields position
+ *   x, y, z at 4 i (chunk.js FrameFields: quantized; a decoded model frame: float) and the array
+ *   holding the opacity at 4 i + 3 (the opacity byte, or the float)
+ * @param {Float64Array} affine depthAffine (depthAffineOfFloats) of the view
+ * @param {{near: number, minOpacity?: number}} cull near plane; minimum stored opacity (0: keep all)
  * @param {{depth?: Float64Array, kept?: Uint32Array, keys?: Uint16Array, order?: Uint32Array, counts?: Uint32Array}} [scratch]
  *   buffers reused from one call to the next (the returned order is scratch.order)
  * @returns {{order: Uint32Array, count: number}} the first count entries of order are the draw order
  */
 export function backToFront(fields, affine, cull, scratch = {}) {
   const n = fields.count;
-  const pos = fields.position, so = fields.scaleOpacity;
+  const pos = fields.position, so = fields.opacity;
   const minOpacity = cull.minOpacity ?? 0;
   const buffer = (name, Type) => (scratch[name] && scratch[name].length >= n ? scratch[name] : (scratch[name] = new Type(n)));
   const depth = buffer('depth', Float64Array), kept = buffer('kept', Uint32Array);
@@ -78,14 +90,12 @@ export class DepthSorter {
   }
 
   /**
-   * @param {import('./chunk.js').FrameFields} fields
-   * @param {ArrayLike<number>} w2c world-to-camera, row-major
-   * @param {{posMin: number[], posMax: number[]}} ranges the chunk's ranges
+   * @param {{count: number, position: ArrayLike<number>, opacity: ArrayLike<number>, geometryVersion: number}} fields
+   * @param {Float64Array} affine the view's map from a stored position to depth (depthAffine, depthAffineOfFloats)
    * @param {{near: number, minOpacity?: number}} cull
    * @returns {{order: Uint32Array, count: number}}
    */
-  sort(fields, w2c, ranges, cull) {
-    const affine = depthAffine(w2c, ranges.posMin, ranges.posMax);
+  sort(fields, affine, cull) {
     const key = [fields, fields.geometryVersion, cull.near, cull.minOpacity ?? 0, ...affine];
     const last = this.last;
     this.sorted = !(last && last.length === key.length && key.every((v, i) => v === last[i]));
