@@ -279,7 +279,7 @@ def test_trainer_reports_evaluations_and_saves_as_overhead(tmp_path) -> None:
 
 
 def test_the_final_evaluations_reserve_is_measured_not_guessed(tmp_path) -> None:
-    """Once calibrated, the trainer times the final evaluation on one frame and reserves that per
+    """As calibration begins, the trainer times the final evaluation on two frames and reserves that per
     view (with RESERVE_MARGIN), scaled with the pace: where a view costs a fifth of a step (held-out
     cameras sharing a frame's decode), a step per view would have kept most of the reserve idle."""
     from atgs.train.budget import RESERVE_MARGIN
@@ -298,7 +298,8 @@ def test_the_final_evaluations_reserve_is_measured_not_guessed(tmp_path) -> None
     tr.evaluate = timed_evaluate
     res = tr.run_steps(progress=False)
     views = tr.final_views()
-    assert len(probes) == 1 and len(probes[0][1]) == 1 and probes[0][2] == 1.0, probes  # once, one frame, full size
+    # once, two frames timed apart, at full size
+    assert len(probes) == 2 and all(len(p[1]) == 1 and p[2] == 1.0 and p[0] == probes[0][0] for p in probes), probes
     assert tr.budget.view_cost == pytest.approx(0.1 / 0.5)
     reserve = views * 0.1 * RESERVE_MARGIN + 1.0
     assert tr.budget.reserve() == pytest.approx(reserve)

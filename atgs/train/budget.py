@@ -17,7 +17,7 @@ step (it once ended a 4-minute run after 79 steps, 57 s in). The final evaluatio
 inside the budget. Until it is measured, at one step per view at the run's mean pace (with
 atgs-eval, a view cost 0.71 of a step on the built-in scene and 0.85 on a 5-camera 160x120 one;
 half a step, an earlier guess, made runs end late). Once calibrated, the trainer times the final
-evaluation itself on one frame (:meth:`TimeBudget.measured_view`), and the reserve is that
+evaluation itself on two frames, each timed alone, the faster one (:meth:`TimeBudget.measured_view`), and the reserve is that
 cost per view, in steps, at the mean pace, so it grows with the model as the steps do, plus
 RESERVE_MARGIN. A view is far cheaper than a step where several held-out cameras share a
 frame's decode: on a 27-camera stage with 4 held-out cameras x 120 frames, one step per view
@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 # unless time runs out, which ends the run at once (with its final pruning).
 FREEZE_FRACTION = 0.9
 MIN_STEPS = 10
-# The measured reserve's headroom: the probe times one frame, the final evaluation all of them.
+# The measured reserve's headroom: the probe times two frames (the faster one), the final evaluation all of them.
 RESERVE_MARGIN = 1.25
 
 
@@ -93,7 +93,7 @@ class TimeBudget:
         return self._start is not None and self.view_cost is None and self._view_seconds is None
 
     def measured_view(self, seconds: float) -> None:
-        """The final evaluation takes ``seconds`` a view (the trainer's probe of one frame, as
+        """The final evaluation takes ``seconds`` a view (the trainer's probe: the faster of two frames, as
         calibration begins): the first plan turns it into steps at the pace it measures, and the
         reserve follows it from then on, scaled with the mean pace."""
         self._view_seconds = max(0.0, float(seconds))
