@@ -310,3 +310,33 @@ def test_the_final_evaluations_reserve_is_measured_not_guessed(tmp_path) -> None
     ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=True)
     assert ck["trainer"]["budget"]["view_cost"] == pytest.approx(0.2)  # a resume keeps the measurement
     assert ck["trainer"]["budget"]["overhead"] == pytest.approx(extra[0])  # the probe is not step time
+
+
+def test_a_probe_that_reads_slow_reserves_no_more_than_a_step_per_view() -> None:
+    """Two frames timed while another job ran read 2.35 steps a view on the built-in scene (1.07
+    alone, 0.71 over a whole evaluation): the reserve keeps to the step per view of before, else
+    the first plan shrinks (to 31 steps of a 5-minute run there) and freezes at 90 %."""
+    b = TimeBudget(300.0, reserve_views=120, skip_steps=1, calibration_steps=4)
+    b.plan(1, 1.0, 1000)  # calibration begins
+    assert b.wants_view_cost
+    b.measured_view(3.0)  # 3 s a view at 1 s a step
+    step, used, plans = simulate_from(b, 1, 1.0, 1000)
+    assert b.view_cost == pytest.approx(3.0)
+    assert b.reserve() == pytest.approx(120 * 1.0 + 1.0)  # capped: a step per view
+    assert used >= 0.8 * (300.0 - b.reserve()), (step, used, plans)
+    wide = TimeBudget(300.0, reserve_views=120, max_view_cost=4.0)  # trained at half resolution
+    wide.view_cost, wide._pace = 4.0, 1.0  # x RESERVE_MARGIN: over the cap
+    assert wide.reserve() == pytest.approx(120 * 4.0 + 1.0)
+
+
+def simulate_from(budget: TimeBudget, step: int, used: float, planned: int) -> tuple[int, float, list[int]]:
+    """simulate() from a budget already at ``step`` with ``used`` seconds, at 1 s a step."""
+    plans = []
+    while step < planned:
+        used += 1.0
+        step += 1
+        n = budget.plan(step, used, planned)
+        if n is not None:
+            planned = n
+            plans.append(n)
+    return step, used, plans

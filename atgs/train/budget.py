@@ -19,7 +19,11 @@ atgs-eval, a view cost 0.71 of a step on the built-in scene and 0.85 on a 5-came
 half a step, an earlier guess, made runs end late). Once calibrated, the trainer times the final
 evaluation itself on two frames, each timed alone, the faster one (:meth:`TimeBudget.measured_view`), and the reserve is that
 cost per view, in steps, at the mean pace, so it grows with the model as the steps do, plus
-RESERVE_MARGIN. A view is far cheaper than a step where several held-out cameras share a
+RESERVE_MARGIN, never more than the step per view reserved before (``max_view_cost``): two
+frames timed on a busy machine can read several times their cost (2.35 steps a view on the
+built-in scene with the test suite running beside it, 1.07 alone, where atgs-eval measured
+0.71 over all frames), and an inflated reserve would shrink the first plan and, once 90 % of
+it is done, freeze it. A view is far cheaper than a step where several held-out cameras share a
 frame's decode: on a 27-camera stage with 4 held-out cameras x 120 frames, one step per view
 reserved 552 s of a 20-minute run for an evaluation that took 181 s. Scene loading and model
 set-up come on top (the
@@ -59,6 +63,9 @@ class TimeBudget:
     reserve_views: int = 16  # views rendered by the final evaluation, reserved in the budget
     # a view of the final evaluation in steps at the mean pace (measured_view); None until measured
     view_cost: float | None = None
+    # the most a view may be reserved, in steps: the rule before the measurement (a step per view,
+    # 1 / resolution_scale^2 when training at a lower resolution than the full-size evaluation)
+    max_view_cost: float = 1.0
     # (step, seconds, overhead seconds) when calibration began / of the last plan
     _start: tuple[int, float, float] | None = field(default=None, repr=False)
     _mark: tuple[int, float, float] | None = field(default=None, repr=False)
@@ -84,7 +91,8 @@ class TimeBudget:
     def reserve(self) -> float:
         """Seconds kept for the final evaluation at the run's mean pace: its measured cost per view
         with RESERVE_MARGIN, or a step per view before it is measured (see the module's notes)."""
-        per_view = 1.0 if self.view_cost is None else self.view_cost * RESERVE_MARGIN
+        per_view = self.max_view_cost if self.view_cost is None else min(self.view_cost * RESERVE_MARGIN,
+                                                                          self.max_view_cost)
         return self.reserve_views * per_view * (self._mean_pace or self._pace) + 1.0
 
     @property

@@ -256,7 +256,8 @@ class Trainer:
     def _set_up_budget(self) -> None:
         """--train.minutes: the step count is sized from the measured pace (atgs.train.budget); the
         set-up it paid for so far counts as time used."""
-        self.budget = (TimeBudget(60.0 * self.cfg.minutes, reserve_views=self.final_views())
+        self.budget = (TimeBudget(60.0 * self.cfg.minutes, reserve_views=self.final_views(),
+                                  max_view_cost=max(1.0, self.cfg.resolution_scale ** -2))
                        if self.cfg.minutes > 0 else None)
         if self.budget is not None:
             self.budget.used += self._early_seconds
@@ -614,6 +615,7 @@ class Trainer:
         if self.budget is not None and saved is not None:  # the time used so far counts
             self.budget = TimeBudget.resumed(saved, 60.0 * self.cfg.minutes)
             self.budget.reserve_views = self.final_views()
+            self.budget.max_view_cost = max(1.0, self.cfg.resolution_scale ** -2)
             left = self.budget.steps_left()
             if left is not None:  # provisional plan at the last pace; re-planned after calibration
                 self.cfg = schedule_for(self.cfg, max(1, self.step + left))
