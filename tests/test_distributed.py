@@ -243,3 +243,20 @@ def test_torchrun_restarts_a_killed_worker_and_the_run_continues_from_its_checkp
     assert _step(out / "ckpt.pt") == steps
     logged = [int(r.split(",")[0]) for r in (out / "train_log.csv").read_text().strip().splitlines()[1:]]
     assert logged == list(range(1, steps + 1)), "one log, one row per step"
+
+
+@pytest.mark.parametrize("partition", ["views", "time"])
+def test_two_workers_with_a_time_budget_measure_the_final_evaluation_alike(toy_scene_dir, tmp_path, partition):
+    """--train.minutes on two workers: as the budget's timing begins, each worker times the final
+    evaluation on its own frames and all take rank 0's figure (a collective every worker reaches
+    at the same step, whatever frames it holds); the run ends, evaluated, within its budget."""
+    out = tmp_path / partition
+    proc = _start("--data", str(toy_scene_dir), "--out", str(out), "tiny", "--train.minutes", "0.3",
+                  "--train.views-per-step", "2", "--train.partition", partition, "--train.eval-every", "0",
+                  "--workers", "2")
+    _, err = proc.communicate(timeout=240)
+    assert proc.returncode == 0, err.decode(errors="replace")
+    budget = torch.load(out / "ckpt.pt", weights_only=True)["trainer"]["budget"]
+    assert budget["view_cost"] is not None and budget["view_cost"] > 0, budget
+    assert budget["used"] <= 0.3 * 60 + 2.0, budget
+    assert (out / "eval" / "summary.json").is_file()
