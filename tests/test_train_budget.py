@@ -340,3 +340,17 @@ def simulate_from(budget: TimeBudget, step: int, used: float, planned: int) -> t
             planned = n
             plans.append(n)
     return step, used, plans
+
+
+def test_a_slow_half_minute_late_in_the_run_does_not_freeze_a_short_plan() -> None:
+    """The 20-minute ring run of 2026-11-29: 0.24 s a step, then 40 steps at 1.3 s (a test run
+    beside it) at step 3,139. Its plan, sized by that one interval, fell from 4,794 to 3,458 steps,
+    already past the 90 % freeze, and the run ended with 285 s unused. The median of the last
+    intervals' paces rides the patch out."""
+    def pace(step: int) -> float:
+        return 1.3 if 3139 <= step < 3179 else 0.24
+
+    b = TimeBudget(1200.0, reserve_views=120)
+    steps, used, plans = simulate(b, pace, 5000)
+    assert used >= 0.97 * (1200.0 - b.reserve()), (steps, used, plans)
+    assert used <= 1200.0 - b.reserve() + 2 * 1.3
