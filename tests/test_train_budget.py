@@ -18,9 +18,11 @@ from atgs.train.trainer import Trainer
 from builders import make_toy_scene
 
 
-def simulate(budget: TimeBudget, pace_of_step, planned: int) -> tuple[int, float, list[int]]:
-    """Run the planning loop with a clock that advances pace_of_step(step) per step."""
-    step, used, plans = 0, 0.0, []
+def simulate(budget: TimeBudget, pace_of_step, planned: int, step: int = 0, used: float = 0.0
+             ) -> tuple[int, float, list[int]]:
+    """Run the planning loop with a clock that advances pace_of_step(step) per step (from ``step``
+    steps done in ``used`` seconds)."""
+    plans = []
     while step < planned:
         used += pace_of_step(step)
         step += 1
@@ -320,7 +322,7 @@ def test_a_probe_that_reads_slow_reserves_no_more_than_a_step_per_view() -> None
     b.plan(1, 1.0, 1000)  # calibration begins
     assert b.wants_view_cost
     b.measured_view(3.0)  # 3 s a view at 1 s a step
-    step, used, plans = simulate_from(b, 1, 1.0, 1000)
+    step, used, plans = simulate(b, lambda s: 1.0, 1000, step=1, used=1.0)
     assert b.view_cost == pytest.approx(3.0)
     assert b.reserve() == pytest.approx(120 * 1.0 + 1.0)  # capped: a step per view
     assert used >= 0.8 * (300.0 - b.reserve()), (step, used, plans)
@@ -328,18 +330,6 @@ def test_a_probe_that_reads_slow_reserves_no_more_than_a_step_per_view() -> None
     wide.view_cost, wide._pace = 4.0, 1.0  # x RESERVE_MARGIN: over the cap
     assert wide.reserve() == pytest.approx(120 * 4.0 + 1.0)
 
-
-def simulate_from(budget: TimeBudget, step: int, used: float, planned: int) -> tuple[int, float, list[int]]:
-    """simulate() from a budget already at ``step`` with ``used`` seconds, at 1 s a step."""
-    plans = []
-    while step < planned:
-        used += 1.0
-        step += 1
-        n = budget.plan(step, used, planned)
-        if n is not None:
-            planned = n
-            plans.append(n)
-    return step, used, plans
 
 
 def test_a_slow_half_minute_late_in_the_run_does_not_freeze_a_short_plan() -> None:
