@@ -257,7 +257,7 @@ class Trainer:
         """--train.minutes: the step count is sized from the measured pace (atgs.train.budget); the
         set-up it paid for so far counts as time used."""
         self.budget = (TimeBudget(60.0 * self.cfg.minutes, reserve_views=self.final_views(),
-                                  max_view_cost=max(1.0, self.cfg.resolution_scale ** -2))
+                                  max_view_cost=self.final_view_cap())
                        if self.cfg.minutes > 0 else None)
         if self.budget is not None:
             self.budget.used += self._early_seconds
@@ -521,6 +521,11 @@ class Trainer:
         """Views the final evaluation renders: every frame of each test camera."""
         return len(self.test_idx or self.train_idx[:1]) * self.model.num_frames
 
+    def final_view_cap(self) -> float:
+        """The most the budget reserves a final-evaluation view, in steps: one, or the pixels a
+        full-size view has more than a training view (atgs.train.budget)."""
+        return max(1.0, self.cfg.resolution_scale ** -2)
+
     @_in_run_threads
     def final_evaluation(self, out: Path | None) -> dict | None:
         """What ``atgs-eval`` reports by default (every frame of the test cameras at full
@@ -615,7 +620,7 @@ class Trainer:
         if self.budget is not None and saved is not None:  # the time used so far counts
             self.budget = TimeBudget.resumed(saved, 60.0 * self.cfg.minutes)
             self.budget.reserve_views = self.final_views()
-            self.budget.max_view_cost = max(1.0, self.cfg.resolution_scale ** -2)
+            self.budget.max_view_cost = self.final_view_cap()
             left = self.budget.steps_left()
             if left is not None:  # provisional plan at the last pace; re-planned after calibration
                 self.cfg = schedule_for(self.cfg, max(1, self.step + left))
