@@ -372,7 +372,9 @@ def _json_matrix(value, n: int, path: Path, where: str) -> np.ndarray:
 
 def cameras_from_d3dgs(meta: D3dgsMeta) -> list[Camera]:
     """One camera per id (named by the id). Static rigs only: a camera's ``k`` and ``w2c`` must
-    be the same at every timestep, since a prepared scene holds one pose per camera."""
+    be the same at every timestep, since a prepared scene holds one pose per camera. Rotations
+    may be mirrored (determinant -1): the source reads the rig's world with
+    :func:`atgs.data.pose_check.proper_world`."""
     cams = []
     for cid, Ks, w2cs in zip(meta.cam_ids, meta.K, meta.w2c):
         for key, m in (("k", Ks), ("w2c", w2cs)):
@@ -382,7 +384,8 @@ def cameras_from_d3dgs(meta: D3dgsMeta) -> list[Camera]:
                                 "timestep 0); atgs-prepare reads static camera rigs only")
         K, w2c = Ks[0], w2cs[0]
         R = w2c[:3, :3]
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0 or not np.allclose(w2c[3], [0, 0, 0, 1]):
+        # a rotation or a mirror image of one: a mirrored world is read as such (pose_check.proper_world)
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or not np.allclose(w2c[3], [0, 0, 0, 1]):
             raise DataError(f"{meta.path}: w2c of camera {cid} is not a rigid transform (its 3x3 part is not a rotation "
                             "or its last row is not 0 0 0 1); expected OpenCV world-to-camera matrices")
         if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):

@@ -1,4 +1,5 @@
-"""pycolmap (CPU) steps of the ingest: SfM for unposed cameras, known-pose triangulation.
+"""pycolmap (CPU) steps of the ingest: SfM for unposed cameras, known-pose triangulation, and
+the verified feature matches that check given poses (atgs.data.pose_check).
 
 Dense stereo (``patch_match_stereo``) needs CUDA, so keyframe points come from sparse
 SIFT matching + triangulation with the camera poses held fixed.
@@ -134,6 +135,32 @@ def triangulate_known_poses(image_root: Path, image_names: Sequence[str], camera
     if not xyz:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     return np.array(xyz, np.float64), np.array(rgb, np.uint8)
+
+
+def verified_pairs(image_root: Path, names: Sequence[str], db_path: Path,
+                   opts: ColmapOptions = ColmapOptions()) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """SIFT matches of every pair of ``names`` that COLMAP's two-view RANSAC verified (it knows
+    nothing of any poses): (i, j, xy_i (N,2), xy_j (N,2)) with i < j indices into ``names``,
+    pixel positions with pixel centres at +0.5, as ours."""
+    import pycolmap
+
+    out = []
+    with _quiet_glog(image_root):
+        _extract_and_match(db_path, image_root, names, opts)
+        ids = [i for i, _ in database_ids(db_path, names, image_root)]
+        db = pycolmap.Database.open(db_path)
+        try:
+            xy = [np.asarray(db.read_keypoints(i))[:, :2] for i in ids]
+            for a in range(len(ids)):
+                for b in range(a + 1, len(ids)):
+                    if not db.exists_two_view_geometry(ids[a], ids[b]):
+                        continue
+                    m = np.asarray(db.read_two_view_geometry(ids[a], ids[b]).inlier_matches).reshape(-1, 2)
+                    if len(m):
+                        out.append((a, b, xy[a][m[:, 0]], xy[b][m[:, 1]]))
+        finally:
+            db.close()
+    return out
 
 
 def database_ids(db_path: Path, names: Sequence[str], image_root: Path) -> list[tuple[int, int]]:

@@ -2,7 +2,9 @@
 
 Steps (each long one shows a progress bar):
 1. detect/open the source and check that every camera has the same number of frames;
-2. cameras: from the dataset's poses, or pycolmap SfM on the first selected frame (static rig);
+2. cameras: from the dataset's poses, checked against the training cameras' first selected
+   frames (atgs.data.pose_check: camera-to-world matrices filed as world-to-camera are read the
+   right way round), or pycolmap SfM on the first selected frame (static rig);
 3. frames: decode lazily, undistort when the model has distortion, downscale, write PNG/JPG;
    foreground masks (of the training cameras that have them) the same way, kept where half an
    output pixel is foreground; held-out cameras' masks are never read;
@@ -33,7 +35,9 @@ from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras
 from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
 from atgs.data.moving_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
+from atgs.data.pose_check import PoseCheckConfig, check_poses
 from atgs.data.mvs import FillConfig, StereoConfig
+from atgs.data.mvs.views import check_camera_layout
 from atgs.data.scene import (MemoryScene, compute_bounds, frame_path, mask_path, read_mask, read_rgb, save_frame,
                              save_mask, write_scene_metadata)
 from atgs.data.sources import Source, SourceFormat, open_source
@@ -86,6 +90,10 @@ class PrepareConfig:
     """Frame rate of the source (default: from the videos; 30 for image folders and Dynamic 3D Gaussians)."""
     name: str | None = None
     """Scene name (default: the output directory name)."""
+    check_poses: bool = True
+    """Check the dataset's poses against its training cameras' first frames (epipolar agreement of
+    SIFT matches) and read camera-to-world matrices filed as world-to-camera correctly;
+    --no-check-poses uses the poses as given."""
     progress: bool = True
     """Show progress bars."""
 
@@ -202,6 +210,10 @@ def prepare(cfg: PrepareConfig) -> Path:
             cams = _sfm_cameras(src, sel[0], work / "sfm", cfg, colmap_opts, test)
             timings["sfm"] = time.perf_counter() - t
         cams = [_match_frame_size(c, wh, src.file_of(i)) for i, (c, wh) in enumerate(zip(cams, src.sizes))]
+        if src.cameras is not None and cfg.check_poses:  # SfM poses agree with the frames by construction
+            t = time.perf_counter()
+            cams = _checked_poses(src, cams, test, sel[0], work / "pose_check", cfg, colmap_opts)
+            timings["pose_check"] = time.perf_counter() - t
         out_cams = [_output_camera(c, cfg.downscale) for c in cams]
         t = time.perf_counter()
         ext = "." + cfg.image_format
@@ -265,6 +277,34 @@ def _note_init_points(src: Source) -> None:
               f"{hinted} of {len(src.camera_names)} cameras (never as scene points)", file=sys.stderr)
 
 
+def _checked_poses(src: Source, cams: list[Camera], test: list[str], frame: int, work: Path, cfg: PrepareConfig,
+                   opts: ColmapOptions) -> list[Camera]:
+    """The dataset's poses under the reading that the training cameras' first frames agree with
+    (atgs.data.pose_check); a held-out camera's frames are never read."""
+    # a rig no reading can use (one camera, all at one spot) is its own error, not a question of convention
+    check_camera_layout([c for c in cams if c.name not in test], str(cfg.src), held_out=len(test))
+    frames = []
+    for ci, cam in enumerate(cams):
+        if cam.name in test:
+            frames.append(None)
+            continue
+        _, img = next(src.frames(ci, [frame]))
+        _check_frame_size(src, ci, frame, img, cam)
+        frames.append(_resample(img, replace(cam, dist=None), build_undistort_map(cam) if cam.dist is not None else None))
+    checked = check_poses(cams, frames, src.world_mirror, src.calibration or src.root, work, PoseCheckConfig(), opts,
+                          cfg.progress, by_layout=src.poses_by_hand)
+    if checked is not cams:
+        src.depth_hints(checked)  # the capture's own points hint depths along the cameras as now read
+        src.extra["poses_read_as"] = "camera-to-world"
+    return checked
+
+
+def _check_frame_size(src: Source, ci: int, frame: int, img: np.ndarray, cam: Camera) -> None:
+    if img.shape[:2] != (cam.height, cam.width):
+        raise DataError(f"{src.file_of(ci)}: frame {frame} is {img.shape[1]}x{img.shape[0]}, "
+                        f"expected {cam.width}x{cam.height}")
+
+
 def _extract_frames(root: Path, src: Source, cams: list[Camera], out_cams: list[Camera], sel: range, ext: str,
                     masked: list[str], progress: bool) -> None:
     """Every selected frame onto its output camera, and its mask for the ``masked`` cameras."""
@@ -278,9 +318,7 @@ def _extract_frames(root: Path, src: Source, cams: list[Camera], out_cams: list[
                 (root / "masks" / ocam.name).mkdir(parents=True)
             umap = build_undistort_map(cam) if cam.dist is not None else None
             for j, (_, img) in enumerate(src.frames(ci, sel)):
-                if img.shape[:2] != (cam.height, cam.width):
-                    raise DataError(f"{src.file_of(ci)}: frame {sel[j]} is {img.shape[1]}x{img.shape[0]}, "
-                                    f"expected {cam.width}x{cam.height}")
+                _check_frame_size(src, ci, sel[j], img, cam)
                 save_frame(root, ocam, j, _resample(img, ocam, umap), ext)
                 if has_mask:
                     save_mask(root, ocam, j, _output_mask(src, ci, sel[j], cam, ocam, umap))

@@ -30,6 +30,7 @@ from atgs.cameras import Camera
 from atgs.data.camera_formats import (cameras_from_d3dgs, cameras_from_poses_bounds, cameras_from_reconstruction,
                                      read_d3dgs_meta, read_easyvolcap)
 from atgs.data.errors import DataError
+from atgs.data.pose_check import proper_world
 from atgs.data.scene import read_mask
 from atgs.data.video import VIDEO_EXTS, iter_frames, video_info
 from atgs.geometry.projection import project
@@ -58,6 +59,21 @@ class Source:
     # per camera, a foreground mask file per frame, or None for a camera without masks (d3dgs
     # seg/); None: no camera has masks
     masks: list[list[Path] | None] | None = None
+    calibration: Path | None = None  # the file the poses came from, named in messages about them
+    # the layout's poses are written by hand or by ad-hoc scripts (d3dgs metas, EasyVolcap YAML),
+    # where camera-to-world matrices filed as world-to-camera are common (pose_check)
+    poses_by_hand: bool = False
+    # the mirror that made the file's left-handed world right-handed (pose_check.proper_world)
+    world_mirror: np.ndarray | None = None
+    # a capture's own initial points (xyz in the cameras' world), only ever depth-range hints
+    hint_points: np.ndarray | None = None
+
+    def depth_hints(self, cams: Sequence[Camera]) -> None:
+        """(Re)compute ``extra['near_far']`` from ``hint_points`` for ``cams`` (after the poses'
+        reading is settled, pose_check)."""
+        if self.hint_points is not None:
+            self.extra["near_far"] = point_hints(self.hint_points, cams)
+            self.extra["init_points"] = len(self.hint_points)
 
     def file_of(self, ci: int) -> Path:
         return self.videos[ci] if self.videos is not None else self.root / self.camera_names[ci]
@@ -194,6 +210,7 @@ def _open_n3dv(root: Path) -> Source:
     except (OSError, ValueError) as e:
         raise DataError(f"{pb}: unreadable ({e})") from None
     src.cameras, near_far = cameras_from_poses_bounds(arr, src.camera_names, src.sizes, source=str(pb))
+    src.calibration = pb
     src.extra["near_far"] = near_far.tolist()
     return src
 
@@ -237,7 +254,9 @@ def _open_easyvolcap(root: Path) -> Source:
     if missing:
         raise DataError(f"{img_root / missing[0]}: image folder missing for camera {missing[0]} listed in intri.yml")
     names = [c.name for c in cams]
-    return _image_source("easyvolcap", root, names, [_images_in(dirs[n]) for n in names], cams, [names[0]])
+    src = _image_source("easyvolcap", root, names, [_images_in(dirs[n]) for n in names], cams, [names[0]])
+    src.calibration, src.poses_by_hand = root / "extri.yml", True
+    return src
 
 
 def _find_colmap_model(root: Path, first_frame: Path) -> Path:
@@ -277,6 +296,7 @@ def _open_colmap_frames(root: Path) -> Source:
         counts.append(k)
     src = _image_source("colmap-frames", root, names, [fl[:k] for fl, k in zip(files, counts)], cams, [names[0]])
     src.extra["colmap_model"] = str(model)
+    src.calibration = model
     src.extra["missing"] = {n: str(fl[k]) for n, fl, k in zip(names, files, counts) if k < len(fl)}
     return src
 
@@ -296,6 +316,8 @@ def _open_d3dgs(root: Path) -> Source:
     if not cams:
         raise DataError(f"{train_path}: lists no cameras")
     names = sorted(cams, key=int)
+    proper, mirror = proper_world([cams[n] for n in names], train_path)
+    cams = dict(zip(names, proper))
     # the metas hold every frame's name: a missing file is an error now, not hours into training
     images = [[root / "ims" / f for f in files[n]] for n in names]
     _require_files(images, ", but the metas list it (restore it, or drop its timestep from the metas)")
@@ -304,9 +326,14 @@ def _open_d3dgs(root: Path) -> Source:
     if (root / "seg").is_dir():  # masks per camera: captures publish them for the training cameras only
         masks = [_d3dgs_masks(root, files[n]) for n in names]
         src.masks = masks if any(m is not None for m in masks) else None
-    hints = init_point_hints(root / "init_pt_cld.npz", src.cameras)
-    if hints is not None:
-        src.extra["near_far"], src.extra["init_points"] = hints
+    src.world_mirror, src.calibration, src.poses_by_hand = mirror, train_path, True
+    if mirror is not None:
+        src.extra["world_mirrored"] = "x"  # recorded in scene.json: the scene's x axis is the file's -x
+    points = root / "init_pt_cld.npz"
+    if points.is_file():
+        xyz = _read_init_points(points)
+        src.hint_points = xyz if mirror is None else xyz @ mirror[:3, :3].T  # the cameras' mirror
+        src.depth_hints(src.cameras)
     return src
 
 
@@ -329,12 +356,18 @@ def init_point_hints(path: Path, cams: Sequence[Camera]) -> tuple[list[list[floa
     if not path.is_file():
         return None
     xyz = _read_init_points(path)
+    return point_hints(xyz, cams), len(xyz)
+
+
+def point_hints(xyz: np.ndarray, cams: Sequence[Camera]) -> list[list[float] | None]:
+    """Per camera, the 1st and 99th percentile depth of the points it sees, or None when it sees
+    fewer than MIN_HINT_POINTS."""
     hints = []
     for cam in cams:
         z = _visible_depths(cam, xyz)
         ok = len(z) >= MIN_HINT_POINTS
         hints.append([float(np.percentile(z, 1)), float(np.percentile(z, 99))] if ok else None)
-    return hints, len(xyz)
+    return hints
 
 
 def _read_init_points(path: Path) -> np.ndarray:
