@@ -35,9 +35,9 @@ from atgs.data.colmap_ops import ColmapOptions, sfm_static_cameras
 from atgs.data.errors import DataError
 from atgs.data.keyframe_points import keyframe_points
 from atgs.data.moving_points import MotionPoints, MotionPointsConfig, motion_keyframes, motion_points
-from atgs.data.pose_check import PoseCheckConfig, check_poses
 from atgs.data.mvs import FillConfig, StereoConfig
 from atgs.data.mvs.views import check_camera_layout
+from atgs.data.pose_check import PoseCheckConfig, check_poses
 from atgs.data.scene import (MemoryScene, compute_bounds, frame_path, mask_path, read_mask, read_rgb, save_frame,
                              save_mask, write_scene_metadata)
 from atgs.data.sources import Source, SourceFormat, open_source
@@ -199,7 +199,6 @@ def prepare(cfg: PrepareConfig) -> Path:
     num_frames = len(sel)
     test = resolve_test_cams(cfg.test_cams, src.camera_names, src.default_test, where=str(cfg.src))
     masked = _mask_cameras(src, test, sel)
-    _note_init_points(src)
     colmap_opts = ColmapOptions(max_image_size=cfg.sift_max_image_size)
     timings: dict[str, float] = {}
     with atomic_dir(out, cfg.overwrite) as tmp:
@@ -214,6 +213,7 @@ def prepare(cfg: PrepareConfig) -> Path:
             t = time.perf_counter()
             cams = _checked_poses(src, cams, test, sel[0], work / "pose_check", cfg, colmap_opts)
             timings["pose_check"] = time.perf_counter() - t
+        _note_init_points(src)  # its hints follow the cameras as read
         out_cams = [_output_camera(c, cfg.downscale) for c in cams]
         t = time.perf_counter()
         ext = "." + cfg.image_format
