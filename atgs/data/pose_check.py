@@ -35,13 +35,14 @@ from PIL import Image
 from atgs.cameras import Camera
 from atgs.data.colmap_ops import ColmapOptions, verified_pairs
 from atgs.data.errors import DataError
+from atgs.geometry.projection import project
+from atgs.geometry.seen_space import axes_meeting_point
 
 MIRROR_X = np.diag([-1.0, 1.0, 1.0, 1.0])  # the world mirror that makes a left-handed calibration right-handed
 
 
 @dataclass(frozen=True)
 class PoseCheckConfig:
-    enabled: bool = True
     work_side: int = 1024  # frames are box-downscaled to at most this long side for SIFT
     tolerance_px: float = 4.0  # at the working size: a match agrees within this distance of its epipolar line
     agree: float = 0.5  # share of matches that must agree for a reading to be trusted
@@ -145,7 +146,7 @@ def check_poses(cams: list[Camera], frames: Sequence[np.ndarray | None], mirror:
     only when the other one is clearly right and the given one clearly wrong; otherwise the poses
     are kept as given, with a warning when the matches disagree with them."""
     used = [i for i, f in enumerate(frames) if f is not None]
-    if not cfg.enabled or len(used) < 2:
+    if len(used) < 2:
         return cams
     other = [inverted_reading(c, mirror) for c in cams]
     wcams = [_work_camera(c, cfg.work_side) for c in cams]
@@ -168,8 +169,8 @@ def check_poses(cams: list[Camera], frames: Sequence[np.ndarray | None], mirror:
         print(f"note: {where}: the poses disagree with the images as world-to-camera matrices ({figures}) and "
               f"agree as camera-to-world ({inverted:.0%}): reading them as camera-to-world", file=sys.stderr)
         return other
-    looks_given, looks_inverted = (share_seeing(r, common_point(r)) for r in ([cams[i] for i in used],
-                                                                            [other[i] for i in used]))
+    looks_given, looks_inverted = (share_seeing(r, axes_meeting_point(r)) for r in ([cams[i] for i in used],
+                                                                                  [other[i] for i in used]))
     if by_layout and looks_given <= 1 / 3 and looks_inverted == 1.0:
         why = (f"too few feature matches to tell: {n}" if n < cfg.min_matches else
                f"the feature matches agree with neither reading: {given:.0%} and {inverted:.0%} of {n}")
@@ -186,23 +187,6 @@ def check_poses(cams: list[Camera], frames: Sequence[np.ndarray | None], mirror:
     return cams
 
 
-def common_point(cams: Sequence[Camera]) -> np.ndarray:
-    """The point nearest (least squares) to every camera's optical axis: where a rig looks."""
-    A, b = np.zeros((3, 3)), np.zeros(3)
-    for c in cams:
-        P = np.eye(3) - np.outer(c.forward, c.forward)  # distance to the axis through c.center
-        A += P
-        b += P @ c.center
-    return np.linalg.lstsq(A, b, rcond=None)[0]
-
-
-def share_seeing(cams: Sequence[Camera], p: np.ndarray) -> float:
-    """Share of ``cams`` with ``p`` in front of them and inside their image."""
-    seen = 0
-    for c in cams:
-        x = c.R @ p + c.t
-        if x[2] <= 0:
-            continue
-        u, v = (c.K @ (x / x[2]))[:2]
-        seen += 0 <= u <= c.width and 0 <= v <= c.height
-    return seen / len(cams)
+def share_seeing(cams: Sequence[Camera], p: np.ndarray | None) -> float:
+    """Share of ``cams`` with ``p`` in front of them and inside their image (0 without a point)."""
+    return 0.0 if p is None else float(np.mean([bool(project(c, p[None]).inside[0]) for c in cams]))

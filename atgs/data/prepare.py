@@ -269,7 +269,7 @@ def _mask_cameras(src: Source, test: list[str], sel: range) -> list[str]:
 
 
 def _note_init_points(src: Source) -> None:
-    """One line on what a capture's initial point cloud is used for (only hints; sources.init_point_hints)."""
+    """One line on what a capture's initial point cloud is used for (only hints; sources.point_hints)."""
     n = src.extra.get("init_points")
     if n is not None:
         hinted = sum(h is not None for h in src.extra["near_far"])

@@ -9,7 +9,7 @@ Supported (``--format``):
   ``ims/<cam>/<frame>.jpg``, optional foreground masks ``seg/<cam>/<frame>.png`` for any of the
   cameras (the published captures have them for the training cameras only); the cameras of
   ``test_meta.json`` are held out by default; ``init_pt_cld.npz``, when present, only hints the
-  cameras' depth ranges (:func:`init_point_hints`);
+  cameras' depth ranges (:func:`point_hints`);
 - ``videos``: plain ``*.mp4`` (one per static camera) with no poses -> SfM on the first frame;
 - ``images``: ``<cam>/<frame>.png`` folders with no poses -> SfM on the first frame.
 """
@@ -347,21 +347,13 @@ def _d3dgs_masks(root: Path, fns: list[str]) -> list[Path] | None:
 MIN_HINT_POINTS = 20  # a camera that sees fewer of the initial points gets no depth hint
 
 
-def init_point_hints(path: Path, cams: Sequence[Camera]) -> tuple[list[list[float] | None], int] | None:
-    """Per-camera (near, far) depth hints from a Dynamic 3D Gaussians ``init_pt_cld.npz`` (key
-    ``data``: (N, 7) rows of x y z, r g b in 0..1, segmentation), with its point count; None when
-    the file is absent. Only a hint: the stereo takes a camera's depth range from the measured
+def point_hints(xyz: np.ndarray, cams: Sequence[Camera]) -> list[list[float] | None]:
+    """Per-camera (near, far) depth hints from a capture's own points (Dynamic 3D Gaussians
+    ``init_pt_cld.npz``: key ``data``, (N, 7) rows of x y z, r g b in 0..1, segmentation): the
+    1st and 99th percentile depth of the points a camera sees, or None when it sees fewer than
+    MIN_HINT_POINTS. Only a hint: the stereo takes a camera's depth range from the measured
     points and trusts these to within a factor 10 (atgs.data.mvs.views.depth_ranges); the points
     never enter the scene (their positions were reconstructed elsewhere, and may be loose)."""
-    if not path.is_file():
-        return None
-    xyz = _read_init_points(path)
-    return point_hints(xyz, cams), len(xyz)
-
-
-def point_hints(xyz: np.ndarray, cams: Sequence[Camera]) -> list[list[float] | None]:
-    """Per camera, the 1st and 99th percentile depth of the points it sees, or None when it sees
-    fewer than MIN_HINT_POINTS."""
     hints = []
     for cam in cams:
         z = _visible_depths(cam, xyz)

@@ -36,18 +36,30 @@ def median_baseline(cams: Sequence[Camera]) -> float:
     return float(np.median(base[apart])) if apart.any() else 1.0
 
 
+def axes_meeting_point(cams: Sequence[Camera], min_conditioning: float = 1e-8) -> np.ndarray | None:
+    """The point nearest (least squares) to every camera's optical axis: where a rig looks (its
+    subject, for rings, domes and arcs); None when the axes are too near parallel for one point
+    (the smallest eigenvalue of the normal matrix at most ``min_conditioning`` of the largest)."""
+    if len(cams) < 2:
+        return None
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for cam in cams:
+        d = cam.forward / np.linalg.norm(cam.forward)
+        P = np.eye(3) - np.outer(d, d)  # distance to the axis through the camera's centre
+        A += P
+        b += P @ cam.center
+    w = np.linalg.eigvalsh(A)
+    return np.linalg.solve(A, b) if w[0] > min_conditioning * w[-1] else None
+
+
 def meeting_depth(cam: Camera, cams: Sequence[Camera]) -> float | None:
     """Depth along ``cam``'s axis of the point where the optical axes of ``cams`` meet (least
     squares), where a converging rig (ring, dome, arc) puts its subject; None for parallel
     front-facing rigs, or when that point is not well in front of ``cam``."""
-    c = np.array([x.center for x in cams])
-    d = np.array([x.forward for x in cams])
-    A = sum(np.eye(3) - np.outer(v, v) for v in d)
-    b = sum((np.eye(3) - np.outer(v, v)) @ p for v, p in zip(d, c))
-    w = np.linalg.eigvalsh(A)
-    if w[0] <= 0.05 * w[-1]:
+    p = axes_meeting_point(cams, min_conditioning=0.05)
+    if p is None:
         return None
-    t = float((np.linalg.solve(A, b) - cam.center) @ cam.forward)
+    t = float((p - cam.center) @ cam.forward)
     return t if t > 0.5 * median_baseline(cams) else None
 
 

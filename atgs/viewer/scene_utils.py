@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from atgs.cameras import Camera, look_at
+from atgs.geometry.seen_space import axes_meeting_point
 from atgs.rotations import matrix_slerp
 from atgs.viewer.errors import ViewerError
 from atgs.viewer.source import GaussianSource, decode_frame, scene_up
@@ -40,16 +41,9 @@ def resized(cam: Camera, size: tuple[int, int] | None) -> Camera:
 
 def look_center(cameras: list[Camera], fallback: np.ndarray | None = None) -> np.ndarray:
     """Least-squares point nearest to all optical axes (where a camera rig looks)."""
-    if len(cameras) >= 2:
-        A = np.zeros((3, 3))
-        b = np.zeros(3)
-        for c in cameras:
-            d = c.forward / np.linalg.norm(c.forward)
-            P = np.eye(3) - np.outer(d, d)
-            A += P
-            b += P @ c.center
-        if np.linalg.cond(A) < 1e8:
-            return np.linalg.solve(A, b)
+    meet = axes_meeting_point(cameras)
+    if meet is not None:
+        return meet
     if fallback is not None:
         return np.asarray(fallback, dtype=np.float64)
     if cameras:
