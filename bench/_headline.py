@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from _full_table import demo_figure
+from _full_table import demo_figure, real_rigs, rig_cameras
 from _table import Cells, Row, count, markdown_row, span
 
 PAGE = Path(__file__).resolve().parent.parent / "README.md"
@@ -40,22 +40,24 @@ def built_in_scene(r: dict) -> Cells:
                  day(r["date"]), f"{r['psnr']:.2f} dB PSNR, SSIM {r['ssim']:.3f}")
 
 
-def _cameras(row: dict) -> int:
-    """All cameras of a rig case, from "3 training + 1 held out, ..."."""
-    train, held = row["cameras"].split(",")[0].split(" training + ")
-    return int(train) + int(held.split()[0])
-
-
 def capture_rigs(r: dict) -> Cells:
     rows = {x["case"]: x for x in r["rows"]}
     dome, ring = rows["dome24"], rows["ring10-loose"]
-    real = [x for x in rows.values() if x.get("layout") == "real"]
-    return Cells(f"synthetic {_cameras(dome)}-camera dome, {_cameras(ring)}-camera ring with near/far 10x too wide, "
-                 f"real rigs of {span([_cameras(x) for x in real], '{:.0f}')} cameras; preset `{dome['preset']}`, "
-                 f"{dome['minutes']:g} min each on {dome['machine'].split(', ')[-1].replace('cores', 'CPU cores')}",
+    real = real_rigs(rows)
+    domes = [x for x in real if rig_cameras(x) >= 20]  # capture stages; the rest are sparse rigs
+    sparse = [x for x in real if x not in domes]
+    sizes = dict.fromkeys(rig_cameras(x) for x in domes)  # one dome may be run at several resolutions
+    real_domes = "".join(f", real {n}-camera dome" for n in sizes)
+    dome_figures = "".join(f"; real {n}-camera dome " + ", ".join(
+        f"{x['psnr']:.2f} dB at {x['cameras'].split(', ')[1]}" for x in domes if rig_cameras(x) == n) for n in sizes)
+    return Cells(f"synthetic {rig_cameras(dome)}-camera dome, {rig_cameras(ring)}-camera ring with near/far 10x "
+                 f"too wide"
+                 f"{real_domes}, real rigs of {span([rig_cameras(x) for x in sparse], '{:.0f}')} cameras; preset "
+                 f"`{dome['preset']}`, {dome['minutes']:g} min each on "
+                 f"{dome['machine'].split(', ')[-1].replace('cores', 'CPU cores')}",
                  day(min(x["date"] for x in rows.values())),
-                 f"dome {dome['psnr']:.2f} dB, ring {ring['psnr']:.2f} dB; real sparse rigs "
-                 f"{span([x['psnr'] for x in real], '{:.2f}')} dB")
+                 f"dome {dome['psnr']:.2f} dB, ring {ring['psnr']:.2f} dB{dome_figures}; real sparse rigs "
+                 f"{span([x['psnr'] for x in sparse], '{:.2f}')} dB")
 
 
 def cpu_training(r: dict) -> Cells:
