@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from _full_table import demo_figure, real_rigs, rig_cameras
+from _full_table import STAGE_CAMERAS, demo_figure, real_rigs, rig_cameras
 from _table import Cells, Row, count, markdown_row, span
 
 PAGE = Path(__file__).resolve().parent.parent / "README.md"
@@ -44,7 +44,7 @@ def capture_rigs(r: dict) -> Cells:
     rows = {x["case"]: x for x in r["rows"]}
     dome, ring = rows["dome24"], rows["ring10-loose"]
     real = real_rigs(rows)
-    domes = [x for x in real if rig_cameras(x) >= 20]  # capture stages; the rest are sparse rigs
+    domes = [x for x in real if rig_cameras(x) >= STAGE_CAMERAS]  # the rest are sparse rigs
     sparse = [x for x in real if x not in domes]
     sizes = dict.fromkeys(rig_cameras(x) for x in domes)  # one dome may be run at several resolutions
     real_domes = "".join(f", real {n}-camera dome" for n in sizes)

@@ -9,8 +9,7 @@ that stand in front of the depth that camera measured along the ray through thei
 the opacity they accumulate on pixels whose measured depth lies behind them is averaged over the
 image: exactly the per-ray free-space term of training (atgs.train.losses.ray_free_space_loss,
 atgs/geometry/ray_free_space.py), read from a finished model, whether or not it trained with the
-term. 0 means no training ray's measured depth is contradicted by fog in front of it. Also
-given: the share of all Gaussians that stand in front of a measured depth in some view.
+term. 0 means no training ray's measured depth is contradicted by fog in front of it.
 
 Held-out cameras are not used: the measured depths are the training cameras' own. Results:
 bench/results/seen_through.json (merged by name) and the bench:seen_through table in
@@ -50,14 +49,17 @@ class SeenThroughBench:
 
 def seen_through(run: Path, data: Path | None) -> dict:
     from atgs.checkpoint import model_from_checkpoint, read_checkpoint
+    from atgs.cli.evaluate import checkpoint_data_dir
     from atgs.data.scene import PreparedScene
-    from atgs.model.anchors import STATIC
-    from atgs.train.losses import ray_free_space_loss
+    from atgs.train.losses import per_keyframe_gaussians, ray_free_space_loss
     from atgs.train.scene_setup import measured_depths_of
 
     ckpt = read_checkpoint(run / "ckpt.pt")
     model = model_from_checkpoint(ckpt, run / "ckpt.pt")
-    scene = PreparedScene.load(data or Path(ckpt["data_dir"]))
+    data = data or checkpoint_data_dir(ckpt)
+    if data is None:
+        raise SystemExit(f"{run}/ckpt.pt records no prepared scene; give --data")
+    scene = PreparedScene.load(data)
     train = scene.train_indices
     cams = [scene.cameras[i] for i in train]
     t0 = time.perf_counter()
@@ -69,7 +71,7 @@ def seen_through(run: Path, data: Path | None) -> dict:
     with torch.no_grad():
         for f in frames:
             dec = model.decode_frame(f, track=False)
-            moving = model.anchor_keyframe.index_select(0, dec.anchor_ids) != STATIC
+            moving = per_keyframe_gaussians(model.anchor_keyframe, dec.anchor_ids)
             for slot, cam in enumerate(cams):
                 v = ray_free_space_loss(dec.gaussians, moving, measured, slot, f, cam, near=model.near)
                 per_camera[cam.name].append(0.0 if v is None else float(v))

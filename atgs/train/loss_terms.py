@@ -13,9 +13,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from atgs.model.anchors import STATIC
 from atgs.train.losses import (depth_distortion, depth_smoothness, free_space_loss, image_loss, offset_loss,
-                               ray_free_space_loss, volume_loss)
+                               per_keyframe_gaussians, ray_free_space_loss, volume_loss)
 
 if TYPE_CHECKING:
     from atgs.cameras import Camera
@@ -83,7 +82,7 @@ def _ray_free_space(i: LossInputs) -> "torch.Tensor | None":
     if i.measured is None or i.view is None:
         return None
     v = i.view
-    moving = i.model.anchor_keyframe.index_select(0, i.dec.anchor_ids) != STATIC
+    moving = per_keyframe_gaussians(i.model.anchor_keyframe, i.dec.anchor_ids)
     return ray_free_space_loss(v.shown, moving, i.measured, v.slot, v.frame, v.camera, i.cfg.render_backend,
                                **v.render)
 

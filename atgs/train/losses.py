@@ -14,6 +14,7 @@ import torch
 
 from atgs.eval.metrics import psnr as _psnr
 from atgs.eval.metrics import ssim
+from atgs.model.anchors import STATIC
 from atgs.train.config import VolumeReduction
 
 if TYPE_CHECKING:
@@ -114,6 +115,12 @@ def free_space_loss(opacities: torch.Tensor, means: torch.Tensor, free: "FreeSpa
         return opacities.sum()
     empty, _ = free.test(means.detach())
     return (opacities * empty.to(opacities.dtype)).mean()
+
+
+def per_keyframe_gaussians(anchor_keyframe: torch.Tensor, anchor_ids: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: which decoded Gaussians (by their anchor, ``anchor_ids``) belong to per-keyframe
+    anchors rather than always-active ones: the ``moving`` of :func:`ray_free_space_loss`."""
+    return anchor_keyframe.index_select(0, anchor_ids) != STATIC
 
 
 def ray_free_space_loss(gaussians: "Gaussians", moving: torch.Tensor, measured: "MeasuredDepths", slot: int,
